@@ -1,0 +1,3 @@
+from services.imageserver.main import main
+
+raise SystemExit(main())

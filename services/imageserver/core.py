@@ -1,0 +1,71 @@
+"""The image server's core: pace a source at a frame rate and number its frames.
+
+No sockets here: :meth:`ImageServerCore.due` tells the main loop when the next frame
+is due and :meth:`ImageServerCore.next_frame` hands it the frame to publish.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from services.imageserver.sources import AcquiredImage, FrameSource
+
+
+@dataclass
+class Pacer:
+    """Deadlines at a fixed rate on the monotonic clock, without drift.
+
+    A consumer that falls more than one period behind (a slow disk, a stall) resumes
+    from now rather than bursting frames to catch up.
+    """
+
+    fps: float
+    next_due: float | None = None
+
+    def seconds_until_due(self, now: float) -> float:
+        if self.next_due is None:
+            return 0.0
+        return max(0.0, self.next_due - now)
+
+    def advance(self, now: float) -> None:
+        period = 1.0 / self.fps
+        if self.next_due is None or now - self.next_due > period:
+            self.next_due = now + period
+        else:
+            self.next_due += period
+
+
+class ImageServerCore:
+    def __init__(self, source: FrameSource, *, fps: float):
+        if fps <= 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        self.source = source
+        self.pacer = Pacer(fps)
+        self.seq = 0
+        self.exhausted = False
+
+    def set_fps(self, fps: float) -> None:
+        if not 0 < fps <= 10_000:
+            raise ValueError(f"fps must be in (0, 10000], got {fps}")
+        self.pacer = Pacer(fps, self.pacer.next_due)
+
+    def seconds_until_due(self, now: float | None = None) -> float | None:
+        """Seconds until the next frame is due; None once the source is exhausted."""
+        if self.exhausted:
+            return None
+        return self.pacer.seconds_until_due(time.monotonic() if now is None else now)
+
+    def next_frame(self, now: float | None = None) -> tuple[int, AcquiredImage] | None:
+        """The (sequence number, image) to publish now, or None if none is due."""
+        now = time.monotonic() if now is None else now
+        if self.exhausted or self.pacer.seconds_until_due(now) > 0:
+            return None
+        image = self.source.acquire()
+        if image is None:
+            self.exhausted = True
+            return None
+        self.pacer.advance(now)
+        seq = self.seq
+        self.seq += 1
+        return seq, image

@@ -1,0 +1,114 @@
+"""Image server process: source -> core -> PUB socket; commands on the control socket.
+
+Run it with ``semservo service imageserver [options]``; options override the
+``SEMSERVO_IMAGESERVER__*`` settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from semservo.config import Settings, connect
+from semservo.logs import configure
+from semservo.service import ServiceRuntime
+from semservo.transport import BadRequest, FramePublisher
+from services.imageserver.core import ImageServerCore
+from services.imageserver.sources import ReplaySource
+
+log = logging.getLogger("imageserver")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="semservo service imageserver",
+        description="Publish SEM frames over ZeroMQ PUB/SUB from a source (replay of a folder of PNG/TIFF frames).",
+    )
+    parser.add_argument("--replay-dir", type=Path, help="folder of PNG/TIFF frames, replayed in name order")
+    parser.add_argument("--glob", help="replay only files matching this pattern, e.g. 'frame*'")
+    parser.add_argument("--fps", type=float, help="frames per second")
+    loop = parser.add_mutually_exclusive_group()
+    loop.add_argument("--loop", dest="loop", action="store_true", default=None, help="replay again at the end (default)")
+    loop.add_argument("--once", dest="loop", action="store_false", help="replay the folder once, then idle")
+    parser.add_argument("--magnification", type=float, help="magnification G, overriding the files")
+    parser.add_argument("--pixel-size-nm", type=float, help="pixel size on the sample; default P = D / G")
+    parser.add_argument("--dwell-ns", type=float, help="dwell time per pixel, overriding the files")
+    return parser
+
+
+def make_source(settings: Settings, args: argparse.Namespace) -> ReplaySource:
+    config = settings.imageserver
+    return ReplaySource(
+        args.replay_dir or config.replay_dir,
+        pattern=args.glob or config.replay_glob,
+        loop=config.loop if args.loop is None else args.loop,
+        magnification=args.magnification,
+        pixel_size_nm=args.pixel_size_nm or config.pixel_size_nm,
+        dwell_ns=args.dwell_ns,
+        default_magnification=config.magnification,
+        default_dwell_ns=config.dwell_ns,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    settings = Settings()
+    configure(settings.log_level)
+    config = settings.imageserver
+
+    source = make_source(settings, args)
+    core = ImageServerCore(source, fps=args.fps or config.fps)
+    runtime = ServiceRuntime("imageserver", settings, settings.bind(config.control_port))
+    publisher = FramePublisher(settings.bind(config.frames_port), context=runtime.context)
+    log.info("publishing %s on %s at %.1f fps", source.describe(), publisher.endpoint, core.pacer.fps)
+
+    def info(_args: dict) -> dict:
+        return {
+            **source.describe(),
+            "fps": core.pacer.fps,
+            "frames_endpoint": connect(config.host, config.frames_port),
+            "published": publisher.sent,
+            "next_seq": core.seq,
+        }
+
+    def set_fps(args: dict) -> dict:
+        try:
+            core.set_fps(float(args.get("fps")))
+        except (TypeError, ValueError) as error:
+            raise BadRequest(f"fps: {error}") from None
+        return {"fps": core.pacer.fps}
+
+    runtime.control.register("info", info)
+    runtime.control.register("set_fps", set_fps)
+    runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq}
+
+    def step() -> float | None:
+        due = core.next_frame()
+        if due is not None:
+            seq, image = due
+            publisher.publish(
+                image.pixels,
+                seq=seq,
+                acquired_at_ns=image.acquired_at_ns,
+                pixel_size_nm=image.pixel_size_nm,
+                magnification=image.magnification,
+                dwell_ns=image.dwell_ns,
+                source=source.name,
+                label=image.label,
+            )
+            runtime.counters["frames_published"] += 1
+        if core.exhausted and runtime.state == "running":
+            runtime.state = "finished"
+            log.info("replay finished after %d frames", core.seq)
+        return core.seconds_until_due()
+
+    try:
+        return runtime.run(step)
+    finally:
+        publisher.close()
+        runtime.context.term()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,120 @@
+"""Frame sources. A source yields acquired images with their metadata; the image
+server core paces, numbers and stamps them.
+
+Every source has the same small interface (:class:`FrameSource`), so a vendor adapter
+or the simulated SEM plugs in where ``replay`` sits.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from semservo.config import pixel_size_nm
+from semservo.imagefiles import ImageFileError, list_frames, read_image
+
+
+@dataclass(frozen=True)
+class AcquiredImage:
+    """One image as a source delivers it."""
+
+    pixels: np.ndarray
+    acquired_at_ns: int
+    pixel_size_nm: float
+    magnification: float
+    dwell_ns: float
+    label: str | None = None
+
+
+class FrameSource(Protocol):
+    name: str
+
+    def acquire(self) -> AcquiredImage | None:
+        """The next image, or None when the source has no more."""
+
+    def describe(self) -> dict: ...
+
+
+class ReplaySource:
+    """Replays a folder of PNG or TIFF frames (8 or 16 bit) in name order.
+
+    Metadata comes from the command line or settings when given (``magnification``,
+    ``pixel_size_nm``, ``dwell_ns`` not None), else from each file, else from the
+    ``default_*`` values. Every file is read and checked when the source is made, so a
+    bad folder fails at start with the file named, not halfway through a run.
+    """
+
+    name = "replay"
+
+    def __init__(
+        self,
+        folder: str | Path,
+        *,
+        pattern: str = "*",
+        loop: bool = True,
+        magnification: float | None = None,
+        pixel_size_nm: float | None = None,
+        dwell_ns: float | None = None,
+        default_magnification: float = 1000.0,
+        default_dwell_ns: float = 720.0,
+    ):
+        self.folder = Path(folder)
+        self.loop = loop
+        self.paths = list_frames(self.folder, pattern)
+        if not self.paths:
+            raise FileNotFoundError(f"no PNG or TIFF frames matching {pattern!r} in {self.folder}")
+        self.images: list[tuple[np.ndarray, dict[str, float]]] = []
+        for path in self.paths:
+            pixels, metadata = read_image(path)
+            pixels.setflags(write=False)  # published zero-copy: nobody may change it
+            self.images.append((pixels, metadata))
+        first = self.images[0][0]
+        for path, (pixels, _) in zip(self.paths, self.images):
+            if pixels.shape != first.shape or pixels.dtype != first.dtype:
+                raise ImageFileError(
+                    f"{path}: {pixels.shape} {pixels.dtype} differs from {self.paths[0].name}'s "
+                    f"{first.shape} {first.dtype}; a replay folder holds one kind of frame"
+                )
+        self.overrides = {
+            key: value
+            for key, value in (("magnification", magnification), ("pixel_size_nm", pixel_size_nm), ("dwell_ns", dwell_ns))
+            if value is not None
+        }
+        self.defaults = {"magnification": default_magnification, "dwell_ns": default_dwell_ns}
+        self.position = 0
+        self.passes = 0
+
+    def _metadata(self, from_file: dict[str, float], width: int) -> dict[str, float]:
+        merged = {**self.defaults, **from_file, **self.overrides}
+        if "pixel_size_nm" not in merged or ("magnification" in self.overrides and "pixel_size_nm" not in self.overrides):
+            merged["pixel_size_nm"] = pixel_size_nm(merged["magnification"], width)
+        return merged
+
+    def acquire(self) -> AcquiredImage | None:
+        if self.position >= len(self.images):
+            if not self.loop:
+                return None
+            self.position = 0
+            self.passes += 1
+        pixels, from_file = self.images[self.position]
+        path = self.paths[self.position]
+        self.position += 1
+        metadata = self._metadata(from_file, pixels.shape[1])
+        return AcquiredImage(pixels=pixels, acquired_at_ns=time.time_ns(), label=path.name, **metadata)
+
+    def describe(self) -> dict:
+        pixels = self.images[0][0]
+        return {
+            "source": self.name,
+            "folder": str(self.folder),
+            "frames": len(self.paths),
+            "shape": list(pixels.shape),
+            "dtype": str(pixels.dtype),
+            "loop": self.loop,
+            "position": self.position,
+            "passes": self.passes,
+        }

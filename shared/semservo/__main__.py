@@ -1,0 +1,5 @@
+"""``python -m semservo`` is the ``semservo`` command."""
+
+from semservo.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,95 @@
+"""One settings model for every process.
+
+Every address, port and tunable comes from :class:`Settings`: environment variables with
+the ``SEMSERVO_`` prefix, nested fields joined with ``__`` (for example
+``SEMSERVO_IMAGESERVER__FPS=5``). Defaults bind and connect on loopback, so the same code
+runs as processes on one PC; on two PCs or in containers only ``bind_host`` and the
+``*.host`` fields change (see ``deploy/two-pc.md``).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, Field, PositiveFloat
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+#: Screen size constant of the paper's SEM: P = D / G (eq. 43) with D = 212.3 um for a
+#: 512-pixel-wide image, G the magnification.
+SCREEN_WIDTH_UM = 212.3
+SCREEN_WIDTH_PX = 512
+
+RECORDED_RUN_NAME = "sem-run-2013"
+
+
+def pixel_size_nm(magnification: float, width_px: int = SCREEN_WIDTH_PX) -> float:
+    """Pixel size on the sample in nanometres, P = D / G (paper eq. 43).
+
+    D is the screen width (212.3 um for 512 pixels on the paper's system); an image
+    that is ``width_px`` wide spreads the same field over more or fewer pixels.
+    """
+    if magnification <= 0:
+        raise ValueError(f"magnification must be positive, got {magnification}")
+    return SCREEN_WIDTH_UM * 1e3 / magnification * SCREEN_WIDTH_PX / width_px
+
+
+def find_recorded_run() -> Path:
+    """Where the real 2013 recording lies: ``<repo>/../shared/data/sem-run-2013``.
+
+    Looked up beside the checkout (the workplace keeps ``shared/`` next to it) and,
+    failing that, beside the current directory. It is never copied into the repository.
+    """
+    here = Path(__file__).resolve()
+    candidates = [parent.parent / "shared" / "data" / RECORDED_RUN_NAME for parent in here.parents]
+    cwd = Path.cwd().resolve()
+    candidates += [parent.parent / "shared" / "data" / RECORDED_RUN_NAME for parent in (cwd, *cwd.parents)]
+    for candidate in candidates:
+        if (candidate / "reference.png").is_file():
+            return candidate
+    # Not found: return the conventional place so error messages name it.
+    repo = here.parents[2]
+    return repo.parent / "shared" / "data" / RECORDED_RUN_NAME
+
+
+class ImageServerSettings(BaseModel):
+    """The image server: where it publishes frames and which source it reads."""
+
+    host: str = Field("127.0.0.1", description="address other services connect to")
+    frames_port: int = Field(5550, ge=1, le=65535, description="PUB socket for frames")
+    control_port: int = Field(5551, ge=1, le=65535, description="REP socket for commands and health")
+    source: Literal["replay"] = "replay"
+    replay_dir: Path = Field(default_factory=find_recorded_run, description="folder of PNG/TIFF frames")
+    replay_glob: str = Field("*", description="which files of the folder to replay, e.g. 'frame*'")
+    fps: PositiveFloat = Field(10.0, le=10_000, description="frames published per second")
+    loop: bool = Field(True, description="replay again from the first frame at the end")
+    magnification: PositiveFloat = Field(1000.0, description="used when a file does not say")
+    pixel_size_nm: PositiveFloat | None = Field(None, description="default: P = D / G (eq. 43)")
+    dwell_ns: PositiveFloat = Field(720.0, description="dwell time per pixel, when a file does not say")
+
+
+class Settings(BaseSettings):
+    """Everything a semservo process needs to know about its place in the system."""
+
+    model_config = SettingsConfigDict(env_prefix="SEMSERVO_", env_nested_delimiter="__", extra="ignore")
+
+    bind_host: str = Field("127.0.0.1", description="interface services bind to (0.0.0.0 in containers)")
+    max_message_bytes: int = Field(64 * 2**20, ge=1024, description="larger messages are dropped and counted")
+    request_timeout_s: PositiveFloat = Field(1.0, description="lazy-pirate timeout per try")
+    request_retries: int = Field(3, ge=1, description="lazy-pirate tries before a service counts as down")
+    log_level: str = "INFO"
+    imageserver: ImageServerSettings = Field(default_factory=ImageServerSettings)
+
+    def bind(self, port: int) -> str:
+        return f"tcp://{self.bind_host}:{port}"
+
+
+def connect(host: str, port: int) -> str:
+    """ZeroMQ address a client connects to."""
+    return f"tcp://{host}:{port}"
+
+
+@lru_cache(maxsize=1)
+def settings_from_environment() -> Settings:
+    return Settings()

@@ -1,0 +1,224 @@
+"""``semservo up``: start every service as a child process and watch over them.
+
+Small on purpose. Process-supervision libraries were weighed (supervisor, circus,
+honcho): supervisor and circus are daemons with their own config files and control
+sockets, honcho runs a Procfile but neither waits for health nor restarts. What is
+needed here is a few dozen lines on :mod:`subprocess`: spawn, prefix logs, ask each
+service's control socket for ``health`` until it answers, report a death at once,
+optionally restart with back-off, and stop in reverse order with SIGTERM then SIGKILL.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable, TextIO
+
+from semservo.config import Settings, connect
+from semservo.messages import Health
+from semservo.transport import ControlClient, ServiceUnavailable
+
+
+@dataclass(frozen=True)
+class ServiceSpec:
+    """A service the launcher knows: its module and where it listens."""
+
+    name: str
+    module: str
+    control: Callable[[Settings], str]
+    endpoints: Callable[[Settings], dict[str, str]]
+    summary: str
+
+
+#: Every service that exists, in start order. A service is listed here only once it is
+#: written: never a placeholder.
+SERVICES: tuple[ServiceSpec, ...] = (
+    ServiceSpec(
+        name="imageserver",
+        module="services.imageserver.main",
+        control=lambda s: connect(s.imageserver.host, s.imageserver.control_port),
+        endpoints=lambda s: {
+            "frames (PUB)": connect(s.imageserver.host, s.imageserver.frames_port),
+            "control (REP)": connect(s.imageserver.host, s.imageserver.control_port),
+        },
+        summary="SEM frames from a replayed recording",
+    ),
+)
+
+
+def spec(name: str) -> ServiceSpec:
+    for candidate in SERVICES:
+        if candidate.name == name:
+            return candidate
+    raise KeyError(f"no service {name!r}; services: {', '.join(s.name for s in SERVICES)}")
+
+
+class LaunchError(RuntimeError):
+    pass
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    # Linux: if the launcher is killed outright, its children get SIGTERM too.
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    spec: ServiceSpec
+    process: subprocess.Popen
+    started: float
+    restarts: int = 0
+    reported_exit: bool = False
+    reader: threading.Thread | None = field(default=None, repr=False)
+
+
+class Launcher:
+    def __init__(
+        self,
+        settings: Settings,
+        specs: tuple[ServiceSpec, ...] = SERVICES,
+        *,
+        service_args: dict[str, list[str]] | None = None,
+        restart: bool = False,
+        max_restarts: int = 5,
+        out: TextIO = sys.stdout,
+        color: bool | None = None,
+    ):
+        self.settings = settings
+        self.specs = specs
+        self.service_args = service_args or {}
+        self.restart = restart
+        self.max_restarts = max_restarts
+        self.out = out
+        self.color = out.isatty() if color is None else color
+        self.children: dict[str, Child] = {}
+        self._print_lock = threading.Lock()
+
+    # -- output ---------------------------------------------------------------
+    def say(self, text: str, *, name: str = "semservo") -> None:
+        width = max(len(s.name) for s in self.specs) if self.specs else 8
+        prefix = f"{name:<{max(width, 8)}} | "
+        if self.color:
+            palette = ("36", "33", "35", "32", "34", "31")
+            names = [s.name for s in self.specs]
+            code = palette[names.index(name) % len(palette)] if name in names else "1"
+            prefix = f"\x1b[{code}m{prefix}\x1b[0m"
+        with self._print_lock:
+            for line in text.splitlines() or [""]:
+                self.out.write(prefix + line + "\n")
+            self.out.flush()
+
+    def _stream(self, child: Child) -> None:
+        for line in child.process.stdout:
+            self.say(line.rstrip("\n"), name=child.spec.name)
+
+    # -- lifecycle ------------------------------------------------------------
+    def _spawn(self, service: ServiceSpec) -> Child:
+        command = [sys.executable, "-m", "semservo", "service", service.name, *self.service_args.get(service.name, [])]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        process = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            text=True,
+            env=env,
+            start_new_session=True,  # Ctrl-C reaches the launcher, which stops children in order
+            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+        )
+        child = Child(spec=service, process=process, started=time.monotonic())
+        child.reader = threading.Thread(target=self._stream, args=(child,), daemon=True, name=f"log-{service.name}")
+        child.reader.start()
+        return child
+
+    def health(self, name: str, *, timeout_s: float = 0.5, retries: int = 1) -> Health:
+        client = ControlClient(spec(name).control(self.settings), timeout_s=timeout_s, retries=retries)
+        try:
+            return Health.model_validate(client.request("health"))
+        finally:
+            client.close()
+
+    def _wait_healthy(self, child: Child, deadline: float) -> Health:
+        while True:
+            code = child.process.poll()
+            if code is not None:
+                raise LaunchError(f"{child.spec.name} exited with code {code} while starting (its log is above)")
+            try:
+                health = self.health(child.spec.name, timeout_s=0.3)
+                if health.healthy:
+                    return health
+            except ServiceUnavailable:
+                pass
+            if time.monotonic() > deadline:
+                raise LaunchError(f"{child.spec.name} did not report healthy in time")
+            time.sleep(0.05)
+
+    def start(self, timeout_s: float = 30.0) -> None:
+        """Start every service and wait until each reports healthy."""
+        try:
+            for service in self.specs:
+                child = self._spawn(service)
+                self.children[service.name] = child
+                health = self._wait_healthy(child, time.monotonic() + timeout_s)
+                self.say(f"{service.name} healthy (pid {health.pid}, {health.state})")
+        except BaseException:
+            self.stop()
+            raise
+
+    def table(self) -> str:
+        rows = [("service", "pid", "what", "where")]
+        for name, child in self.children.items():
+            for label, endpoint in child.spec.endpoints(self.settings).items():
+                rows.append((name, str(child.process.pid), label, endpoint))
+        widths = [max(len(row[i]) for row in rows) for i in range(4)]
+        return "\n".join("  ".join(cell.ljust(width) for cell, width in zip(row, widths)) for row in rows)
+
+    def supervise(self) -> list[str]:
+        """Look at every child once: report deaths at once, restart when asked.
+
+        Returns the names of services that are down now.
+        """
+        down = []
+        for name, child in self.children.items():
+            code = child.process.poll()
+            if code is None:
+                continue
+            if not child.reported_exit:
+                self.say(f"!! {name} died (exit code {code}) after {time.monotonic() - child.started:.1f} s")
+                child.reported_exit = True
+            if self.restart and child.restarts < self.max_restarts:
+                backoff = min(5.0, 0.5 * 2**child.restarts)
+                if time.monotonic() - child.started >= backoff:
+                    replacement = self._spawn(child.spec)
+                    replacement.restarts = child.restarts + 1
+                    self.children[name] = replacement
+                    self.say(f"restarting {name} (restart {replacement.restarts} of {self.max_restarts})")
+                    continue
+            down.append(name)
+        return down
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """SIGTERM every child in reverse start order; SIGKILL what is left."""
+        for child in reversed(list(self.children.values())):
+            if child.process.poll() is None:
+                child.process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for name, child in reversed(list(self.children.items())):
+            try:
+                code = child.process.wait(max(0.0, deadline - time.monotonic()))
+                self.say(f"{name} stopped (exit code {code})")
+            except subprocess.TimeoutExpired:
+                child.process.kill()
+                child.process.wait()
+                self.say(f"{name} did not stop in {timeout_s:.0f} s; killed")
+            if child.reader is not None:
+                child.reader.join(timeout=1.0)

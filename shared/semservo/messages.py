@@ -1,0 +1,106 @@
+"""Typed, versioned messages that cross process boundaries (pydantic v2).
+
+Two kinds of traffic:
+
+* **Frames** travel PUB/SUB as three-part ZeroMQ messages ``[topic, header, pixels]``
+  (see :mod:`semservo.wire`); :class:`FrameHeader` is the JSON header.
+* **Commands** travel request-reply as one JSON part: a :class:`Request` answered by a
+  :class:`Reply`. Every service answers the ``health`` command with a :class:`Health`.
+
+Every message carries ``v``, the wire version; a receiver drops any other version.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
+
+WIRE_VERSION = 1
+
+#: Pixel types a frame may carry, little-endian on the wire.
+PixelType = Literal["uint8", "uint16", "float32"]
+PIXEL_DTYPES: dict[str, np.dtype] = {
+    "uint8": np.dtype("u1"),
+    "uint16": np.dtype("<u2"),
+    "float32": np.dtype("<f4"),
+}
+
+FRAME_TOPIC = b"frame"
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    v: Literal[1] = WIRE_VERSION
+
+
+class FrameHeader(_Message):
+    """What a frame says about itself. The pixels follow as a separate raw part."""
+
+    seq: int = Field(ge=0, description="sequence number, +1 per published frame")
+    acquired_at_ns: int = Field(ge=0, description="Unix time (ns) the scan finished")
+    published_at_ns: int = Field(ge=0, description="Unix time (ns) the frame was handed to the socket")
+    shape: tuple[PositiveInt, PositiveInt] = Field(description="(rows, columns)")
+    dtype: PixelType
+    pixel_size_nm: PositiveFloat = Field(description="pixel size on the sample, P = D / G (eq. 43)")
+    magnification: PositiveFloat
+    dwell_ns: PositiveFloat = Field(description="dwell time per pixel")
+    source: str = Field(min_length=1, max_length=200, description="which source made it, e.g. 'replay'")
+    label: str | None = Field(None, max_length=500, description="source-specific name, e.g. the file")
+
+    @property
+    def nbytes(self) -> int:
+        return self.shape[0] * self.shape[1] * PIXEL_DTYPES[self.dtype].itemsize
+
+
+class Request(_Message):
+    """A command to a service's control socket."""
+
+    command: str = Field(min_length=1, max_length=64)
+    args: dict[str, Any] = Field(default_factory=dict)
+
+
+class ErrorBody(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    code: str
+    message: str
+
+
+class Reply(_Message):
+    """The answer to a :class:`Request`: a result, or an error with a code and words."""
+
+    ok: bool
+    result: dict[str, Any] | None = None
+    error: ErrorBody | None = None
+
+    @classmethod
+    def success(cls, result: dict[str, Any] | None = None) -> "Reply":
+        return cls(ok=True, result=result or {})
+
+    @classmethod
+    def failure(cls, code: str, message: str) -> "Reply":
+        return cls(ok=False, error=ErrorBody(code=code, message=message))
+
+
+ServiceState = Literal["starting", "running", "idle", "finished", "degraded", "stopping"]
+
+
+class Health(BaseModel):
+    """What every service reports on its control socket."""
+
+    model_config = ConfigDict(frozen=True)
+
+    service: str
+    state: ServiceState
+    pid: int
+    uptime_s: float
+    counters: dict[str, int]
+    last_error: str | None = None
+    details: dict[str, Any] = Field(default_factory=dict)
+
+    @property
+    def healthy(self) -> bool:
+        return self.state in ("running", "idle", "finished")

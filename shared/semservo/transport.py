@@ -1,0 +1,281 @@
+"""ZeroMQ patterns, as the zguide describes them, in one place.
+
+* :class:`FramePublisher` / :class:`FrameSubscriber`: PUB/SUB frames, multipart and
+  zero-copy. ``ZMQ_CONFLATE`` cannot give "latest frame only" here because it keeps one
+  *part* of a multipart message. A latest-only subscriber instead drains its queue on
+  every read, keeping the newest valid frame and counting the stale ones it skipped.
+  Its queue is short but not minimal: when a PUB/SUB queue is full it is the *newest*
+  message that is dropped, so a queue of 1 or 2 would hand out old frames after any
+  hiccup; 8 frames absorb a stalled consumer and draining keeps it current.
+* :class:`ControlClient`: request-reply with a timeout and retries (the lazy-pirate
+  pattern): a REQ socket that gets no answer in time is closed, reopened and tried
+  again, and after the last try :class:`ServiceUnavailable` is raised. Nothing blocks
+  forever.
+* :class:`ControlServer`: the REP side; it checks every request and always replies.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from typing import Any, Callable
+
+import numpy as np
+import pydantic
+import zmq
+
+from semservo.messages import FRAME_TOPIC, Reply, Request
+from semservo.wire import Frame, WireError, decode_frame, encode_frame, frame_header
+
+log = logging.getLogger(__name__)
+
+#: The transport-level cap: ZeroMQ disconnects a peer that sends a part larger than
+#: this multiple of the application limit, so nothing huge is ever allocated. Messages
+#: between the two limits are received, dropped and counted as ``oversized``.
+TRANSPORT_CAP_FACTOR = 4
+
+
+def _limit_socket(socket: zmq.Socket, max_message_bytes: int) -> None:
+    socket.setsockopt(zmq.MAXMSGSIZE, TRANSPORT_CAP_FACTOR * max_message_bytes)
+    socket.setsockopt(zmq.LINGER, 0)
+
+
+class FramePublisher:
+    """PUB socket that sends frames. Slow subscribers lose frames, never stall us."""
+
+    def __init__(self, endpoint: str, *, context: zmq.Context | None = None, send_hwm: int = 8):
+        self.context = context or zmq.Context.instance()
+        self.socket = self.context.socket(zmq.PUB)
+        self.socket.setsockopt(zmq.SNDHWM, send_hwm)
+        self.socket.setsockopt(zmq.LINGER, 0)
+        self.socket.bind(endpoint)
+        self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.sent = 0
+
+    def publish(self, pixels: np.ndarray, *, seq: int, acquired_at_ns: int, **metadata) -> None:
+        """Send one frame; ``metadata`` fills the rest of :class:`FrameHeader`."""
+        header = frame_header(pixels, seq=seq, acquired_at_ns=acquired_at_ns, **metadata)
+        self.socket.send_multipart(encode_frame(header, pixels), copy=False)
+        self.sent += 1
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+
+class FrameSubscriber:
+    """SUB socket that receives and checks frames.
+
+    ``latest_only=True`` (the default) is for consumers that work on the newest frame:
+    every :meth:`receive` drains what queued up and returns the newest valid frame.
+    ``latest_only=False`` returns every frame in order (for recorders and benchmarks).
+    ``counters`` gets ``frames_received``, ``frames_stale`` and ``dropped_<reason>``.
+    """
+
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        max_message_bytes: int,
+        latest_only: bool = True,
+        context: zmq.Context | None = None,
+        counters: Counter | None = None,
+        receive_hwm: int | None = None,
+    ):
+        self.context = context or zmq.Context.instance()
+        self.max_message_bytes = max_message_bytes
+        self.latest_only = latest_only
+        self.counters = counters if counters is not None else Counter()
+        self.last_error: str | None = None
+        self.socket = self.context.socket(zmq.SUB)
+        self.socket.setsockopt(zmq.RCVHWM, receive_hwm or (8 if latest_only else 1000))
+        _limit_socket(self.socket, max_message_bytes)
+        self.socket.setsockopt(zmq.SUBSCRIBE, FRAME_TOPIC)
+        self.socket.connect(endpoint)
+
+    def _decode(self, parts) -> Frame | None:
+        try:
+            frame = decode_frame(parts, max_bytes=self.max_message_bytes)
+        except WireError as error:
+            self.counters[f"dropped_{error.reason}"] += 1
+            self.last_error = str(error)
+            log.warning("dropped a message: %s", error)
+            return None
+        except Exception as error:  # a message no check foresaw must not stop the receiver
+            self.counters["dropped_invalid"] += 1
+            self.last_error = f"invalid: {type(error).__name__}: {error}"
+            log.exception("dropped a message no check foresaw")
+            return None
+        self.counters["frames_received"] += 1
+        return frame
+
+    def receive(self, timeout_s: float | None = None) -> Frame | None:
+        """The next frame (newest if ``latest_only``), or None after ``timeout_s``.
+
+        ``timeout_s=None`` waits until a frame arrives.
+        """
+        timeout_ms = None if timeout_s is None else max(0, int(timeout_s * 1000))
+        if not self.socket.poll(timeout_ms):
+            return None
+        if not self.latest_only:
+            return self._decode(self.socket.recv_multipart(copy=False))
+        newest = None
+        while True:
+            try:
+                parts = self.socket.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return newest
+            frame = self._decode(parts)
+            if frame is not None:
+                if newest is not None:
+                    self.counters["frames_stale"] += 1
+                newest = frame
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+
+class ServiceUnavailable(RuntimeError):
+    """No reply from a service after every try."""
+
+
+class CommandError(RuntimeError):
+    """The service answered, and the answer was an error."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message
+
+
+class ControlClient:
+    """Lazy-pirate request-reply client for one service's control socket."""
+
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        timeout_s: float = 1.0,
+        retries: int = 3,
+        context: zmq.Context | None = None,
+        max_message_bytes: int = 16 * 2**20,
+    ):
+        self.endpoint = endpoint
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.max_message_bytes = max_message_bytes
+        self.context = context or zmq.Context.instance()
+        self.socket: zmq.Socket | None = None
+
+    def _open(self) -> zmq.Socket:
+        socket = self.context.socket(zmq.REQ)
+        _limit_socket(socket, self.max_message_bytes)
+        socket.connect(self.endpoint)
+        return socket
+
+    def _discard(self) -> None:
+        # A REQ socket that sent and got no reply is stuck in its state machine: the
+        # lazy pirate closes it and opens a fresh one.
+        if self.socket is not None:
+            self.socket.close(linger=0)
+            self.socket = None
+
+    def request_raw(self, payload: bytes, *, timeout_s: float | None = None, retries: int | None = None) -> bytes:
+        """Send raw bytes and return the raw reply (for tests of malformed input)."""
+        timeout_ms = int(1000 * (timeout_s or self.timeout_s))
+        for attempt in range(1, (retries or self.retries) + 1):
+            if self.socket is None:
+                self.socket = self._open()
+            self.socket.send(payload)
+            if self.socket.poll(timeout_ms, zmq.POLLIN):
+                return self.socket.recv()
+            log.debug("no reply from %s (try %d)", self.endpoint, attempt)
+            self._discard()
+        raise ServiceUnavailable(f"no reply from {self.endpoint} after {retries or self.retries} tries")
+
+    def request(self, command: str, *, timeout_s: float | None = None, retries: int | None = None, **args: Any) -> dict:
+        """Send a command; return its result or raise CommandError / ServiceUnavailable."""
+        payload = Request(command=command, args=args).model_dump_json().encode()
+        raw = self.request_raw(payload, timeout_s=timeout_s, retries=retries)
+        reply = Reply.model_validate_json(raw)
+        if not reply.ok:
+            raise CommandError(reply.error.code, reply.error.message)
+        return reply.result or {}
+
+    def close(self) -> None:
+        self._discard()
+
+
+Handler = Callable[[dict[str, Any]], dict[str, Any] | None]
+
+
+class BadRequest(ValueError):
+    """Raised by a command handler for arguments it cannot accept; sent as ``bad_request``."""
+
+
+class ControlServer:
+    """REP socket that dispatches commands to handlers and always replies.
+
+    A malformed request (not JSON, wrong version, unknown command, too large, more than
+    one part) gets an error reply and is counted; the service goes on.
+    """
+
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        max_message_bytes: int,
+        context: zmq.Context | None = None,
+        counters: Counter | None = None,
+    ):
+        self.context = context or zmq.Context.instance()
+        self.max_message_bytes = max_message_bytes
+        self.counters = counters if counters is not None else Counter()
+        self.handlers: dict[str, Handler] = {}
+        self.last_error: str | None = None
+        self.socket = self.context.socket(zmq.REP)
+        _limit_socket(self.socket, max_message_bytes)
+        self.socket.bind(endpoint)
+        self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+
+    def register(self, command: str, handler: Handler) -> None:
+        self.handlers[command] = handler
+
+    def _reject(self, code: str, message: str) -> Reply:
+        self.counters[f"rejected_{code}"] += 1
+        self.last_error = f"{code}: {message}"
+        log.warning("rejected a request: %s: %s", code, message)
+        return Reply.failure(code, message)
+
+    def _answer(self, parts: list[bytes]) -> Reply:
+        if len(parts) != 1:
+            return self._reject("bad_request", f"expected one JSON part, got {len(parts)}")
+        if len(parts[0]) > self.max_message_bytes:
+            return self._reject("oversized", f"{len(parts[0])} bytes exceeds {self.max_message_bytes}")
+        try:
+            request = Request.model_validate_json(parts[0])
+        except pydantic.ValidationError as error:
+            first = error.errors()[0]
+            if first["loc"] == ("v",):
+                return self._reject("version", f"unsupported wire version: {first['msg']}")
+            where = ".".join(str(item) for item in first["loc"]) or "request"
+            return self._reject("bad_request", f"{where}: {first['msg']}")
+        handler = self.handlers.get(request.command)
+        if handler is None:
+            known = ", ".join(sorted(self.handlers))
+            return self._reject("unknown_command", f"{request.command!r} is not one of: {known}")
+        self.counters[f"command_{request.command}"] += 1
+        try:
+            return Reply.success(handler(request.args))
+        except BadRequest as error:
+            return self._reject("bad_request", str(error))
+        except Exception as error:  # a handler bug must not take the service down
+            log.exception("command %s failed", request.command)
+            return self._reject("internal", f"{type(error).__name__}: {error}")
+
+    def handle_one(self) -> None:
+        """Receive one request (it must be waiting) and send its reply."""
+        parts = self.socket.recv_multipart()
+        self.socket.send(self._answer(parts).model_dump_json().encode())
+
+    def close(self) -> None:
+        self.socket.close(linger=0)

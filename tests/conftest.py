@@ -1,0 +1,43 @@
+"""Shared fixtures: the real recording, free loopback ports, an isolated settings env."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import pytest
+import zmq
+
+from semservo.config import find_recorded_run
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def recorded_run() -> Path:
+    """The real 2013 SEM run, found through the setting's default (never copied here)."""
+    folder = find_recorded_run()
+    assert (folder / "reference.png").is_file(), (
+        f"the recorded SEM run is missing at {folder}; it lives in shared/data beside the checkout"
+    )
+    return folder
+
+
+@pytest.fixture
+def ports(monkeypatch) -> dict[str, int]:
+    """Fresh loopback ports for every service, set in the environment children inherit."""
+    chosen = {"frames": free_port(), "control": free_port()}
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FRAMES_PORT", str(chosen["frames"]))
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__CONTROL_PORT", str(chosen["control"]))
+    return chosen
+
+
+@pytest.fixture
+def context():
+    ctx = zmq.Context()
+    yield ctx
+    ctx.destroy(linger=0)  # closes sockets a failed test left open, then terminates

@@ -1,0 +1,117 @@
+"""``semservo up``: start everything, show frames flowing, report deaths, stop cleanly."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from semservo.config import connect
+from semservo.transport import ControlClient, ServiceUnavailable
+
+pytestmark = pytest.mark.integration
+
+
+def up(*args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "semservo", "up", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def read_until(process: subprocess.Popen, pattern: str, timeout_s: float = 30.0) -> str:
+    """Read the launcher's output until a line matches; return everything read."""
+    seen = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()
+        if not line:
+            break
+        seen.append(line)
+        if re.search(pattern, line):
+            return "".join(seen)
+    raise AssertionError(f"no line matching {pattern!r}; output:\n{''.join(seen)}")
+
+
+def pid_of(output: str, name: str) -> int:
+    return int(re.search(rf"{name} healthy \(pid (\d+)", output).group(1))
+
+
+def test_up_check_shows_frames_flowing_and_exits_zero(ports, recorded_run):
+    result = subprocess.run(
+        [sys.executable, "-m", "semservo", "up", "--check", "--frames", "10", "--fps", "30"],
+        capture_output=True, text=True, timeout=90,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    output = result.stdout
+    assert "imageserver healthy" in output
+    assert f"tcp://127.0.0.1:{ports['frames']}" in output  # what runs where
+    assert "check passed: 10 valid frames" in output
+    assert re.search(r"512x512 uint8", output)
+    assert "imageserver | " in output  # service logs streamed with a prefix
+    assert "imageserver stopped (exit code 0)" in output
+
+
+def test_ctrl_c_stops_every_service(ports, recorded_run):
+    launcher = up()
+    output = read_until(launcher, r"watching frames")
+    child = pid_of(output, "imageserver")
+    os.killpg(launcher.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
+    assert launcher.wait(20) == 0
+    rest = launcher.stdout.read()
+    assert "imageserver stopped" in rest
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)
+    with pytest.raises(ServiceUnavailable):
+        ControlClient(connect("127.0.0.1", ports["control"]), timeout_s=0.2, retries=1).request("health")
+
+
+def test_a_dead_service_is_reported_at_once_and_restarted_when_asked(ports, recorded_run):
+    launcher = up("--restart")
+    try:
+        output = read_until(launcher, r"watching frames")
+        first = pid_of(output, "imageserver")
+        os.kill(first, signal.SIGKILL)
+        output = read_until(launcher, r"imageserver died", timeout_s=10)
+        assert "exit code -9" in output
+        read_until(launcher, r"restarting imageserver", timeout_s=10)
+        # the replacement answers health on the same control socket
+        client = ControlClient(connect("127.0.0.1", ports["control"]), timeout_s=0.5, retries=20)
+        health = client.request("health")
+        client.close()
+        assert health["pid"] != first and health["state"] == "running"
+    finally:
+        launcher.send_signal(signal.SIGTERM)
+        launcher.wait(20)
+
+
+def test_without_restart_a_death_fails_the_check(ports, tmp_path):
+    # A folder of one frame at a very low rate keeps --check waiting while we kill the service.
+    from semservo.imagefiles import write_image
+    import numpy as np
+
+    write_image(tmp_path / "only.png", np.zeros((64, 64), np.uint8))
+    launcher = up("--check", "--frames", "1000", "--replay-dir", str(tmp_path), "--fps", "1")
+    output = read_until(launcher, r"checking: waiting")
+    os.kill(pid_of(output, "imageserver"), signal.SIGKILL)
+    assert launcher.wait(20) == 1
+    rest = launcher.stdout.read()
+    assert "imageserver died" in rest and "check FAILED (imageserver down)" in rest
+
+
+def test_a_service_that_cannot_start_is_reported(ports, tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "semservo", "up", "--check", "--replay-dir", str(tmp_path / "missing")],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 1
+    assert "failed to start: imageserver exited with code" in result.stdout
+    assert "no folder of frames" in result.stdout

@@ -1,0 +1,59 @@
+"""No Docker engine runs here, so the compose file is checked by reading it: every
+service it names exists, runs a real entry point, and publishes the settings' ports."""
+
+from __future__ import annotations
+
+import importlib
+import tomllib
+from pathlib import Path
+
+import pytest
+import yaml
+
+from semservo.cli import build_parser
+from semservo.config import Settings
+from semservo.launcher import SERVICES, spec
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+
+
+def container_settings(service: dict, monkeypatch) -> Settings:
+    for key in [k for k in __import__("os").environ if k.startswith("SEMSERVO_")]:
+        monkeypatch.delenv(key)
+    for key, value in (service.get("environment") or {}).items():
+        monkeypatch.setenv(key, str(value))
+    return Settings()
+
+
+def test_compose_lists_exactly_the_services_that_exist(compose):
+    assert set(compose["services"]) == {s.name for s in SERVICES}
+
+
+def test_every_command_is_a_real_entry_point(compose):
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    for name, service in compose["services"].items():
+        program, *arguments = service["command"]
+        assert program == "semservo" and scripts["semservo"] == "semservo.cli:main"
+        parsed = build_parser().parse_args(arguments)  # the CLI accepts it
+        assert parsed.name == name
+        module = importlib.import_module(spec(parsed.name).module)
+        assert callable(module.main)
+
+
+def test_build_files_exist(compose):
+    for service in compose["services"].values():
+        assert (ROOT / service["build"]["context"] / service["build"]["dockerfile"]).is_file()
+
+
+def test_published_ports_match_the_settings_model(compose, monkeypatch):
+    service = compose["services"]["imageserver"]
+    settings = container_settings(service, monkeypatch)
+    published = {int(mapping.split(":")[1]) for mapping in service["ports"]}
+    assert published == {settings.imageserver.frames_port, settings.imageserver.control_port}
+    assert settings.bind_host == "0.0.0.0"
+    assert str(settings.imageserver.replay_dir) == "/data/sem-run-2013"

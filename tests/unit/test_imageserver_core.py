@@ -1,0 +1,108 @@
+"""The image server's replay source and pacing core, without sockets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from semservo.config import pixel_size_nm
+from semservo.imagefiles import ImageFileError, write_image
+from services.imageserver.core import ImageServerCore, Pacer
+from services.imageserver.sources import ReplaySource
+
+
+def test_replays_the_real_recording_in_name_order(recorded_run):
+    source = ReplaySource(recorded_run, pattern="frame*", loop=False)
+    labels, first_pixels = [], None
+    while (image := source.acquire()) is not None:
+        labels.append(image.label)
+        first_pixels = first_pixels if first_pixels is not None else image.pixels
+    assert labels == [f"frame{i:02d}.png" for i in range(54)]
+    expected = np.asarray(Image.open(recorded_run / "frame00.png"))
+    np.testing.assert_array_equal(first_pixels, expected)
+    assert first_pixels.shape == (512, 512) and first_pixels.dtype == np.uint8
+    assert not first_pixels.flags.writeable  # published zero-copy, so frozen
+
+
+def test_default_folder_includes_the_reference_last(recorded_run):
+    source = ReplaySource(recorded_run)
+    assert len(source.paths) == 55 and source.paths[-1].name == "reference.png"
+
+
+def test_loop_starts_again_and_once_stops(tmp_path):
+    for index in range(3):
+        write_image(tmp_path / f"f{index}.png", np.full((64, 64), index, np.uint16))
+    looping = ReplaySource(tmp_path, loop=True)
+    assert [looping.acquire().pixels[0, 0] for _ in range(7)] == [0, 1, 2, 0, 1, 2, 0]
+    assert looping.passes == 2
+    once = ReplaySource(tmp_path, loop=False)
+    assert [once.acquire().pixels[0, 0] for _ in range(3)] == [0, 1, 2]
+    assert once.acquire() is None
+
+
+def test_metadata_precedence_command_line_then_file_then_default(tmp_path):
+    write_image(tmp_path / "a.tif", np.zeros((64, 128), np.uint8), magnification=5000, dwell_ns=360)
+    from_file = ReplaySource(tmp_path).acquire()
+    assert (from_file.magnification, from_file.dwell_ns) == (5000, 360)
+    assert from_file.pixel_size_nm == pytest.approx(pixel_size_nm(5000, width_px=128))
+
+    overridden = ReplaySource(tmp_path, magnification=1200, dwell_ns=180).acquire()
+    assert (overridden.magnification, overridden.dwell_ns) == (1200, 180)
+    assert overridden.pixel_size_nm == pytest.approx(pixel_size_nm(1200, width_px=128))
+
+    explicit = ReplaySource(tmp_path, pixel_size_nm=10.0).acquire()
+    assert explicit.pixel_size_nm == 10.0
+
+    Image.fromarray(np.zeros((64, 64), np.uint8)).save(tmp_path / "b.png")
+    plain = ReplaySource(tmp_path, pattern="b.png", default_magnification=800, default_dwell_ns=999).acquire()
+    assert (plain.magnification, plain.dwell_ns) == (800, 999)
+
+
+def test_bad_folders_fail_at_start_naming_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no PNG or TIFF"):
+        ReplaySource(tmp_path)
+    write_image(tmp_path / "a.png", np.zeros((64, 64), np.uint8))
+    write_image(tmp_path / "b.png", np.zeros((32, 64), np.uint8))
+    with pytest.raises(ImageFileError, match="b.png"):
+        ReplaySource(tmp_path)
+    (tmp_path / "b.png").write_bytes(b"garbage")
+    with pytest.raises(ImageFileError, match="b.png"):
+        ReplaySource(tmp_path)
+
+
+def test_pacer_keeps_rate_without_drift_and_without_bursts():
+    pacer = Pacer(fps=10)
+    assert pacer.seconds_until_due(0.0) == 0.0
+    pacer.advance(0.0)
+    pacer.advance(0.1003)  # a little late: the schedule keeps its grid
+    assert pacer.next_due == pytest.approx(0.2)
+    pacer.advance(5.0)  # a long stall: resume from now, do not burst to catch up
+    assert pacer.next_due == pytest.approx(5.1)
+    assert pacer.seconds_until_due(5.05) == pytest.approx(0.05)
+
+
+def test_core_numbers_frames_and_reports_exhaustion(tmp_path):
+    for index in range(2):
+        write_image(tmp_path / f"f{index}.png", np.full((64, 64), index, np.uint8))
+    core = ImageServerCore(ReplaySource(tmp_path, loop=False), fps=10)
+    seq, image = core.next_frame(now=0.0)
+    assert seq == 0 and image.pixels[0, 0] == 0
+    assert core.next_frame(now=0.05) is None  # not due yet
+    assert core.seconds_until_due(now=0.05) == pytest.approx(0.05)
+    seq, image = core.next_frame(now=0.1)
+    assert seq == 1 and image.pixels[0, 0] == 1
+    assert core.next_frame(now=0.2) is None
+    assert core.exhausted and core.seconds_until_due() is None
+
+
+def test_core_refuses_bad_rates(tmp_path):
+    write_image(tmp_path / "f.png", np.zeros((64, 64), np.uint8))
+    with pytest.raises(ValueError):
+        ImageServerCore(ReplaySource(tmp_path), fps=0)
+    core = ImageServerCore(ReplaySource(tmp_path), fps=5)
+    for bad in (0, -3, 1e9):
+        with pytest.raises(ValueError):
+            core.set_fps(bad)
+    core.set_fps(25)
+    assert core.pacer.fps == 25
