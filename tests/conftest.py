@@ -30,9 +30,11 @@ def recorded_run() -> Path:
 @pytest.fixture
 def ports(monkeypatch) -> dict[str, int]:
     """Fresh loopback ports for every service, set in the environment children inherit."""
-    chosen = {"frames": free_port(), "control": free_port()}
+    chosen = {name: free_port() for name in ("frames", "control", "motion", "estimator_control")}
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__FRAMES_PORT", str(chosen["frames"]))
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__CONTROL_PORT", str(chosen["control"]))
+    monkeypatch.setenv("SEMSERVO_ESTIMATOR__MOTION_PORT", str(chosen["motion"]))
+    monkeypatch.setenv("SEMSERVO_ESTIMATOR__CONTROL_PORT", str(chosen["estimator_control"]))
     return chosen
 
 

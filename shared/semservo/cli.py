@@ -4,6 +4,9 @@
     semservo service    run one service in the foreground (what ``up`` and containers run)
     semservo frames     watch a frame stream
     semservo health     ask every service how it is
+    semservo estimate   measure motion between image files (no services needed)
+    semservo teach      teach the running estimator a reference
+    semservo motion     watch the estimator's motion stream
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ from semservo import __version__
 from semservo.config import Settings, connect
 from semservo.launcher import SERVICES, LaunchError, Launcher, spec
 from semservo.monitor import FrameStats
-from semservo.transport import ControlClient, FrameSubscriber, ServiceUnavailable
+from semservo.messages import MOTION_TOPIC, MotionEstimate
+from semservo.transport import CommandError, ControlClient, FrameSubscriber, MessageSubscriber, ServiceUnavailable
 
 
 def _raise_interrupt(signum, frame):
@@ -44,22 +48,32 @@ def command_up(args: argparse.Namespace) -> int:
     settings = Settings()
     launcher = Launcher(settings, restart=args.restart)
     signal.signal(signal.SIGTERM, _raise_interrupt)
-    launcher.say(f"semservo {__version__}: starting {', '.join(s.name for s in SERVICES)}")
+    code = 0
     try:
-        launcher.start(timeout_s=args.timeout)
-    except LaunchError as error:
-        launcher.say(f"failed to start: {error}")
-        return 1
+        launcher.say(f"semservo {__version__}: starting {', '.join(s.name for s in SERVICES)}")
+        try:
+            launcher.start(timeout_s=args.timeout)
+        except LaunchError as error:
+            launcher.say(f"failed to start: {error}")
+            return 1
+        launcher.say("all services healthy:\n" + launcher.table())
+        code = _watch(settings, launcher, args)
     except KeyboardInterrupt:
-        return 130
-    launcher.say("all services healthy:\n" + launcher.table())
+        launcher.say("stopping")
+    finally:
+        # A second Ctrl-C must not cut the orderly stop short.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        launcher.stop()
+    return code
 
+
+def _watch(settings: Settings, launcher: Launcher, args: argparse.Namespace) -> int:
+    """Show frames flowing (and with --check, verify the stack); returns the exit code."""
     frames_endpoint = connect(settings.imageserver.host, settings.imageserver.frames_port)
     subscriber = FrameSubscriber(frames_endpoint, max_message_bytes=settings.max_message_bytes, latest_only=False)
     stats = FrameStats()
-    code = 0
-    started = time.monotonic()
-    last_report = started
+    started = last_report = time.monotonic()
     if args.check:
         launcher.say(f"checking: waiting for {args.frames} frames on {frames_endpoint}")
     else:
@@ -75,21 +89,160 @@ def command_up(args: argparse.Namespace) -> int:
                 if stats.frames >= args.frames:
                     launcher.say("frames flowing: " + stats.summary(subscriber.counters))
                     launcher.say(f"check passed: {stats.frames} valid frames received through ZeroMQ")
-                    break
+                    if any(s.name == "estimator" for s in SERVICES):
+                        return _check_estimator(settings, launcher, args.timeout)
+                    return 0
                 if down or now - started > args.timeout:
                     reason = f"{', '.join(down)} down" if down else f"timed out after {args.timeout:.0f} s"
                     launcher.say(f"check FAILED ({reason}): " + stats.summary(subscriber.counters))
-                    code = 1
-                    break
+                    return 1
             elif now - last_report >= args.status_every:
                 launcher.say("frames flowing: " + stats.summary(subscriber.counters) if stats.frames else "waiting for frames")
                 last_report = now
-    except KeyboardInterrupt:
-        launcher.say("stopping")
     finally:
         subscriber.close()
-        launcher.stop()
-    return code
+
+
+def _check_estimator(settings: Settings, launcher: Launcher, timeout_s: float) -> int:
+    """Teach the estimator the live frame and show motion estimates arriving."""
+    control = ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
+                            timeout_s=max(settings.request_timeout_s, 10.0), retries=1)
+    motion = MessageSubscriber(connect(settings.estimator.host, settings.estimator.motion_port),
+                               MOTION_TOPIC, MotionEstimate)
+    try:
+        reference = control.request("teach")
+        launcher.say(f"estimator taught the live frame {reference['frame_seq']} as reference {reference['id']}")
+        estimates: list[MotionEstimate] = []
+        deadline = time.monotonic() + timeout_s
+        while len(estimates) < 5 and time.monotonic() < deadline:
+            estimate = motion.receive(timeout_s=0.5)
+            if estimate is not None and estimate.reference_id == reference["id"]:
+                estimates.append(estimate)
+                launcher.say(f"motion of frame {estimate.seq}: dx {estimate.dx_px:+8.3f} px  dy {estimate.dy_px:+8.3f} px  "
+                             f"rotation {estimate.rotation_deg:+7.3f} deg  confidence {estimate.confidence:.2f}  "
+                             f"SNR {estimate.snr_db:5.1f} dB  {estimate.estimation_ms:.1f} ms")
+        if len(estimates) < 5:
+            launcher.say("check FAILED: the estimator published no motion")
+            return 1
+        launcher.say(f"check passed: {len(estimates)} motion estimates against the taught reference")
+        return 0
+    except (ServiceUnavailable, CommandError) as error:
+        launcher.say(f"check FAILED: estimator: {error}")
+        return 1
+    finally:
+        control.close()
+        motion.close()
+
+
+def command_estimate(args: argparse.Namespace) -> int:
+    """Motion of each IMAGE against REFERENCE, one line (or JSON object) per image."""
+    import json
+
+    from semservo.estimation import MotionEstimator, as_image
+    from semservo.imagefiles import ImageFileError, read_image
+
+    def fail(message: str) -> None:
+        print(f"semservo estimate: {message}", file=sys.stderr)
+
+    try:
+        reference, _ = read_image(args.reference)
+    except (ImageFileError, FileNotFoundError) as error:
+        fail(str(error))
+        return 2
+    readable, failures = [], 0
+    for path in args.images:
+        try:
+            readable.append((path, as_image(read_image(path)[0], path)))
+        except (ImageFileError, FileNotFoundError, ValueError) as error:
+            readable.append((path, error))
+    mask = None
+    if args.mask or args.polygon:
+        # The reference file is the mask (or the image the polygon is drawn on); the
+        # grey levels come from the first readable image, so polarity matches the scene.
+        levels = next((pixels for _, pixels in readable if not isinstance(pixels, Exception)), None)
+        if levels is None:
+            fail("a mask reference needs at least one readable image for its grey levels")
+            return 2
+        if args.polygon:
+            mask = [tuple(float(v) for v in point.split(",")) for point in args.polygon.split()]
+        else:
+            mask = reference > 0
+        reference = levels
+    try:
+        estimator = MotionEstimator(reference, rotation=not args.no_rotation, mask=mask)
+    except ValueError as error:
+        fail(f"{args.reference}: {error}")
+        return 2
+    for path, pixels in readable:
+        if isinstance(pixels, Exception):
+            fail(str(pixels))
+            failures += 1
+            continue
+        started = time.perf_counter()
+        try:
+            motion = estimator.estimate(pixels)
+        except ValueError as error:
+            fail(f"{path}: {error}")
+            failures += 1
+            continue
+        elapsed_ms = (time.perf_counter() - started) * 1e3
+        fields = {"image": str(path), **{k: v for k, v in motion.as_dict().items()
+                                         if k in ("dx_px", "dy_px", "rotation_deg", "confidence", "snr_db")},
+                  "elapsed_ms": elapsed_ms}
+        if args.json:
+            print(json.dumps(fields), flush=True)
+        else:
+            print(f"{path}  dx_px={motion.dx:+9.4f}  dy_px={motion.dy:+9.4f}  rotation_deg={motion.rotation_deg:+8.4f}  "
+                  f"confidence={motion.confidence:.3f}  snr_db={motion.snr_db:5.1f}  elapsed_ms={elapsed_ms:6.2f}",
+                  flush=True)
+    return 1 if failures else 0
+
+
+def command_teach(args: argparse.Namespace) -> int:
+    import base64
+
+    settings = Settings()
+    client = ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
+                           timeout_s=max(settings.request_timeout_s, 10.0), retries=1)
+    request: dict = {}
+    if args.image:
+        request["image_b64"] = base64.b64encode(Path(args.image).read_bytes()).decode()
+        request["label"] = args.image
+    elif args.polygon:
+        request["polygon"] = [[float(v) for v in point.split(",")] for point in args.polygon.split()]
+    try:
+        result = client.request("teach", **request)
+    except (ServiceUnavailable, CommandError) as error:
+        print(f"semservo teach: {error}", file=sys.stderr)
+        return 1
+    finally:
+        client.close()
+    print(f"taught reference {result['id']} ({result['kind']}, {result['shape'][1]} x {result['shape'][0]})")
+    return 0
+
+
+def command_motion(args: argparse.Namespace) -> int:
+    settings = Settings()
+    subscriber = MessageSubscriber(connect(settings.estimator.host, settings.estimator.motion_port),
+                                   MOTION_TOPIC, MotionEstimate)
+    received = 0
+    deadline = time.monotonic() + args.timeout
+    try:
+        while received < args.count and time.monotonic() < deadline:
+            estimate = subscriber.receive(timeout_s=0.2)
+            if estimate is None:
+                continue
+            received += 1
+            print(f"seq {estimate.seq:6d}  dx {estimate.dx_px:+9.3f} px  dy {estimate.dy_px:+9.3f} px  "
+                  f"rot {estimate.rotation_deg:+7.3f} deg  conf {estimate.confidence:.2f}  "
+                  f"snr {estimate.snr_db:5.1f} dB  latency {estimate.latency_ms:6.2f} ms")
+    except KeyboardInterrupt:
+        pass
+    finally:
+        subscriber.close()
+    if not received:
+        print("no motion estimates: is a reference taught? (semservo teach)", file=sys.stderr)
+    return 0 if received else 1
 
 
 def command_service(args: argparse.Namespace) -> int:
@@ -177,6 +330,35 @@ def build_parser() -> argparse.ArgumentParser:
     frames.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
     frames.add_argument("--endpoint", help="frames address (default: the image server's)")
     frames.set_defaults(handler=command_frames)
+
+    estimate = commands.add_parser(
+        "estimate", help="measure motion between image files",
+        description="Print the motion of each IMAGE against REFERENCE (Fourier phase correlation, "
+                    "paper section II): dx_px, dy_px (content moved right/down), rotation_deg "
+                    "(counter-clockwise as displayed), confidence, snr_db, elapsed_ms. Unreadable "
+                    "files are reported on stderr after the readable ones are printed; the exit "
+                    "code is then 1.")
+    estimate.add_argument("reference", help="the taught image (PNG/TIFF), or the mask with --mask")
+    estimate.add_argument("images", nargs="+", metavar="IMAGE", help="current images")
+    estimate.add_argument("--no-rotation", action="store_true", help="translation only")
+    estimate.add_argument("--mask", action="store_true",
+                          help="REFERENCE is a binary mask of the object (paper case 6)")
+    estimate.add_argument("--polygon", metavar="'X,Y X,Y ...'",
+                          help="use the polygon of these corner points on REFERENCE as a mask reference")
+    estimate.add_argument("--json", action="store_true", help="one JSON object per line")
+    estimate.set_defaults(handler=command_estimate)
+
+    teach = commands.add_parser("teach", help="teach the running estimator a reference",
+                                description="Teach the live frame (default), an image file, or a polygon mask.")
+    source = teach.add_mutually_exclusive_group()
+    source.add_argument("--image", help="PNG/TIFF file to use as the reference")
+    source.add_argument("--polygon", metavar="'X,Y X,Y ...'", help="corner points of a mask on the live frame")
+    teach.set_defaults(handler=command_teach)
+
+    motion = commands.add_parser("motion", help="watch the estimator's motion stream")
+    motion.add_argument("--count", type=int, default=10, help="estimates to print (default 10)")
+    motion.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
+    motion.set_defaults(handler=command_motion)
 
     health = commands.add_parser("health", help="ask services for their health")
     health.add_argument("names", nargs="*", help="services (default: all)")

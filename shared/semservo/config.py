@@ -69,6 +69,16 @@ class ImageServerSettings(BaseModel):
     dwell_ns: PositiveFloat = Field(720.0, description="dwell time per pixel, when a file does not say")
 
 
+class EstimatorSettings(BaseModel):
+    """The estimator: frames in (from the image server), motion out."""
+
+    host: str = Field("127.0.0.1", description="address other services connect to")
+    motion_port: int = Field(5560, ge=1, le=65535, description="PUB socket for motion estimates")
+    control_port: int = Field(5561, ge=1, le=65535, description="REP socket for commands and health")
+    rotation: bool = Field(True, description="estimate rotation about the beam too")
+    fft_effort: Literal["FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"] = "FFTW_MEASURE"
+
+
 class Settings(BaseSettings):
     """Everything a semservo process needs to know about its place in the system."""
 
@@ -80,6 +90,7 @@ class Settings(BaseSettings):
     request_retries: int = Field(3, ge=1, description="lazy-pirate tries before a service counts as down")
     log_level: str = "INFO"
     imageserver: ImageServerSettings = Field(default_factory=ImageServerSettings)
+    estimator: EstimatorSettings = Field(default_factory=EstimatorSettings)
 
     def bind(self, port: int) -> str:
         return f"tcp://{self.bind_host}:{port}"

@@ -8,6 +8,7 @@ defaults.
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 from typing import Any
@@ -55,12 +56,18 @@ def _grey(pixels: np.ndarray, path: Path) -> np.ndarray:
     return np.ascontiguousarray(pixels)
 
 
-def read_image(path: str | Path) -> tuple[np.ndarray, dict[str, float]]:
-    """Pixels (uint8, uint16 or float32, 2-D) and the metadata the file carries."""
-    path = Path(path)
+def read_image(source: str | Path | bytes) -> tuple[np.ndarray, dict[str, float]]:
+    """Pixels (uint8, uint16 or float32, 2-D) and the metadata of a PNG or TIFF, given
+    as a path or as the file's bytes (an upload)."""
+    if isinstance(source, (bytes, bytearray)):
+        path, handle = Path("upload"), io.BytesIO(source)
+        is_tiff = bytes(source[:4]) in (b"II*\x00", b"MM\x00*")
+    else:
+        path = Path(source)
+        handle, is_tiff = path, path.suffix.lower() in (".tif", ".tiff")
     try:
-        if path.suffix.lower() in (".tif", ".tiff"):
-            with tifffile.TiffFile(path) as tif:
+        if is_tiff:
+            with tifffile.TiffFile(handle) as tif:
                 pixels = tif.asarray()
                 description = tif.pages[0].description or ""
             try:
@@ -68,14 +75,14 @@ def read_image(path: str | Path) -> tuple[np.ndarray, dict[str, float]]:
             except json.JSONDecodeError:
                 fields = {}
         else:
-            with Image.open(path) as image:
+            with Image.open(handle) as image:
                 image.load()
                 fields = dict(getattr(image, "text", {}) or {})
                 if image.mode in ("I;16", "I;16B", "I;16L"):
                     pixels = np.array(image, dtype=np.uint16)
                 else:
                     pixels = np.array(image)
-    except (OSError, ValueError, tifffile.TiffFileError) as error:
+    except (OSError, ValueError, SyntaxError, tifffile.TiffFileError) as error:
         raise ImageFileError(f"{path}: unreadable image ({error})") from None
     return _grey(pixels, path), _numbers(fields)
 

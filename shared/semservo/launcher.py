@@ -49,6 +49,16 @@ SERVICES: tuple[ServiceSpec, ...] = (
         },
         summary="SEM frames from a replayed recording",
     ),
+    ServiceSpec(
+        name="estimator",
+        module="services.estimator.main",
+        control=lambda s: connect(s.estimator.host, s.estimator.control_port),
+        endpoints=lambda s: {
+            "motion (PUB)": connect(s.estimator.host, s.estimator.motion_port),
+            "control (REP)": connect(s.estimator.host, s.estimator.control_port),
+        },
+        summary="Fourier motion estimates of each frame against the taught reference",
+    ),
 )
 
 

@@ -28,6 +28,7 @@ PIXEL_DTYPES: dict[str, np.dtype] = {
 }
 
 FRAME_TOPIC = b"frame"
+MOTION_TOPIC = b"motion"
 
 
 class _Message(BaseModel):
@@ -104,3 +105,27 @@ class Health(BaseModel):
     @property
     def healthy(self) -> bool:
         return self.state in ("running", "idle", "finished")
+
+
+class MotionEstimate(_Message):
+    """What the estimator publishes for each frame it measured (topic ``motion``).
+
+    Sign convention as :mod:`semservo.estimation`: content displacement of the current
+    frame against the taught reference, x right, y down, rotation counter-clockwise as
+    displayed.
+    """
+
+    seq: int = Field(ge=0, description="the frame's sequence number")
+    reference_id: str
+    dx_px: float
+    dy_px: float
+    rotation_deg: float
+    confidence: float = Field(ge=0, le=1)
+    snr_db: float
+    filtered: bool
+    pixel_size_nm: PositiveFloat
+    frame_acquired_at_ns: int = Field(ge=0)
+    frame_published_at_ns: int = Field(ge=0)
+    published_at_ns: int = Field(ge=0, description="Unix time (ns) this estimate was sent")
+    estimation_ms: float = Field(ge=0, description="time spent estimating")
+    latency_ms: float = Field(description="frame published -> estimate published")

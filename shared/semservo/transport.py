@@ -134,6 +134,73 @@ class FrameSubscriber:
         self.socket.close(linger=0)
 
 
+class MessagePublisher:
+    """PUB socket for small typed JSON messages on one topic: ``[topic, json]``."""
+
+    def __init__(self, endpoint: str, topic: bytes, *, context: zmq.Context | None = None):
+        self.context = context or zmq.Context.instance()
+        self.topic = topic
+        self.socket = self.context.socket(zmq.PUB)
+        self.socket.setsockopt(zmq.LINGER, 0)
+        self.socket.bind(endpoint)
+        self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.sent = 0
+
+    def publish(self, message: pydantic.BaseModel) -> None:
+        self.socket.send_multipart([self.topic, message.model_dump_json().encode()])
+        self.sent += 1
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+
+class MessageSubscriber:
+    """SUB socket for typed JSON messages on one topic; invalid ones are dropped and
+    counted (``dropped_parts``, ``dropped_oversized``, ``dropped_message``)."""
+
+    def __init__(self, endpoint: str, topic: bytes, model: type[pydantic.BaseModel], *,
+                 max_message_bytes: int = 2**20, context: zmq.Context | None = None,
+                 counters: Counter | None = None):
+        self.context = context or zmq.Context.instance()
+        self.topic = topic
+        self.model = model
+        self.max_message_bytes = max_message_bytes
+        self.counters = counters if counters is not None else Counter()
+        self.last_error: str | None = None
+        self.socket = self.context.socket(zmq.SUB)
+        _limit_socket(self.socket, max_message_bytes)
+        self.socket.setsockopt(zmq.SUBSCRIBE, topic)
+        self.socket.connect(endpoint)
+
+    def _drop(self, reason: str, detail: str) -> None:
+        self.counters[f"dropped_{reason}"] += 1
+        self.last_error = f"{reason}: {detail}"
+        log.warning("dropped a %s message: %s", self.topic.decode(), detail)
+
+    def receive(self, timeout_s: float | None = None):
+        """The next valid message, or None after ``timeout_s``."""
+        deadline_ms = None if timeout_s is None else max(0, int(timeout_s * 1000))
+        while self.socket.poll(deadline_ms):
+            parts = self.socket.recv_multipart()
+            if len(parts) != 2 or parts[0] != self.topic:
+                self._drop("parts", f"expected [{self.topic!r}, json], got {len(parts)} parts")
+            elif len(parts[1]) > self.max_message_bytes:
+                self._drop("oversized", f"{len(parts[1])} bytes")
+            else:
+                try:
+                    message = self.model.model_validate_json(parts[1])
+                except pydantic.ValidationError as error:
+                    self._drop("message", str(error.errors()[0]["msg"]))
+                else:
+                    self.counters["messages_received"] += 1
+                    return message
+            deadline_ms = 0 if deadline_ms is not None else None
+        return None
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+
+
 class ServiceUnavailable(RuntimeError):
     """No reply from a service after every try."""
 

@@ -51,9 +51,12 @@ def test_build_files_exist(compose):
 
 
 def test_published_ports_match_the_settings_model(compose, monkeypatch):
-    service = compose["services"]["imageserver"]
-    settings = container_settings(service, monkeypatch)
-    published = {int(mapping.split(":")[1]) for mapping in service["ports"]}
-    assert published == {settings.imageserver.frames_port, settings.imageserver.control_port}
-    assert settings.bind_host == "0.0.0.0"
-    assert str(settings.imageserver.replay_dir) == "/data/sem-run-2013"
+    for name, service in compose["services"].items():
+        settings = container_settings(service, monkeypatch)
+        published = {int(mapping.split(":")[1]) for mapping in service["ports"]}
+        service_settings = getattr(settings, name)
+        assert published == {value for key, value in service_settings.model_dump().items() if key.endswith("_port")}
+        assert service_settings.host == name  # peers reach it by compose name
+        assert settings.bind_host == "0.0.0.0"
+    imageserver = container_settings(compose["services"]["imageserver"], monkeypatch).imageserver
+    assert str(imageserver.replay_dir) == "/data/sem-run-2013"

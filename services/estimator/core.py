@@ -1,0 +1,147 @@
+"""The estimator's core: the taught reference and frame -> motion, without sockets."""
+
+from __future__ import annotations
+
+import base64
+import time
+import uuid
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from semservo.estimation import MotionEstimator
+from semservo.imagefiles import ImageFileError, read_image
+from semservo.messages import MotionEstimate
+from semservo.wire import Frame
+
+
+class TeachError(ValueError):
+    """A teach request that cannot be honoured; the previous reference is kept."""
+
+
+@dataclass
+class Reference:
+    id: str
+    kind: str  # "frame", "image" or "mask"
+    shape: tuple[int, int]
+    pixel_size_nm: float | None
+    taught_at_ns: int
+    detail: dict[str, Any] = field(default_factory=dict)
+
+    def describe(self) -> dict:
+        return {"id": self.id, "kind": self.kind, "shape": list(self.shape), "pixel_size_nm": self.pixel_size_nm,
+                "taught_at_ns": self.taught_at_ns, **self.detail}
+
+
+def decode_upload(encoded: str) -> np.ndarray:
+    """Pixels of a base64-encoded PNG or TIFF upload."""
+    try:
+        raw = base64.b64decode(encoded, validate=True)
+    except (ValueError, TypeError) as error:
+        raise TeachError(f"image_b64 is not base64: {error}") from None
+    try:
+        return read_image(raw)[0]
+    except ImageFileError as error:
+        raise TeachError(str(error)) from None
+
+
+class EstimatorCore:
+    def __init__(self, *, rotation: bool = True, fft_effort: str = "FFTW_MEASURE", counters: Counter | None = None):
+        self.rotation = rotation
+        self.fft_effort = fft_effort
+        self.estimator: MotionEstimator | None = None
+        self.reference: Reference | None = None
+        self.latest: Frame | None = None
+        self.last_estimate: MotionEstimate | None = None
+        self.counters: Counter = counters if counters is not None else Counter()
+
+    # -- teaching -------------------------------------------------------------
+    def _install(self, pixels: np.ndarray, kind: str, pixel_size_nm: float | None, mask=None, **detail) -> dict:
+        try:
+            estimator = MotionEstimator(pixels, rotation=self.rotation, mask=mask, fft_effort=self.fft_effort)
+        except ValueError as error:
+            raise TeachError(str(error)) from None
+        # Only now, with the new estimator built, is the old reference replaced.
+        self.estimator = estimator
+        self.reference = Reference(
+            id=uuid.uuid4().hex[:12], kind=kind, shape=pixels.shape, pixel_size_nm=pixel_size_nm,
+            taught_at_ns=time.time_ns(), detail=detail,
+        )
+        self.counters["references_taught"] += 1
+        return self.reference.describe()
+
+    def teach_latest(self) -> dict:
+        if self.latest is None:
+            raise TeachError("no frame has been received yet; is the image server running?")
+        frame = self.latest
+        return self._install(np.array(frame.pixels), "frame", frame.header.pixel_size_nm,
+                             frame_seq=frame.header.seq, source=frame.header.source)
+
+    def teach_image(self, pixels: np.ndarray, label: str = "upload") -> dict:
+        if self.latest is not None and pixels.shape != self.latest.pixels.shape:
+            rows, cols = self.latest.pixels.shape
+            raise TeachError(f"image is {pixels.shape[1]} x {pixels.shape[0]}, the current scan is {cols} x {rows}")
+        pixel_size = self.latest.header.pixel_size_nm if self.latest is not None else None
+        return self._install(pixels, "image", pixel_size, label=label)
+
+    def teach_mask(self, *, polygon=None, mask: np.ndarray | None = None) -> dict:
+        """A mask reference (paper case 6) drawn on the latest frame's shape and levels."""
+        if self.latest is None:
+            raise TeachError("a mask is drawn on the live image: no frame has been received yet")
+        if (polygon is None) == (mask is None):
+            raise TeachError("give either polygon corner points or a mask image")
+        if mask is not None and mask.shape != self.latest.pixels.shape:
+            raise TeachError(f"mask is {mask.shape[1]} x {mask.shape[0]}, the current scan is "
+                             f"{self.latest.pixels.shape[1]} x {self.latest.pixels.shape[0]}")
+        try:
+            shape_mask = [tuple(map(float, point)) for point in polygon] if polygon is not None else mask > 0
+        except (TypeError, ValueError):
+            raise TeachError("polygon must be a list of [x, y] corner points") from None
+        detail = {"polygon": [list(point) for point in shape_mask]} if polygon is not None else {}
+        return self._install(np.array(self.latest.pixels), "mask", self.latest.header.pixel_size_nm,
+                             mask=shape_mask, **detail)
+
+    def clear(self) -> dict:
+        had = self.reference is not None
+        self.estimator = None
+        self.reference = None
+        return {"cleared": had}
+
+    # -- per frame ------------------------------------------------------------
+    def process(self, frame: Frame) -> MotionEstimate | None:
+        """The motion of ``frame`` against the reference; None when there is no reference
+        or the frame cannot be compared (counted, with the reason in ``last_error``)."""
+        self.latest = frame
+        if self.estimator is None:
+            self.counters["frames_without_reference"] += 1
+            return None
+        if frame.pixels.shape != self.estimator.shape:
+            self.counters["frames_wrong_shape"] += 1
+            raise ValueError(f"frame {frame.header.seq} is {frame.header.shape}, the reference is "
+                             f"{self.estimator.shape}; teach again after changing the scan")
+        started = time.perf_counter()
+        motion = self.estimator.estimate(frame.pixels)
+        elapsed_ms = (time.perf_counter() - started) * 1e3
+        now = time.time_ns()
+        estimate = MotionEstimate(
+            seq=frame.header.seq, reference_id=self.reference.id,
+            dx_px=motion.dx, dy_px=motion.dy, rotation_deg=motion.rotation_deg,
+            confidence=min(1.0, max(0.0, motion.confidence)), snr_db=motion.snr_db, filtered=motion.filtered,
+            pixel_size_nm=frame.header.pixel_size_nm,
+            frame_acquired_at_ns=frame.header.acquired_at_ns, frame_published_at_ns=frame.header.published_at_ns,
+            published_at_ns=now, estimation_ms=elapsed_ms,
+            latency_ms=(now - frame.header.published_at_ns) / 1e6,
+        )
+        self.counters["estimates"] += 1
+        self.last_estimate = estimate
+        return estimate
+
+    def report(self) -> dict:
+        return {
+            "reference": self.reference.describe() if self.reference else None,
+            "rotation": self.rotation,
+            "latest_frame_seq": self.latest.header.seq if self.latest else None,
+            "last_estimate": self.last_estimate.model_dump() if self.last_estimate else None,
+        }

@@ -1,0 +1,176 @@
+"""The estimator as a real process behind the image server, on the replayed 2013 run."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from semservo.config import connect
+from semservo.estimation import MotionEstimator
+from semservo.messages import MOTION_TOPIC, Health, MotionEstimate
+from semservo.transport import CommandError, ControlClient, MessageSubscriber
+from tests.integration.helpers import start_service, stop, wait_healthy
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture
+def stack(ports, recorded_run):
+    imageserver = start_service("imageserver", "--glob", "frame*", "--fps", "20")
+    wait_healthy(connect("127.0.0.1", ports["control"]), imageserver)
+    estimator = start_service("estimator")
+    control_endpoint = connect("127.0.0.1", ports["estimator_control"])
+    wait_healthy(control_endpoint, estimator)
+    control = ControlClient(control_endpoint, timeout_s=10, retries=1)
+    motion = MessageSubscriber(connect("127.0.0.1", ports["motion"]), MOTION_TOPIC, MotionEstimate)
+    yield control, motion, estimator
+    control.close()
+    motion.close()
+    stop(estimator)
+    stop(imageserver)
+
+
+def wait_for_frame(control: ControlClient) -> None:
+    import time
+
+    deadline = time.monotonic() + 10
+    while control.request("report")["latest_frame_seq"] is None:
+        assert time.monotonic() < deadline, "the estimator never received a frame"
+        time.sleep(0.05)
+
+
+def estimates_for(motion: MessageSubscriber, reference_id: str, count: int) -> list[MotionEstimate]:
+    found = []
+    for _ in range(200):
+        estimate = motion.receive(timeout_s=1)
+        if estimate is not None and estimate.reference_id == reference_id:
+            found.append(estimate)
+            if len(found) == count:
+                break
+    return found
+
+
+def png_b64(pixels: np.ndarray) -> str:
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
+
+
+def test_without_a_reference_nothing_is_published_and_health_says_so(stack):
+    control, motion, _ = stack
+    wait_for_frame(control)
+    health = Health.model_validate(control.request("health"))
+    assert health.state == "idle"
+    assert "none taught" in health.details["reference"]
+    assert health.counters["frames_without_reference"] > 0
+    assert motion.receive(timeout_s=0.5) is None
+
+
+def test_teach_the_live_frame_then_motion_follows_each_frame(stack, recorded_run):
+    control, motion, _ = stack
+    wait_for_frame(control)
+    reference = control.request("teach")
+    assert reference["kind"] == "frame" and reference["shape"] == [512, 512]
+    estimates = estimates_for(motion, reference["id"], 8)
+    assert len(estimates) == 8
+    seqs = [e.seq for e in estimates]
+    assert seqs == sorted(seqs) and len(set(seqs)) == 8  # one per frame, newest first served
+    taught_seq = reference["frame_seq"]
+    frames = sorted(recorded_run.glob("frame*.png"))
+    taught = np.asarray(Image.open(frames[taught_seq % len(frames)]))
+    for estimate in estimates[:3]:
+        current = np.asarray(Image.open(frames[estimate.seq % len(frames)]))
+        expected = MotionEstimator(taught).estimate(current)
+        assert estimate.dx_px == pytest.approx(expected.dx, abs=1e-3)
+        assert estimate.dy_px == pytest.approx(expected.dy, abs=1e-3)
+        assert estimate.latency_ms >= estimate.estimation_ms > 0
+        assert estimate.pixel_size_nm > 0
+    health = Health.model_validate(control.request("health"))
+    assert health.state == "running" and health.counters["motion_published"] >= 8
+
+
+def test_teach_an_uploaded_image_and_the_real_run_converges(stack, recorded_run):
+    control, motion, _ = stack
+    wait_for_frame(control)
+    reference = control.request("teach", image_b64=png_b64(np.asarray(Image.open(recorded_run / "reference.png"))))
+    assert reference["kind"] == "image"
+    estimates = estimates_for(motion, reference["id"], 10)
+    early = [e for e in estimates if e.seq % 54 < 5]
+    late = [e for e in estimates if e.seq % 54 > 45]
+    for estimate in estimates:
+        assert estimate.confidence > 0.5
+    # The recorded run starts ~54 px left and ~41 px below the reference and ends near it.
+    for estimate in early:
+        assert estimate.dx_px < -30 and estimate.dy_px > 20
+    for estimate in late:
+        assert np.hypot(estimate.dx_px, estimate.dy_px) < 15
+
+
+def test_teach_a_polygon_mask(stack):
+    control, motion, _ = stack
+    wait_for_frame(control)
+    polygon = [[70, 140], [130, 120], [160, 300], [230, 300], [290, 140], [320, 160], [300, 430], [100, 440]]
+    reference = control.request("teach", polygon=polygon)
+    assert reference["kind"] == "mask" and reference["polygon"] == polygon
+    estimates = estimates_for(motion, reference["id"], 3)
+    assert len(estimates) == 3 and all(e.rotation_deg == 0 for e in estimates)
+
+
+def test_bad_teach_requests_are_refused_and_keep_the_previous_reference(stack):
+    control, _, estimator = stack
+    wait_for_frame(control)
+    good = control.request("teach")
+    bad_requests = [
+        ({"image_b64": "not base64!"}, "base64"),
+        ({"image_b64": base64.b64encode(b"garbage bytes").decode()}, "unreadable"),
+        ({"image_b64": png_b64(np.zeros((100, 80), np.uint8))}, "80 x 100"),
+        ({"polygon": [[1, 2], [3, 4]]}, "at least 3"),
+        ({"polygon": "nonsense"}, "polygon"),
+        ({"path": "/nonexistent/frame.png"}, "unreadable"),
+    ]
+    for args, message in bad_requests:
+        with pytest.raises(CommandError, match=message) as caught:
+            control.request("teach", **args)
+        assert caught.value.code == "bad_request"
+    assert control.request("report")["reference"]["id"] == good["id"]
+    assert estimator.poll() is None
+
+
+def test_clear_stops_the_motion_stream(stack):
+    control, motion, _ = stack
+    wait_for_frame(control)
+    reference = control.request("teach")
+    assert estimates_for(motion, reference["id"], 2)
+    assert control.request("clear") == {"cleared": True}
+    while motion.receive(timeout_s=0.3) is not None:  # drain what was in flight
+        pass
+    assert motion.receive(timeout_s=0.5) is None
+    assert Health.model_validate(control.request("health")).state == "idle"
+
+
+def test_estimate_cli_prints_each_readable_image_then_reports_the_rest(recorded_run, tmp_path):
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not an image")
+    command = [sys.executable, "-m", "semservo", "estimate", str(recorded_run / "reference.png"),
+               str(recorded_run / "frame00.png"), str(broken), str(recorded_run / "frame53.png")]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 2 and "frame00.png" in lines[0] and "frame53.png" in lines[1]
+    for key in ("dx_px=", "dy_px=", "rotation_deg=", "confidence=", "snr_db=", "elapsed_ms="):
+        assert key in lines[0]
+    assert "broken.png" in result.stderr and "unreadable" in result.stderr
+
+    result = subprocess.run(command[:6] + ["--json", "--no-rotation"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0
+    record = json.loads(result.stdout)
+    assert set(record) == {"image", "dx_px", "dy_px", "rotation_deg", "confidence", "snr_db", "elapsed_ms"}
+    assert record["dx_px"] == pytest.approx(-53.7, abs=1) and record["dy_px"] == pytest.approx(40.8, abs=1)
+    assert record["rotation_deg"] == 0

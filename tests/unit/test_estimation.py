@@ -1,0 +1,221 @@
+"""semservo.estimation: the sign convention, sub-pixel accuracy on real SEM frames,
+rotation, invariance to brightness and contrast, masks, confidence, SNR, bad input."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+import semservo.estimation as estimation
+from semservo.estimation import MotionEstimator, estimate_snr_db, polygon_mask
+from semservo.pairs import poisson_gaussian, shifted_pair
+
+
+@pytest.fixture(scope="module")
+def frame(recorded_run) -> np.ndarray:
+    return np.asarray(Image.open(recorded_run / "frame10.png")).astype(np.float64)
+
+
+@pytest.fixture(scope="module")
+def reference_estimator(frame):
+    return MotionEstimator(frame)
+
+
+def rotated(image: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Content turned counter-clockwise as displayed (OpenCV's positive angle)."""
+    rows, cols = image.shape
+    matrix = cv2.getRotationMatrix2D(((cols - 1) / 2, (rows - 1) / 2), angle_deg, 1.0)
+    return cv2.warpAffine(image.astype(np.float32), matrix, (cols, rows), flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+def test_sign_convention_of_the_contract(frame):
+    # current[y, x] == reference[y, x - 3]  =>  dx == +3; likewise rows for dy.
+    reference = frame[20:480, 20:480]
+    current = frame[20 + 2:480 + 2, 20 - 3:480 - 3]  # current[y, x] = frame[y + 2, x - 3]
+    np.testing.assert_array_equal(current[10, 13], reference[12, 10])
+    motion = MotionEstimator(reference).estimate(current)
+    assert motion.dx == pytest.approx(3, abs=0.02)
+    assert motion.dy == pytest.approx(-2, abs=0.02)
+    assert motion.rotation_deg == pytest.approx(0, abs=0.05)
+
+
+def test_opencv_positive_angle_is_counter_clockwise_as_displayed():
+    # Pins the meaning of the rotation the tests below build: a bright spot right of
+    # the centre moves up (towards row 0) under a positive OpenCV angle.
+    image = np.zeros((101, 101), np.float32)
+    image[50, 80] = 1
+    turned = rotated(image, 90)
+    row, col = np.unravel_index(np.argmax(turned), turned.shape)
+    assert (row, col) == (20, 50)
+
+
+@pytest.mark.parametrize("factor", [2, 3, 4])
+def test_known_subpixel_shifts_of_real_frames(frame, factor):
+    """Halves, thirds and quarters, exact by block averaging (no interpolation)."""
+    rng = np.random.default_rng(factor)
+    errors = []
+    for _ in range(6):
+        dx, dy = rng.integers(-4 * factor, 4 * factor + 1, size=2) / factor
+        pair = shifted_pair(frame, dx, dy, factor, margin=4 * factor)
+        motion = MotionEstimator(pair.reference, rotation=False).estimate(pair.current)
+        errors.append(np.hypot(motion.dx - dx, motion.dy - dy))
+    assert np.mean(errors) < 0.03, errors
+    assert np.max(errors) < 0.08, errors
+
+
+def test_known_shifts_with_moderate_sem_noise(frame):
+    rng = np.random.default_rng(11)
+    errors = []
+    for _ in range(8):
+        dx, dy = rng.integers(-8, 9, size=2) / 2
+        pair = shifted_pair(frame, dx, dy, 2, margin=8)
+        reference = poisson_gaussian(pair.reference, 1000, 2, rng)
+        current = poisson_gaussian(pair.current, 1000, 2, rng)
+        motion = MotionEstimator(reference, rotation=False).estimate(current)
+        errors.append(np.hypot(motion.dx - dx, motion.dy - dy))
+    assert np.mean(errors) < 0.03 and np.max(errors) < 0.1, errors
+
+
+@pytest.mark.parametrize("angle", [0.4, -3.0, 12.5, -45.0, 90.0, 135.0, -170.0])
+def test_rotation_about_the_beam(frame, reference_estimator, angle):
+    motion = reference_estimator.estimate(rotated(frame, angle))
+    assert motion.rotation_deg == pytest.approx(angle, abs=0.05)
+    assert abs(motion.dx) < 0.1 and abs(motion.dy) < 0.1
+    assert motion.confidence > 0.9
+
+
+def test_rotation_then_translation_in_current_image_axes(frame):
+    reference = frame[40:472, 40:472]
+    turned = rotated(frame, 8.0)
+    current = turned[40 - 5:472 - 5, 40 - 7:472 - 7]  # content moved right 7, down 5
+    motion = MotionEstimator(reference).estimate(current)
+    assert motion.rotation_deg == pytest.approx(8.0, abs=0.05)
+    assert motion.dx == pytest.approx(7, abs=0.1)
+    assert motion.dy == pytest.approx(5, abs=0.1)
+
+
+def test_brightness_and_contrast_changes_do_not_move_the_estimate(frame):
+    pair = shifted_pair(frame, 2.5, -1.5, 2, margin=6)
+    estimator = MotionEstimator(pair.reference)
+    plain = estimator.estimate(pair.current)
+    changed = estimator.estimate(np.clip(1.8 * pair.current + 40, 0, None))
+    darker = estimator.estimate(0.4 * pair.current - 10)
+    for motion in (changed, darker):
+        assert motion.dx == pytest.approx(plain.dx, abs=0.01)
+        assert motion.dy == pytest.approx(plain.dy, abs=0.01)
+    assert plain.dx == pytest.approx(2.5, abs=0.03) and plain.dy == pytest.approx(-1.5, abs=0.03)
+
+
+@pytest.mark.parametrize("shape", [(256, 384), (384, 200), (64, 96)])
+def test_non_square_frames(frame, shape):
+    rows, cols = shape
+    reference = frame[50:50 + rows, 60:60 + cols]
+    current = frame[50 - 3:50 - 3 + rows, 60 - 4:60 - 4 + cols]  # content moved right 4, down 3
+    motion = MotionEstimator(reference).estimate(current)
+    assert (motion.dx, motion.dy) == (pytest.approx(4, abs=0.05), pytest.approx(3, abs=0.05))
+    assert motion.rotation_deg == pytest.approx(0, abs=0.1)
+
+
+def test_integer_and_float_types_agree(frame):
+    reference = frame[10:330, 10:330]
+    current = frame[12:332, 7:327]
+    results = []
+    for dtype, scale in ((np.uint8, 1), (np.uint16, 257), (np.float32, 1 / 255)):
+        estimator = MotionEstimator((reference * scale).astype(dtype), rotation=False)
+        results.append(estimator.estimate((current * scale).astype(dtype)))
+    for motion in results:
+        assert motion.dx == pytest.approx(3, abs=0.02) and motion.dy == pytest.approx(-2, abs=0.02)
+
+
+def test_mask_reference_from_a_thresholded_reference(frame):
+    """Paper case 6: the taught image is a binary mask of the object, obtained by
+    intensity thresholding; the live image is the real SEM frame."""
+    mask = cv2.GaussianBlur(frame.astype(np.float32), (0, 0), 3) < frame.mean() - 25  # the dark gripper
+    assert 0.1 < mask.mean() < 0.5
+    estimator = MotionEstimator(frame, mask=mask)
+    for dx, dy in [(9, -6), (-25, 14), (0, 0)]:
+        motion = estimator.estimate(np.roll(np.roll(frame, dx, axis=1), dy, axis=0))
+        assert motion.dx == pytest.approx(dx, abs=0.5) and motion.dy == pytest.approx(dy, abs=0.5)
+        assert motion.rotation_deg == 0.0 and motion.confidence > 0.5
+
+
+def test_mask_reference_from_clicked_corners_tracks_the_object(frame):
+    """A rough outline from clicked corners defines the target position; the estimate
+    moves with the object exactly as the object moves."""
+    corners = [(70, 140), (130, 120), (160, 300), (230, 300), (290, 140), (320, 160), (300, 430), (100, 440)]
+    estimator = MotionEstimator(frame, mask=corners)
+    here = estimator.estimate(frame)
+    moved = estimator.estimate(np.roll(np.roll(frame, 12, axis=1), -7, axis=0))
+    assert moved.dx - here.dx == pytest.approx(12, abs=0.3)
+    assert moved.dy - here.dy == pytest.approx(-7, abs=0.3)
+    assert np.hypot(here.dx, here.dy) < 20  # the outline is roughly where the gripper is
+
+
+def test_confidence_separates_matching_from_unrelated_images(frame, reference_estimator, recorded_run):
+    rng = np.random.default_rng(0)
+    matching = reference_estimator.estimate(np.roll(frame, 4, axis=0))
+    noise = reference_estimator.estimate(rng.normal(128, 30, frame.shape))
+    unrelated = MotionEstimator(frame[:256, :256], rotation=False).estimate(frame[256:, 256:])
+    assert matching.confidence > 0.9
+    assert noise.confidence < 0.3
+    assert unrelated.confidence < 0.5
+    assert matching.psr > 5 * noise.psr
+
+
+def test_snr_follows_the_added_noise():
+    rng = np.random.default_rng(3)
+    # A smooth signal of known power plus white noise of known power.
+    smooth = cv2.GaussianBlur(rng.normal(0, 1, (512, 512)).astype(np.float32), (0, 0), 4)
+    smooth *= 10 / smooth.std()
+    for noise_sigma, true_db in ((1.0, 20.0), (3.16, 10.0), (10.0, 0.0)):
+        noisy = smooth + rng.normal(0, noise_sigma, smooth.shape).astype(np.float32)
+        assert estimate_snr_db(noisy) == pytest.approx(true_db, abs=1.0)
+
+
+def test_noisy_frames_are_filtered(frame):
+    rng = np.random.default_rng(5)
+    estimator = MotionEstimator(frame, rotation=False, snr_threshold_db=15)
+    clean = estimator.estimate(np.roll(frame, 2, axis=1))
+    noisy = estimator.estimate(poisson_gaussian(np.roll(frame, 2, axis=1), 100, 5, rng))
+    assert clean.snr_db > noisy.snr_db
+    assert noisy.snr_db < 15 and noisy.filtered
+    assert noisy.dx == pytest.approx(2, abs=0.15)
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda f: f[:100, :120], "the reference is"),
+        (lambda f: np.where(np.arange(f.size).reshape(f.shape) == 7, np.nan, f), "NaN"),
+        (lambda f: np.array([]), "empty"),
+        (lambda f: np.stack([f, f], axis=-1), "2-D"),
+        (lambda f: f[:63, :63], "at least 64"),
+        (lambda f: f.astype(object), "pixel type"),
+    ],
+    ids=["other-shape", "nan", "empty", "three-d", "too-small", "object"],
+)
+def test_bad_input_is_a_clear_value_error(frame, reference_estimator, make, message):
+    with pytest.raises(ValueError, match=message):
+        reference_estimator.estimate(make(frame))
+
+
+def test_bad_reference_is_a_clear_value_error(frame):
+    with pytest.raises(ValueError, match="NaN"):
+        MotionEstimator(np.full((64, 64), np.nan))
+    with pytest.raises(ValueError, match="at least 64"):
+        MotionEstimator(np.zeros((32, 128)))
+    with pytest.raises(ValueError, match="at least 3 corner"):
+        MotionEstimator(frame, mask=[(0, 0), (10, 10)])
+    with pytest.raises(ValueError, match="part of the image"):
+        MotionEstimator(frame, mask=np.zeros(frame.shape, bool))
+
+
+def test_fft_plans_are_kept_as_wisdom_on_disk(tmp_path, monkeypatch):
+    path = tmp_path / "wisdom.pickle"
+    monkeypatch.setenv("SEMSERVO_FFTW_WISDOM", str(path))
+    monkeypatch.setattr(estimation, "_wisdom_loaded", False)
+    MotionEstimator(np.random.default_rng(0).normal(size=(72, 88)), rotation=False)
+    assert path.is_file() and path.stat().st_size > 0
