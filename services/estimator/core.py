@@ -48,8 +48,10 @@ def decode_upload(encoded: str) -> np.ndarray:
 
 
 class EstimatorCore:
-    def __init__(self, *, rotation: bool = True, fft_effort: str = "FFTW_MEASURE", counters: Counter | None = None):
+    def __init__(self, *, rotation: bool = True, precision: str = "fast", fft_effort: str = "FFTW_MEASURE",
+                 counters: Counter | None = None):
         self.rotation = rotation
+        self.precision = precision
         self.fft_effort = fft_effort
         self.estimator: MotionEstimator | None = None
         self.reference: Reference | None = None
@@ -60,7 +62,8 @@ class EstimatorCore:
     # -- teaching -------------------------------------------------------------
     def _install(self, pixels: np.ndarray, kind: str, pixel_size_nm: float | None, mask=None, **detail) -> dict:
         try:
-            estimator = MotionEstimator(pixels, rotation=self.rotation, mask=mask, fft_effort=self.fft_effort)
+            estimator = MotionEstimator(pixels, rotation=self.rotation, mask=mask, precision=self.precision,
+                                        fft_effort=self.fft_effort)
         except ValueError as error:
             raise TeachError(str(error)) from None
         # Only now, with the new estimator built, is the old reference replaced.
@@ -142,6 +145,7 @@ class EstimatorCore:
         return {
             "reference": self.reference.describe() if self.reference else None,
             "rotation": self.rotation,
+            "precision": self.precision,
             "latest_frame_seq": self.latest.header.seq if self.latest else None,
             "last_estimate": self.last_estimate.model_dump() if self.last_estimate else None,
         }

@@ -27,6 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Measure each frame's motion against the taught reference and publish it.",
     )
     parser.add_argument("--no-rotation", action="store_true", help="translation only")
+    parser.add_argument("--precision", choices=["fast", "full"], help="sub-pixel fit resolution (default: settings)")
     return parser
 
 
@@ -36,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     configure(settings.log_level)
     config = settings.estimator
     runtime = ServiceRuntime("estimator", settings, settings.bind(config.control_port))
-    core = EstimatorCore(rotation=config.rotation and not args.no_rotation, fft_effort=config.fft_effort,
+    core = EstimatorCore(rotation=config.rotation and not args.no_rotation,
+                         precision=args.precision or config.precision, fft_effort=config.fft_effort,
                          counters=runtime.counters)
     runtime.state = "idle"  # until a reference is taught
     frames_endpoint = connect(settings.imageserver.host, settings.imageserver.frames_port)

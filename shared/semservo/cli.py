@@ -169,7 +169,7 @@ def command_estimate(args: argparse.Namespace) -> int:
             mask = reference > 0
         reference = levels
     try:
-        estimator = MotionEstimator(reference, rotation=not args.no_rotation, mask=mask)
+        estimator = MotionEstimator(reference, rotation=not args.no_rotation, mask=mask, precision=args.precision)
     except ValueError as error:
         fail(f"{args.reference}: {error}")
         return 2
@@ -345,6 +345,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="REFERENCE is a binary mask of the object (paper case 6)")
     estimate.add_argument("--polygon", metavar="'X,Y X,Y ...'",
                           help="use the polygon of these corner points on REFERENCE as a mask reference")
+    estimate.add_argument("--precision", choices=["fast", "full"], default="fast",
+                          help="sub-pixel fit on the 2x search pair (fast, default) or at full resolution")
     estimate.add_argument("--json", action="store_true", help="one JSON object per line")
     estimate.set_defaults(handler=command_estimate)
 
