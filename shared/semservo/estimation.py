@@ -736,11 +736,24 @@ class MotionEstimator:
         # along rows (down), so a counter-clockwise turn as displayed moves the profile back.
         return float(-samples * 180.0 / self.grid.angles)
 
-    def _search_peak(self, search_spectrum: np.ndarray) -> float:
-        """Height of the search-resolution phase-correlation peak (eq. 18-20)."""
-        _kernels.normalized_cross_power_into(search_spectrum, self.search_reference_conjugate, self.no_weight,
-                                             False, self.search_plans.inverse.input_array)
-        return float(self.search_plans.inverse(normalise_idft=True).max())
+    def _turned_wins(self, search_spectrum: np.ndarray) -> bool:
+        """Does the image turned by 180 degrees correlate better than as it is?
+
+        Only which peak is higher matters, so the low-frequency quarter of the search
+        spectra suffices (a 128 x 128 inverse FFT per candidate for a 512 frame).
+        """
+        rows = self.search_shape[0] // 4
+        cols = self.search_shape[1] // 4
+        def crop(spectrum):
+            return np.concatenate([spectrum[:rows, :cols + 1], spectrum[-rows:, :cols + 1]])
+        current = crop(search_spectrum)
+        reference = crop(self.search_reference_conjugate)
+        heights = []
+        for candidate in (current, np.conj(current)):
+            cross = candidate * reference
+            cross /= np.maximum(np.abs(cross), 1e-30)
+            heights.append(float(np.fft.irfft2(cross, s=(2 * rows, 2 * cols)).max()))
+        return heights[1] > heights[0]
 
     def estimate_translation(self, image: np.ndarray, mean: float, search_spectrum: np.ndarray, *,
                              filtered: bool) -> tuple[float, float, float, float]:
@@ -805,7 +818,7 @@ class MotionEstimator:
             # theta or theta + 180? Turning the de-rotated image by 180 degrees conjugates
             # its spectrum (real image, symmetric window; up to a one-pixel shift that
             # does not change the peak height), so one extra inverse FFT compares them.
-            if self._search_peak(np.conj(search_spectrum)) > self._search_peak(search_spectrum):
+            if self._turned_wins(search_spectrum):
                 angle += 180.0 if angle < 0 else -180.0
                 image = rotate_about_centre(original, -angle, self._derotated)
                 derotated = True
