@@ -30,11 +30,15 @@ def recorded_run() -> Path:
 @pytest.fixture
 def ports(monkeypatch) -> dict[str, int]:
     """Fresh loopback ports for every service, set in the environment children inherit."""
-    chosen = {name: free_port() for name in ("frames", "control", "motion", "estimator_control")}
+    chosen = {name: free_port() for name in ("frames", "control", "motion", "estimator_control",
+                                             "fakelab_control", "scan", "serial_tcp")}
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__FRAMES_PORT", str(chosen["frames"]))
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__CONTROL_PORT", str(chosen["control"]))
     monkeypatch.setenv("SEMSERVO_ESTIMATOR__MOTION_PORT", str(chosen["motion"]))
     monkeypatch.setenv("SEMSERVO_ESTIMATOR__CONTROL_PORT", str(chosen["estimator_control"]))
+    monkeypatch.setenv("SEMSERVO_FAKELAB__CONTROL_PORT", str(chosen["fakelab_control"]))
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SCAN_PORT", str(chosen["scan"]))
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SERIAL_TCP_PORT", str(chosen["serial_tcp"]))
     return chosen
 
 

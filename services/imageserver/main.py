@@ -1,7 +1,8 @@
 """Image server process: source -> core -> PUB socket; commands on the control socket.
 
 Run it with ``semservo service imageserver [options]``; options override the
-``SEMSERVO_IMAGESERVER__*`` settings.
+``SEMSERVO_IMAGESERVER__*`` settings. Sources: ``sim`` (default; the fake lab's SEM)
+and ``replay`` (a folder of frames; implied by ``--replay-dir``).
 """
 
 from __future__ import annotations
@@ -10,12 +11,15 @@ import argparse
 import logging
 from pathlib import Path
 
+import time
+
 from semservo.config import Settings, connect
 from semservo.logs import configure
+from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
 from semservo.transport import BadRequest, FramePublisher
 from services.imageserver.core import ImageServerCore
-from services.imageserver.sources import ReplaySource
+from services.imageserver.sources import ReplaySource, SimSource, SourceUnavailable
 
 log = logging.getLogger("imageserver")
 
@@ -23,8 +27,11 @@ log = logging.getLogger("imageserver")
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="semservo service imageserver",
-        description="Publish SEM frames over ZeroMQ PUB/SUB from a source (replay of a folder of PNG/TIFF frames).",
+        description="Publish SEM frames over ZeroMQ PUB/SUB from a source: the fake lab's simulated SEM "
+                    "(sim) or a replayed folder of PNG/TIFF frames (replay).",
     )
+    parser.add_argument("--source", choices=["sim", "replay"], help="frame source (default: settings; "
+                        "--replay-dir implies replay)")
     parser.add_argument("--replay-dir", type=Path, help="folder of PNG/TIFF frames, replayed in name order")
     parser.add_argument("--glob", help="replay only files matching this pattern, e.g. 'frame*'")
     parser.add_argument("--fps", type=float, help="frames per second")
@@ -37,8 +44,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def make_source(settings: Settings, args: argparse.Namespace) -> ReplaySource:
+def make_source(settings: Settings, args: argparse.Namespace, context) -> ReplaySource | SimSource:
     config = settings.imageserver
+    source = args.source or ("replay" if args.replay_dir else config.source)
+    if source == "sim":
+        request = ScanRequest(dwell_ns=args.dwell_ns or config.scan_dwell_ns,
+                              magnification=args.magnification or config.scan_magnification)
+        return SimSource(connect(settings.fakelab.host, settings.fakelab.scan_port), request,
+                         timeout_s=config.scan_timeout_s, max_message_bytes=settings.max_message_bytes,
+                         context=context)
     return ReplaySource(
         args.replay_dir or config.replay_dir,
         pattern=args.glob or config.replay_glob,
@@ -57,9 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     configure(settings.log_level)
     config = settings.imageserver
 
-    source = make_source(settings, args)
-    core = ImageServerCore(source, fps=args.fps or config.fps)
     runtime = ServiceRuntime("imageserver", settings, settings.bind(config.control_port))
+    source = make_source(settings, args, runtime.context)
+    core = ImageServerCore(source, fps=args.fps or config.fps)
     publisher = FramePublisher(settings.bind(config.frames_port), context=runtime.context)
     log.info("publishing %s on %s at %.1f fps", source.describe(), publisher.endpoint, core.pacer.fps)
 
@@ -83,8 +97,22 @@ def main(argv: list[str] | None = None) -> int:
     runtime.control.register("set_fps", set_fps)
     runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq}
 
+    retry_at = 0.0
+
     def step() -> float | None:
-        due = core.next_frame()
+        nonlocal retry_at
+        if time.monotonic() < retry_at:
+            return retry_at - time.monotonic()
+        try:
+            due = core.next_frame()
+        except SourceUnavailable as error:
+            # Say so in health and try again shortly; never crash on a missing device.
+            runtime.error(str(error))
+            runtime.state = "degraded"
+            retry_at = time.monotonic() + 1.0
+            return 1.0
+        if runtime.state == "degraded":
+            runtime.state = "running"
         if due is not None:
             seq, image = due
             publisher.publish(
@@ -106,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return runtime.run(step)
     finally:
+        if hasattr(source, "close"):
+            source.close()
         publisher.close()
         runtime.context.term()
 

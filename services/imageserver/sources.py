@@ -14,8 +14,12 @@ from typing import Protocol
 
 import numpy as np
 
+import zmq
+
 from semservo.config import pixel_size_nm
 from semservo.imagefiles import ImageFileError, list_frames, read_image
+from semservo.messages import Reply, ScanRequest
+from semservo.wire import WireError, decode_frame
 
 
 @dataclass(frozen=True)
@@ -118,3 +122,65 @@ class ReplaySource:
             "position": self.position,
             "passes": self.passes,
         }
+
+
+class SourceUnavailable(RuntimeError):
+    """The source cannot deliver a frame now (e.g. the fake lab does not answer)."""
+
+
+class SimSource:
+    """Frames from the simulated SEM of the fake lab, requested with scan settings as a
+    real scan generator would be commanded (request-reply, one frame per request).
+
+    A request that gets no frame within ``timeout_s`` raises :class:`SourceUnavailable`;
+    the socket is then replaced (lazy pirate) so the next request starts clean.
+    """
+
+    name = "sim"
+
+    def __init__(self, endpoint: str, request: ScanRequest, *, timeout_s: float = 10.0,
+                 max_message_bytes: int = 64 * 2**20, context: zmq.Context | None = None):
+        self.endpoint = endpoint
+        self.request = request
+        self.timeout_s = timeout_s
+        self.max_message_bytes = max_message_bytes
+        self.context = context or zmq.Context.instance()
+        self.socket: zmq.Socket | None = None
+        self.frames = 0
+
+    def _open(self) -> zmq.Socket:
+        socket = self.context.socket(zmq.REQ)
+        socket.setsockopt(zmq.LINGER, 0)
+        socket.setsockopt(zmq.MAXMSGSIZE, 4 * self.max_message_bytes)
+        socket.connect(self.endpoint)
+        return socket
+
+    def acquire(self) -> AcquiredImage:
+        if self.socket is None:
+            self.socket = self._open()
+        self.socket.send(self.request.model_dump_json().encode())
+        if not self.socket.poll(int(self.timeout_s * 1000)):
+            self.socket.close(linger=0)
+            self.socket = None
+            raise SourceUnavailable(f"no frame from the fake lab at {self.endpoint} in {self.timeout_s:g} s")
+        parts = self.socket.recv_multipart(copy=False)
+        if len(parts) == 1:
+            reply = Reply.model_validate_json(parts[0].bytes)
+            raise SourceUnavailable(f"the fake lab refused the scan: {reply.error.message if reply.error else reply}")
+        try:
+            frame = decode_frame(parts, max_bytes=self.max_message_bytes)
+        except WireError as error:
+            raise SourceUnavailable(f"malformed frame from the fake lab: {error}") from None
+        self.frames += 1
+        header = frame.header
+        return AcquiredImage(pixels=frame.pixels, acquired_at_ns=header.published_at_ns,
+                             pixel_size_nm=header.pixel_size_nm, magnification=header.magnification,
+                             dwell_ns=header.dwell_ns, label=header.label)
+
+    def describe(self) -> dict:
+        return {"source": self.name, "endpoint": self.endpoint, "frames": self.frames,
+                "request": self.request.model_dump()}
+
+    def close(self) -> None:
+        if self.socket is not None:
+            self.socket.close(linger=0)

@@ -2,6 +2,7 @@
 
     semservo up         start the whole system and show it working (Ctrl-C stops it)
     semservo service    run one service in the foreground (what ``up`` and containers run)
+    semservo fakelab    run the simulated lab alone (prints the emulated serial port)
     semservo frames     watch a frame stream
     semservo health     ask every service how it is
     semservo estimate   measure motion between image files (no services needed)
@@ -34,7 +35,10 @@ def _raise_interrupt(signum, frame):
 def _replay_environment(args: argparse.Namespace) -> None:
     """Turn the replay options of ``up`` into settings every child inherits."""
     overrides = {
+        "SEMSERVO_IMAGESERVER__SOURCE": args.source or (args.replay_dir and "replay"),
         "SEMSERVO_IMAGESERVER__REPLAY_DIR": args.replay_dir and str(Path(args.replay_dir).resolve()),
+        "SEMSERVO_FAKELAB__PRESET": args.preset,
+        "SEMSERVO_FAKELAB__SPEEDUP": args.speedup and str(args.speedup),
         "SEMSERVO_IMAGESERVER__REPLAY_GLOB": args.glob,
         "SEMSERVO_IMAGESERVER__FPS": args.fps and str(args.fps),
         "SEMSERVO_IMAGESERVER__LOOP": None if args.loop is None else str(args.loop).lower(),
@@ -250,6 +254,13 @@ def command_service(args: argparse.Namespace) -> int:
     return module.main(args.service_args)
 
 
+def command_fakelab(args: argparse.Namespace) -> int:
+    """The simulated lab alone, for a real stage service or a developer's experiments."""
+    from services.fakelab.main import main as fakelab_main
+
+    return fakelab_main(args.fakelab_args)
+
+
 def command_frames(args: argparse.Namespace) -> int:
     settings = Settings()
     endpoint = args.endpoint or connect(settings.imageserver.host, settings.imageserver.frames_port)
@@ -309,7 +320,11 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for health and for --check")
     up.add_argument("--restart", action="store_true", help="restart a service that dies (with back-off)")
     up.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines")
-    up.add_argument("--replay-dir", help="folder of frames to replay (default: the 2013 recording)")
+    up.add_argument("--source", choices=["sim", "replay"], help="frames from the simulated SEM (default) or a replay")
+    up.add_argument("--preset", help="simulated condition: optimal, noisy, high-magnification, unstable, "
+                                     "high-quality-reference, mask-reference, repeated-pattern")
+    up.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
+    up.add_argument("--replay-dir", help="replay this folder of frames instead (default folder: the 2013 recording)")
     up.add_argument("--glob", help="replay only files matching this pattern, e.g. 'frame*'")
     up.add_argument("--fps", type=float, help="replay frame rate")
     loop = up.add_mutually_exclusive_group()
@@ -324,6 +339,14 @@ def build_parser() -> argparse.ArgumentParser:
     service.add_argument("name", choices=[s.name for s in SERVICES])
     service.add_argument("service_args", nargs=argparse.REMAINDER, help="options for the service")
     service.set_defaults(handler=command_service)
+
+    fakelab = commands.add_parser(
+        "fakelab", help="run the simulated lab alone (SEM + NV 40/3 emulator)",
+        description="Run the simulated SEM and the emulated NV 40/3 amplifier; the log says where the "
+                    "amplifier's serial port is (a pseudo-terminal path and a socket:// URL for pyserial). "
+                    "Options after 'fakelab' go to it (see 'semservo fakelab -- --help').")
+    fakelab.add_argument("fakelab_args", nargs=argparse.REMAINDER, help="options: --preset, --speedup, --no-pty")
+    fakelab.set_defaults(handler=command_fakelab)
 
     frames = commands.add_parser("frames", help="watch a frame stream and print each header")
     frames.add_argument("--count", type=int, default=10, help="frames to print (default 10)")

@@ -59,7 +59,7 @@ class ImageServerSettings(BaseModel):
     host: str = Field("127.0.0.1", description="address other services connect to")
     frames_port: int = Field(5550, ge=1, le=65535, description="PUB socket for frames")
     control_port: int = Field(5551, ge=1, le=65535, description="REP socket for commands and health")
-    source: Literal["replay"] = "replay"
+    source: Literal["sim", "replay"] = Field("sim", description="sim: the fake lab's SEM; replay: a folder")
     replay_dir: Path = Field(default_factory=find_recorded_run, description="folder of PNG/TIFF frames")
     replay_glob: str = Field("*", description="which files of the folder to replay, e.g. 'frame*'")
     fps: PositiveFloat = Field(10.0, le=10_000, description="frames published per second")
@@ -67,6 +67,21 @@ class ImageServerSettings(BaseModel):
     magnification: PositiveFloat = Field(1000.0, description="used when a file does not say")
     pixel_size_nm: PositiveFloat | None = Field(None, description="default: P = D / G (eq. 43)")
     dwell_ns: PositiveFloat = Field(720.0, description="dwell time per pixel, when a file does not say")
+    scan_dwell_ns: PositiveFloat | None = Field(None, description="sim: dwell to request (default: the preset's)")
+    scan_magnification: PositiveFloat | None = Field(None, description="sim: magnification to request")
+    scan_timeout_s: PositiveFloat = Field(10.0, description="sim: give up on a scan after this long")
+
+
+class FakelabSettings(BaseModel):
+    """The simulated lab: an emulated NV 40/3 and a simulated SEM in one world."""
+
+    host: str = Field("127.0.0.1", description="address other services connect to")
+    control_port: int = Field(5590, ge=1, le=65535, description="REP socket for commands, health, true pose")
+    scan_port: int = Field(5591, ge=1, le=65535, description="REP socket the image server asks for frames")
+    serial_tcp_port: int = Field(5592, ge=1, le=65535, description="the NV 40/3 on TCP (socket://)")
+    preset: str = Field("optimal", description="one of the paper's conditions (semservo.simulation.world.PRESETS)")
+    speedup: PositiveFloat = Field(1.0, le=1000, description="simulated time runs this many times faster")
+    seed: int = 2013
 
 
 class EstimatorSettings(BaseModel):
@@ -90,6 +105,7 @@ class Settings(BaseSettings):
     request_timeout_s: PositiveFloat = Field(1.0, description="lazy-pirate timeout per try")
     request_retries: int = Field(3, ge=1, description="lazy-pirate tries before a service counts as down")
     log_level: str = "INFO"
+    fakelab: FakelabSettings = Field(default_factory=FakelabSettings)
     imageserver: ImageServerSettings = Field(default_factory=ImageServerSettings)
     estimator: EstimatorSettings = Field(default_factory=EstimatorSettings)
 

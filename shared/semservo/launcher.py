@@ -40,6 +40,17 @@ class ServiceSpec:
 #: written: never a placeholder.
 SERVICES: tuple[ServiceSpec, ...] = (
     ServiceSpec(
+        name="fakelab",
+        module="services.fakelab.main",
+        control=lambda s: connect(s.fakelab.host, s.fakelab.control_port),
+        endpoints=lambda s: {
+            "SEM scans (REP)": connect(s.fakelab.host, s.fakelab.scan_port),
+            "NV 40/3 serial (TCP)": f"socket://{s.fakelab.host}:{s.fakelab.serial_tcp_port}",
+            "control (REP)": connect(s.fakelab.host, s.fakelab.control_port),
+        },
+        summary="simulated SEM and emulated NV 40/3 amplifier in one world",
+    ),
+    ServiceSpec(
         name="imageserver",
         module="services.imageserver.main",
         control=lambda s: connect(s.imageserver.host, s.imageserver.control_port),
@@ -47,7 +58,7 @@ SERVICES: tuple[ServiceSpec, ...] = (
             "frames (PUB)": connect(s.imageserver.host, s.imageserver.frames_port),
             "control (REP)": connect(s.imageserver.host, s.imageserver.control_port),
         },
-        summary="SEM frames from a replayed recording",
+        summary="SEM frames from the simulated SEM or a replayed recording",
     ),
     ServiceSpec(
         name="estimator",

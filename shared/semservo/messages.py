@@ -129,3 +129,17 @@ class MotionEstimate(_Message):
     published_at_ns: int = Field(ge=0, description="Unix time (ns) this estimate was sent")
     estimation_ms: float = Field(ge=0, description="time spent estimating")
     latency_ms: float = Field(description="frame published -> estimate published")
+
+
+class ScanRequest(_Message):
+    """What the image server's ``sim`` source asks the simulated SEM for, as it would
+    command a real scan generator. ``None`` keeps the fake lab's preset value."""
+
+    dwell_ns: PositiveFloat | None = None
+    magnification: PositiveFloat | None = None
+    working_distance_um: float | None = None
+    brightness: float = Field(0.0, ge=-1, le=1)
+    contrast: float = Field(1.0, gt=0, le=10)
+    rows: int = Field(512, ge=64, le=4096)
+    cols: int = Field(512, ge=64, le=4096)
+    bit_depth: Literal[8, 16] = 8

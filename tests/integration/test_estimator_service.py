@@ -23,7 +23,7 @@ pytestmark = pytest.mark.integration
 
 @pytest.fixture
 def stack(ports, recorded_run):
-    imageserver = start_service("imageserver", "--glob", "frame*", "--fps", "20")
+    imageserver = start_service("imageserver", "--source", "replay", "--glob", "frame*", "--fps", "20")
     wait_healthy(connect("127.0.0.1", ports["control"]), imageserver)
     estimator = start_service("estimator")
     control_endpoint = connect("127.0.0.1", ports["estimator_control"])

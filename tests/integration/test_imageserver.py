@@ -18,7 +18,8 @@ pytestmark = pytest.mark.integration
 
 @pytest.fixture
 def imageserver(ports, recorded_run):
-    process = start_service("imageserver", "--fps", "40", "--magnification", "1200", "--dwell-ns", "360")
+    process = start_service("imageserver", "--source", "replay", "--fps", "40", "--magnification", "1200",
+                            "--dwell-ns", "360")
     control = connect("127.0.0.1", ports["control"])
     wait_healthy(control, process)
     yield process, control
@@ -74,7 +75,7 @@ def test_control_socket_answers_and_survives_malformed_requests(imageserver):
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_stops_cleanly_on_signal(ports, recorded_run, sig):
-    process = start_service("imageserver")
+    process = start_service("imageserver", "--source", "replay")
     wait_healthy(connect("127.0.0.1", ports["control"]), process)
     code, output = stop(process, sig)
     assert code == 0

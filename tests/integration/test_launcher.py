@@ -47,13 +47,16 @@ def pid_of(output: str, name: str) -> int:
 
 def test_up_check_shows_frames_flowing_and_exits_zero(ports, recorded_run):
     result = subprocess.run(
-        [sys.executable, "-m", "semservo", "up", "--check", "--frames", "10", "--fps", "30"],
+        [sys.executable, "-m", "semservo", "up", "--check", "--frames", "10", "--fps", "30", "--speedup", "10"],
         capture_output=True, text=True, timeout=90,
     )
     assert result.returncode == 0, result.stdout + result.stderr
     output = result.stdout
-    assert "imageserver healthy" in output
+    assert "fakelab healthy" in output and "imageserver healthy" in output and "estimator healthy" in output
     assert f"tcp://127.0.0.1:{ports['frames']}" in output  # what runs where
+    assert f"socket://127.0.0.1:{ports['serial_tcp']}" in output
+    assert "source sim" in output  # simulated hardware by default
+    assert "check passed: 5 motion estimates" in output
     assert "check passed: 10 valid frames" in output
     assert re.search(r"512x512 uint8", output)
     assert "imageserver | " in output  # service logs streamed with a prefix
@@ -61,7 +64,7 @@ def test_up_check_shows_frames_flowing_and_exits_zero(ports, recorded_run):
 
 
 def test_ctrl_c_stops_every_service(ports, recorded_run):
-    launcher = up()
+    launcher = up("--speedup", "10")
     output = read_until(launcher, r"watching frames")
     child = pid_of(output, "imageserver")
     os.killpg(launcher.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
@@ -75,7 +78,7 @@ def test_ctrl_c_stops_every_service(ports, recorded_run):
 
 
 def test_a_dead_service_is_reported_at_once_and_restarted_when_asked(ports, recorded_run):
-    launcher = up("--restart")
+    launcher = up("--restart", "--speedup", "10")
     try:
         output = read_until(launcher, r"watching frames")
         first = pid_of(output, "imageserver")

@@ -43,6 +43,7 @@ def test_every_command_is_a_real_entry_point(compose):
         assert parsed.name == name
         module = importlib.import_module(spec(parsed.name).module)
         assert callable(module.main)
+        module.build_parser().parse_args(parsed.service_args)  # and so does the service
 
 
 def test_build_files_exist(compose):
@@ -56,6 +57,7 @@ def test_published_ports_match_the_settings_model(compose, monkeypatch):
         published = {int(mapping.split(":")[1]) for mapping in service["ports"]}
         service_settings = getattr(settings, name)
         assert published == {value for key, value in service_settings.model_dump().items() if key.endswith("_port")}
+        assert set(service["depends_on"]) <= set(compose["services"]) if "depends_on" in service else True
         assert service_settings.host == name  # peers reach it by compose name
         assert settings.bind_host == "0.0.0.0"
     imageserver = container_settings(compose["services"]["imageserver"], monkeypatch).imageserver

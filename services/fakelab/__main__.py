@@ -1,0 +1,3 @@
+from services.fakelab.main import main
+
+raise SystemExit(main())

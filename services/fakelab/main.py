@@ -1,0 +1,177 @@
+"""Fake lab process: one simulated world, the NV 40/3 emulator on a pseudo-terminal and
+TCP, a scan socket for the image server's ``sim`` source, and the control socket
+(health, true pose, rotation stage, presets).
+
+Run it with ``semservo fakelab`` (prints where the serial device is) or
+``semservo service fakelab``; settings ``SEMSERVO_FAKELAB__*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+from dataclasses import asdict, replace
+
+import pydantic
+import zmq
+
+from semservo.config import Settings, connect
+from semservo.logs import configure
+from semservo.messages import Reply, ScanRequest
+from semservo.service import ServiceRuntime
+from semservo.simulation.sem import ScanSettings
+from semservo.simulation.world import PRESETS, World
+from semservo.transport import BadRequest
+from semservo.wire import encode_frame, frame_header
+from services.fakelab.emulator import ChannelState, NV403Emulator
+from services.fakelab.serial_links import PseudoTerminalLink, TcpLink
+
+log = logging.getLogger("fakelab")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="semservo fakelab",
+        description="Run the simulated lab: a simulated SEM and an emulated NV 40/3 piezo amplifier "
+                    "(serial protocol on a pseudo-terminal and on TCP) sharing one world.",
+    )
+    parser.add_argument("--preset", choices=sorted(PRESETS), help="experimental condition (default: settings)")
+    parser.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
+    parser.add_argument("--no-pty", action="store_true", help="no pseudo-terminal (TCP only)")
+    return parser
+
+
+def scan_settings(world: World, request: ScanRequest) -> ScanSettings:
+    preset = world.preset
+    return ScanSettings(
+        dwell_ns=request.dwell_ns or preset.dwell_ns,
+        magnification=request.magnification or preset.magnification,
+        rows=request.rows, cols=request.cols,
+        working_distance_um=10.0 if request.working_distance_um is None else request.working_distance_um,
+        brightness=request.brightness, contrast=request.contrast, bit_depth=request.bit_depth,
+    )
+
+
+class ScanServer:
+    """Serves frames to the image server in a thread of its own (a scan takes a frame
+    time, which must not hold up the control socket)."""
+
+    def __init__(self, world: World, endpoint: str, context: zmq.Context, max_message_bytes: int, counters):
+        self.world = world
+        self.socket = context.socket(zmq.REP)
+        self.socket.setsockopt(zmq.LINGER, 0)
+        self.socket.setsockopt(zmq.MAXMSGSIZE, max_message_bytes)
+        self.socket.bind(endpoint)
+        self.counters = counters
+        self.sequence = 0
+        self.last_error: str | None = None
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, name="scan", daemon=True)
+
+    def start(self) -> "ScanServer":
+        self.thread.start()
+        return self
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            if not self.socket.poll(100):
+                continue
+            parts = self.socket.recv_multipart()
+            try:
+                request = ScanRequest.model_validate_json(parts[0]) if len(parts) == 1 else None
+                if request is None:
+                    raise ValueError(f"a scan request is one JSON part, got {len(parts)}")
+                settings = scan_settings(self.world, request)
+                pixels, start, end = self.world.scan(settings)
+            except (pydantic.ValidationError, ValueError) as error:
+                self.counters["scans_refused"] += 1
+                self.last_error = f"scan refused: {error}"
+                self.socket.send(Reply.failure("bad_request", str(error)).model_dump_json().encode())
+                continue
+            header = frame_header(
+                pixels, seq=self.sequence, acquired_at_ns=0, pixel_size_nm=settings.pixel_um * 1000,
+                magnification=settings.magnification, dwell_ns=settings.dwell_ns, source="fakelab",
+                label=f"{self.world.preset.name} t={end:.3f}s",
+            )
+            self.sequence += 1
+            self.counters["frames_scanned"] += 1
+            self.socket.send_multipart(encode_frame(header, pixels), copy=False)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.thread.join(timeout=5)
+        self.socket.close(linger=0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    settings = Settings()
+    configure(settings.log_level)
+    config = settings.fakelab
+    preset_name = args.preset or config.preset
+    if preset_name not in PRESETS:
+        raise SystemExit(f"unknown preset {preset_name!r}; presets: {', '.join(sorted(PRESETS))}")
+    world = World(PRESETS[preset_name], speedup=args.speedup or config.speedup, seed=config.seed)
+
+    channels = {channel: ChannelState(knob_voltage=world.voltage(channel)) for channel in (0, 1, 2)}
+
+    def make_emulator() -> NV403Emulator:
+        return NV403Emulator(world, channels=channels)
+
+    pty = None if args.no_pty else PseudoTerminalLink(make_emulator).start()
+    tcp = TcpLink(make_emulator, settings.bind_host, config.serial_tcp_port).start()
+    runtime = ServiceRuntime("fakelab", settings, settings.bind(config.control_port))
+    scanner = ScanServer(world, settings.bind(config.scan_port), runtime.context, settings.max_message_bytes,
+                         runtime.counters).start()
+    runtime.report_errors_from(lambda: scanner.last_error)
+    if pty is not None:
+        log.info("NV 40/3 on pseudo-terminal %s", pty.path)
+    log.info("NV 40/3 on TCP %s (pyserial URL)", tcp.url.replace(settings.bind_host, config.host))
+    log.info("SEM scans on %s, preset %s (%s), speed-up x%g", connect(config.host, config.scan_port),
+             preset_name, world.preset.description, world.speedup)
+
+    def describe(_args: dict) -> dict:
+        return {**world.describe(), "serial_pty": pty.path if pty else None,
+                "serial_tcp": tcp.url.replace(settings.bind_host, config.host),
+                "scan_endpoint": connect(config.host, config.scan_port)}
+
+    def pose(_args: dict) -> dict:
+        now = world.now()
+        return {"t_s": now, **asdict(world.pose(now)),
+                "voltages": [world.voltage(channel) for channel in (0, 1, 2)]}
+
+    def set_rotation_stage(args: dict) -> dict:
+        try:
+            world.set_rotation_stage(**{key: float(value) for key, value in args.items()})
+        except (TypeError, ValueError) as error:
+            raise BadRequest(str(error)) from None
+        return dict(world.rotation_stage)
+
+    def set_preset(args: dict) -> dict:
+        name = args.get("preset")
+        if name not in PRESETS:
+            raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
+        with world.lock:
+            new = World(PRESETS[name], speedup=world.speedup, seed=world.seed)
+            world.preset, world.sem = new.preset, new.sem
+        return describe({})
+
+    runtime.control.register("info", describe)
+    runtime.control.register("pose", pose)
+    runtime.control.register("set_rotation_stage", set_rotation_stage)
+    runtime.control.register("set_preset", set_preset)
+    runtime.details = lambda: {"preset": world.preset.name, "serial_pty": pty.path if pty else None,
+                               "serial_tcp": tcp.url, "frames": world.frames}
+    try:
+        return runtime.run()
+    finally:
+        scanner.stop()
+        tcp.stop()
+        if pty is not None:
+            pty.stop()
+        runtime.context.term()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

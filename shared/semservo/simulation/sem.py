@@ -1,0 +1,207 @@
+"""The simulated SEM: a raster scan of a sample whose pose changes while it is scanned.
+
+Facts from ``shared/reference/sem-imaging.md``:
+
+* Pixel size on the sample P = D / G (paper eq. 43), D = 212.3 um for 512 pixels.
+* Probe: a Gaussian point-spread function (sigma ~0.7 px in focus), optionally
+  astigmatic. Defocus: beyond half the depth of field DoF = 2 P / alpha (alpha the beam
+  half-angle, 7.2 mrad here: DoF 59 um at x1000, 12 um at x5000) the beam widens by
+  alpha |z - WD|.
+* Raster: pixels are acquired one at a time, dwell plus dead time each, lines end with a
+  fly-back. Each line, and each pixel's time within it, sees the pose the stage has at
+  that moment, so motion during a scan shears, stretches or repeats the content.
+* Noise: Poisson in the collected electrons (their number grows with dwell, so SNR
+  grows as sqrt(dwell)) plus Gaussian amplifier noise. Output saturates at 8/16 bit.
+
+Rendering uses a precomputed stack of blurred copies of the sample (one per blur level)
+and per-pixel bilinear sampling (cv2.remap), so a frame never re-rasterizes the scene.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from semservo.config import pixel_size_nm
+from semservo.simulation.scenes import Sample, rasterize
+
+#: Beam half-angle (rad): DoF = 2 P / alpha gives ~59 um at x1000 (textbook example).
+BEAM_HALF_ANGLE = 0.0072
+#: Blur levels of the stack (sigma in image pixels); a pixel blends its two neighbours.
+BLUR_LEVELS_PX = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0)
+#: Electrons collected per ns of dwell at full yield (sets the SNR per dwell time).
+ELECTRONS_PER_NS = 3.0
+
+
+@dataclass(frozen=True)
+class ScanSettings:
+    """What a scan generator is told: scan speed, magnification, focus, levels."""
+
+    dwell_ns: float = 720.0
+    magnification: float = 1200.0
+    rows: int = 512
+    cols: int = 512
+    working_distance_um: float = 10.0  # height of the focal plane on the sample's z axis
+    brightness: float = 0.0  # offset, fraction of full scale
+    contrast: float = 1.0  # gain
+    bit_depth: int = 8
+    pixel_dead_ns: float = 50.0
+    flyback_us: float = 22.0
+    probe_sigma_px: float = 0.7
+    astigmatism: float = 1.0  # ratio of the probe's two widths
+    astigmatism_angle_deg: float = 0.0
+
+    @property
+    def pixel_um(self) -> float:
+        return pixel_size_nm(self.magnification, self.cols) / 1000.0
+
+    @property
+    def line_time_s(self) -> float:
+        return self.cols * (self.dwell_ns + self.pixel_dead_ns) * 1e-9 + self.flyback_us * 1e-6
+
+    @property
+    def frame_time_s(self) -> float:
+        return self.rows * self.line_time_s
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Where the sample is: stage x, y, z (um) and the simulated rotation stage (deg)."""
+
+    x_um: float = 0.0
+    y_um: float = 0.0
+    z_um: float = 0.0
+    rotation_deg: float = 0.0
+    tilt_x_deg: float = 0.0
+    tilt_y_deg: float = 0.0
+
+
+@dataclass
+class _BlurStack:
+    sample: Sample
+    levels: list  # intensity blurred to each BLUR_LEVELS_PX (in image pixels)
+
+
+@dataclass
+class SEM:
+    """Images one scene. ``render`` is pure given its inputs (and the noise generator)."""
+
+    scene: str = "micropart"
+    seed: int = 2013
+    extent_um: float | None = None
+    _stacks: dict = field(default_factory=dict)
+    charge: np.ndarray = field(default_factory=lambda: np.zeros((64, 64), np.float32))
+
+    def _stack(self, settings: ScanSettings) -> _BlurStack:
+        """The sample sampled at half the image pixel, blurred to each level (cached per
+        magnification, probe and field size)."""
+        key = (round(settings.magnification, 3), settings.cols, settings.probe_sigma_px,
+               settings.astigmatism, settings.astigmatism_angle_deg)
+        if key not in self._stacks:
+            pixel = settings.pixel_um
+            field_um = pixel * max(settings.rows, settings.cols)
+            # Room for start offsets of a quarter field, stage travel and drift.
+            extent = self.extent_um or max(2.2 * field_um, field_um + 60.0)
+            sample = rasterize(self.scene, pixel / 2, extent, self.seed)
+            levels = []
+            for sigma_px in BLUR_LEVELS_PX:
+                sigma_grid = 2 * np.hypot(sigma_px, settings.probe_sigma_px)
+                blurred = self._probe(sample.intensity, sigma_grid, settings)
+                levels.append(blurred)
+            self._stacks = {key: _BlurStack(sample, levels)}  # one magnification at a time
+        return self._stacks[key]
+
+    @staticmethod
+    def _probe(image: np.ndarray, sigma: float, settings: ScanSettings) -> np.ndarray:
+        if settings.astigmatism == 1.0:
+            return cv2.GaussianBlur(image, (0, 0), sigma)
+        # An elliptical Gaussian: widths sigma * sqrt(ratio) and sigma / sqrt(ratio).
+        wide, narrow = sigma * np.sqrt(settings.astigmatism), sigma / np.sqrt(settings.astigmatism)
+        half = int(np.ceil(3 * max(wide, narrow)))
+        y, x = np.mgrid[-half:half + 1, -half:half + 1].astype(np.float32)
+        angle = np.deg2rad(settings.astigmatism_angle_deg)
+        u, v = x * np.cos(angle) + y * np.sin(angle), -x * np.sin(angle) + y * np.cos(angle)
+        kernel = np.exp(-0.5 * ((u / wide) ** 2 + (v / narrow) ** 2))
+        return cv2.filter2D(image, -1, (kernel / kernel.sum()).astype(np.float32), borderType=cv2.BORDER_REFLECT)
+
+    def sample(self, settings: ScanSettings) -> Sample:
+        return self._stack(settings).sample
+
+    def render(self, settings: ScanSettings, line_start: list[Pose], line_end: list[Pose],
+               rng: np.random.Generator) -> np.ndarray:
+        """One frame. ``line_start[i]`` / ``line_end[i]`` are the poses when line i's
+        first / last pixel is acquired; poses in between are linear in time."""
+        stack = self._stack(settings)
+        sample = stack.sample
+        rows, cols, pixel = settings.rows, settings.cols, settings.pixel_um
+
+        def column(name):
+            return np.array([getattr(p, name) for p in line_start], np.float32)[:, None], \
+                np.array([getattr(p, name) for p in line_end], np.float32)[:, None]
+
+        fraction = (np.arange(cols, dtype=np.float32) / max(cols - 1, 1))[None, :]
+
+        def along_line(name):
+            start, end = column(name)
+            return start + (end - start) * fraction if np.any(start != end) else np.broadcast_to(start, (rows, cols))
+
+        stage_x, stage_y = along_line("x_um"), along_line("y_um")
+        theta = np.deg2rad(along_line("rotation_deg"))
+        # Image-plane coordinates (um) of every pixel, centred.
+        image_x = ((np.arange(cols, dtype=np.float32) - (cols - 1) / 2) * pixel)[None, :]
+        image_y = ((np.arange(rows, dtype=np.float32) - (rows - 1) / 2) * pixel)[:, None]
+        # Content moves +x with the stage and turns counter-clockwise as displayed with
+        # +rotation, so the sample point seen at an image point is R^-1 (image - stage).
+        relative_x, relative_y = image_x - stage_x, image_y - stage_y
+        cos, sin = np.cos(theta), np.sin(theta)
+        sample_x = cos * relative_x - sin * relative_y
+        sample_y = sin * relative_x + cos * relative_y
+        map_x, map_y = sample.to_grid(sample_x, sample_y)
+        map_x, map_y = map_x.astype(np.float32), map_y.astype(np.float32)
+
+        # Defocus from the height under each pixel, the stage z and the tilts.
+        height = cv2.remap(sample.height_um, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        z = height + along_line("z_um")
+        tilt_x, tilt_y = along_line("tilt_x_deg"), along_line("tilt_y_deg")
+        if np.any(tilt_x) or np.any(tilt_y):
+            z = z + np.tan(np.deg2rad(tilt_x)) * sample_y + np.tan(np.deg2rad(tilt_y)) * sample_x
+        depth_of_field = 2 * pixel / BEAM_HALF_ANGLE
+        defocus = np.maximum(np.abs(z - settings.working_distance_um) - depth_of_field / 2, 0.0)
+        sigma_px = BEAM_HALF_ANGLE * defocus / pixel
+        position = np.interp(sigma_px, BLUR_LEVELS_PX, np.arange(len(BLUR_LEVELS_PX))).astype(np.float32)
+        lower = np.floor(position).astype(np.int32)
+        weight = position - lower
+        intensity = np.zeros((rows, cols), np.float32)
+        for level in np.unique(lower):
+            for index, blend in ((level, 1 - weight), (min(level + 1, len(BLUR_LEVELS_PX) - 1), weight)):
+                selected = (lower == level) * blend
+                if not np.any(selected):
+                    continue
+                sampled = cv2.remap(stack.levels[index], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+                intensity += sampled * selected
+
+        # Charging: regions the beam dwells on brighten slowly (a coarse map over the sample).
+        charge_x = ((sample_x / sample.extent_um + 0.5) * (self.charge.shape[1] - 1)).astype(np.float32)
+        charge_y = ((sample_y / sample.extent_um + 0.5) * (self.charge.shape[0] - 1)).astype(np.float32)
+        intensity += cv2.remap(self.charge, charge_x, charge_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        self._accumulate_charge(charge_x, charge_y, settings)
+
+        # Electrons: Poisson (normal approximation, variance = mean) plus amplifier noise.
+        electrons = np.maximum(intensity, 0) * (ELECTRONS_PER_NS * settings.dwell_ns)
+        electrons += np.sqrt(electrons) * rng.standard_normal((rows, cols), dtype=np.float32)
+        signal = electrons / (ELECTRONS_PER_NS * settings.dwell_ns)
+        full_scale = (1 << settings.bit_depth) - 1
+        grey = (settings.contrast * signal + settings.brightness) * full_scale
+        grey += rng.standard_normal((rows, cols), dtype=np.float32) * (0.004 * full_scale)
+        dtype = np.uint8 if settings.bit_depth <= 8 else np.uint16
+        return np.clip(grey, 0, full_scale).astype(dtype)
+
+    def _accumulate_charge(self, charge_x: np.ndarray, charge_y: np.ndarray, settings: ScanSettings) -> None:
+        self.charge *= 0.995  # slow discharge between frames
+        histogram, _, _ = np.histogram2d(charge_y[::8, ::8].ravel(), charge_x[::8, ::8].ravel(),
+                                         bins=self.charge.shape, range=[[0, self.charge.shape[0]], [0, self.charge.shape[1]]])
+        dose = histogram / max(histogram.max(), 1.0)
+        self.charge += (2e-4 * settings.dwell_ns / 720.0) * dose.astype(np.float32)
+        np.clip(self.charge, 0, 0.15, out=self.charge)

@@ -1,0 +1,162 @@
+"""One physical world shared by the simulated devices, as in a real chamber: the piezo
+stage (driven by the emulated NV 40/3) moves the sample, the simulated SEM images it.
+
+Time is simulated: ``now()`` runs ``speedup`` times faster than the wall clock, so tests
+can scan faster than real time with the same physics. A scan covers the interval it
+takes in simulated time; the caller waits for it to end (stage commands sent meanwhile
+land in the frame, as on the real instrument) and the frame is rendered from the pose
+history. Thread-safe: the serial emulator and the scan server run in their own threads.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from semservo.simulation.piezo import PiezoAxis
+from semservo.simulation.sem import SEM, Pose, ScanSettings
+
+#: Each channel starts at this voltage, about mid-travel, so the stage can move both ways.
+HOME_VOLTAGE = 38.0
+
+
+@dataclass(frozen=True)
+class Preset:
+    """One of the paper's experimental conditions (section IV-C)."""
+
+    name: str
+    scene: str
+    magnification: float
+    dwell_ns: float
+    reference_dwell_ns: float | None = None  # high-quality reference taught slower
+    unstable_levels: bool = False  # brightness and contrast change during the run
+    mask_reference: bool = False
+    description: str = ""
+
+
+PRESETS = {
+    preset.name: preset
+    for preset in (
+        Preset("optimal", "micropart", 1200, 720, description="720 ns/px at x1200 (case 1)"),
+        Preset("noisy", "micropart", 1200, 180, description="fastest scan, 180 ns/px (case 2)"),
+        Preset("high-magnification", "micropart", 5000, 360, description="x5000 at 360 ns/px (case 3)"),
+        Preset("unstable", "micropart", 1200, 360, unstable_levels=True,
+               description="brightness and contrast drift during the run (case 4)"),
+        Preset("high-quality-reference", "micropart", 1200, 360, reference_dwell_ns=5800,
+               description="reference at 5.8 us/px, run at 360 ns/px (case 5)"),
+        Preset("mask-reference", "micropart", 1200, 720, mask_reference=True,
+               description="a binary mask of the part as the reference (case 6)"),
+        Preset("repeated-pattern", "chessboard", 1200, 180,
+               description="calibration chessboard at 180 ns/px (case 7)"),
+    )
+}
+
+
+@dataclass
+class Disturbances:
+    """Thermal drift (um/s, simulated time) and vibration (sum of sinusoids)."""
+
+    drift_um_per_s: tuple[float, float] = (0.002, -0.0015)
+    vibration: tuple = ((7.0, 0.010, 0.3), (50.0, 0.006, 1.1), (93.0, 0.004, 2.0))  # (Hz, um, phase)
+
+    def offset(self, t: float) -> tuple[float, float]:
+        x = self.drift_um_per_s[0] * t
+        y = self.drift_um_per_s[1] * t
+        for index, (frequency, amplitude, phase) in enumerate(self.vibration):
+            x += amplitude * math.sin(2 * math.pi * frequency * t + phase)
+            y += amplitude * math.cos(2 * math.pi * frequency * t + phase + index)
+        return x, y
+
+
+@dataclass
+class World:
+    preset: Preset = PRESETS["optimal"]
+    speedup: float = 1.0
+    seed: int = 2013
+    disturbances: Disturbances = field(default_factory=Disturbances)
+    clock: callable = time.monotonic
+
+    def __post_init__(self):
+        self.lock = threading.RLock()
+        self.started = self.clock()
+        self.axes = {0: PiezoAxis("x"), 1: PiezoAxis("y"), 2: PiezoAxis("x")}
+        for axis in self.axes.values():
+            axis.command(HOME_VOLTAGE, -1e6)
+        self.home_um = {channel: axis.position(0.0) for channel, axis in self.axes.items()}
+        self.rotation_stage = {"rotation_deg": 0.0, "tilt_x_deg": 0.0, "tilt_y_deg": 0.0}  # simulated
+        self.sem = SEM(self.preset.scene, self.seed)
+        self.rng = np.random.default_rng(self.seed)
+        self.frames = 0
+
+    def now(self) -> float:
+        """Simulated seconds since the world started."""
+        return (self.clock() - self.started) * self.speedup
+
+    # -- the stage ---------------------------------------------------------------
+    def set_voltage(self, channel: int, voltage: float, t: float | None = None) -> None:
+        with self.lock:
+            self.axes[channel].command(voltage, self.now() if t is None else t)
+
+    def voltage(self, channel: int) -> float:
+        with self.lock:
+            return self.axes[channel].voltage
+
+    def set_rotation_stage(self, **angles: float) -> None:
+        """The simulated rotation stage (rotation about the beam, two tilts), degrees."""
+        with self.lock:
+            for key, value in angles.items():
+                if key not in self.rotation_stage:
+                    raise ValueError(f"unknown rotation stage axis {key!r}")
+                self.rotation_stage[key] = float(value)
+
+    def pose(self, t: float | None = None) -> Pose:
+        """The true pose at simulated time ``t``: stage displacement from home, drift and
+        vibration, and the rotation stage."""
+        with self.lock:
+            t = self.now() if t is None else t
+            drift_x, drift_y = self.disturbances.offset(t)
+            return Pose(
+                x_um=self.axes[0].position(t) - self.home_um[0] + drift_x,
+                y_um=self.axes[1].position(t) - self.home_um[1] + drift_y,
+                z_um=self.axes[2].position(t) - self.home_um[2],
+                **self.rotation_stage,
+            )
+
+    # -- the SEM -------------------------------------------------------------------
+    def levels(self, t: float, settings: ScanSettings) -> ScanSettings:
+        """Brightness and contrast as they are at ``t`` (the unstable preset drifts)."""
+        if not self.preset.unstable_levels:
+            return settings
+        from dataclasses import replace
+
+        return replace(settings, contrast=settings.contrast * (1 + 0.35 * math.sin(2 * math.pi * t / 9.0)),
+                       brightness=settings.brightness + 0.12 * math.sin(2 * math.pi * t / 13.0 + 1))
+
+    def scan(self, settings: ScanSettings, *, wait: bool = True) -> tuple[np.ndarray, float, float]:
+        """Acquire one frame starting now; returns (pixels, start, end) in simulated s.
+
+        With ``wait`` the call returns when the scan would have ended (frame time /
+        speedup of wall time), so stage moves during the scan are in the frame.
+        """
+        start = self.now()
+        end = start + settings.frame_time_s
+        if wait:
+            remaining = (end - self.now()) / self.speedup
+            if remaining > 0:
+                time.sleep(remaining)
+        line = settings.line_time_s
+        active = settings.cols * (settings.dwell_ns + settings.pixel_dead_ns) * 1e-9
+        line_start = [self.pose(start + row * line) for row in range(settings.rows)]
+        line_end = [self.pose(start + row * line + active) for row in range(settings.rows)]
+        with self.lock:
+            pixels = self.sem.render(self.levels(start, settings), line_start, line_end, self.rng)
+            self.frames += 1
+        return pixels, start, end
+
+    def describe(self) -> dict:
+        return {"preset": asdict(self.preset), "speedup": self.speedup, "frames": self.frames,
+                "rotation_stage": dict(self.rotation_stage)}
