@@ -104,47 +104,64 @@ class Hysteresis:
         return self.displacement
 
 
+#: Creep is counted from this time after a step, for at most CREEP_DECADES decades.
+CREEP_START_S = 0.1
+CREEP_DECADES = 3.0
+
+
 @dataclass
 class PiezoAxis:
     """One stage axis: hysteresis, settling and creep, as a function of time.
 
     ``command(voltage, t)`` records a step at time ``t`` (seconds, simulated clock);
-    ``position(t)`` is the displacement at any time after the first command.
+    ``position(t)`` is the displacement at any time after the first command. Creep of
+    earlier steps is frozen into the axis's offset when a new step starts.
     """
 
     axis: str = "x"
     settle_s: float = 0.002
     creep_per_decade: float = 0.015
     hysteresis: Hysteresis = field(init=False)
-    # Each step: (time, start position, static target position).
+    # Each step: (time, position just before, static target, creep offset so far).
     steps: list = field(default_factory=list)
 
     def __post_init__(self):
         self.hysteresis = Hysteresis(self.axis)
-        self.steps = [(-1e9, self.hysteresis.displacement, self.hysteresis.displacement)]
+        start = self.hysteresis.displacement
+        self.steps = [(-1e9, start, start, 0.0)]
 
     @property
     def voltage(self) -> float:
         return self.hysteresis.voltage
 
+    def _creep(self, step: tuple, elapsed: float) -> float:
+        _, before, target, offset = step
+        decades = min(math.log10(1.0 + elapsed / CREEP_START_S), CREEP_DECADES)
+        return (target - (before - offset)) * self.creep_per_decade * decades
+
     def command(self, voltage: float, t: float) -> None:
-        start = self.position(t)
+        index = self._step_at(t)
+        previous = self.steps[index]
+        offset = previous[3] + self._creep(previous, max(t - previous[0], 0.0))
+        before = self.position(t)
         target = self.hysteresis.apply(voltage)
-        self.steps.append((t, start, target))
+        self.steps.append((t, before, target, offset))
         if len(self.steps) > 64:  # older steps have long settled
             del self.steps[:-64]
 
-    def position(self, t: float) -> float:
-        """Displacement (um) at time ``t``, quantized to the stage's 0.2 nm resolution."""
+    def _step_at(self, t: float) -> int:
         index = len(self.steps) - 1
         while index > 0 and self.steps[index][0] > t:
             index -= 1
-        when, start, target = self.steps[index]
+        return index
+
+    def position(self, t: float) -> float:
+        """Displacement (um) at time ``t``, quantized to the stage's 0.2 nm resolution."""
+        step = self.steps[self._step_at(t)]
+        when, before, target, offset = step
         elapsed = max(t - when, 0.0)
-        step = target - start
-        settled = target - step * math.exp(-elapsed / self.settle_s)
-        creep = step * self.creep_per_decade * math.log10(1.0 + elapsed / self.settle_s)
-        return round((settled + creep) / RESOLUTION_UM) * RESOLUTION_UM
+        settled = offset + target - (offset + target - before) * math.exp(-elapsed / self.settle_s)
+        return round((settled + self._creep(step, elapsed)) / RESOLUTION_UM) * RESOLUTION_UM
 
     def positions(self, times: np.ndarray) -> np.ndarray:
         return np.array([self.position(float(t)) for t in times])

@@ -10,8 +10,9 @@ Facts from ``shared/reference/sem-imaging.md``:
 * Raster: pixels are acquired one at a time, dwell plus dead time each, lines end with a
   fly-back. Each line, and each pixel's time within it, sees the pose the stage has at
   that moment, so motion during a scan shears, stretches or repeats the content.
-* Noise: Poisson in the collected electrons (their number grows with dwell, so SNR
-  grows as sqrt(dwell)) plus Gaussian amplifier noise. Output saturates at 8/16 bit.
+* Noise: Poisson in the collected electrons (their number grows with dwell) plus
+  Gaussian amplifier noise integrated over the same dwell, so SNR grows as
+  sqrt(dwell). Output saturates at 8/16 bit.
 
 Rendering uses a precomputed stack of blurred copies of the sample (one per blur level)
 and per-pixel bilinear sampling (cv2.remap), so a frame never re-rasterizes the scene.
@@ -33,6 +34,9 @@ BEAM_HALF_ANGLE = 0.0072
 BLUR_LEVELS_PX = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0)
 #: Electrons collected per ns of dwell at full yield (sets the SNR per dwell time).
 ELECTRONS_PER_NS = 3.0
+#: Amplifier noise, as a variance in electrons per ns of dwell: integrated over the
+#: dwell like the signal, so SNR still grows as sqrt(dwell).
+AMPLIFIER_VARIANCE_PER_NS = 0.3
 
 
 @dataclass(frozen=True)
@@ -91,6 +95,7 @@ class SEM:
     scene: str = "micropart"
     seed: int = 2013
     extent_um: float | None = None
+    beam_half_angle: float = BEAM_HALF_ANGLE  # a larger aperture or shorter WD: less DoF
     _stacks: dict = field(default_factory=dict)
     charge: np.ndarray = field(default_factory=lambda: np.zeros((64, 64), np.float32))
 
@@ -167,9 +172,9 @@ class SEM:
         tilt_x, tilt_y = along_line("tilt_x_deg"), along_line("tilt_y_deg")
         if np.any(tilt_x) or np.any(tilt_y):
             z = z + np.tan(np.deg2rad(tilt_x)) * sample_y + np.tan(np.deg2rad(tilt_y)) * sample_x
-        depth_of_field = 2 * pixel / BEAM_HALF_ANGLE
+        depth_of_field = 2 * pixel / self.beam_half_angle
         defocus = np.maximum(np.abs(z - settings.working_distance_um) - depth_of_field / 2, 0.0)
-        sigma_px = BEAM_HALF_ANGLE * defocus / pixel
+        sigma_px = self.beam_half_angle * defocus / pixel
         position = np.interp(sigma_px, BLUR_LEVELS_PX, np.arange(len(BLUR_LEVELS_PX))).astype(np.float32)
         lower = np.floor(position).astype(np.int32)
         weight = position - lower
@@ -188,13 +193,14 @@ class SEM:
         intensity += cv2.remap(self.charge, charge_x, charge_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         self._accumulate_charge(charge_x, charge_y, settings)
 
-        # Electrons: Poisson (normal approximation, variance = mean) plus amplifier noise.
+        # Electrons: Poisson (normal approximation, variance = mean) plus amplifier noise
+        # integrated over the same dwell, in one draw.
         electrons = np.maximum(intensity, 0) * (ELECTRONS_PER_NS * settings.dwell_ns)
-        electrons += np.sqrt(electrons) * rng.standard_normal((rows, cols), dtype=np.float32)
+        variance = electrons + AMPLIFIER_VARIANCE_PER_NS * settings.dwell_ns
+        electrons += np.sqrt(variance) * rng.standard_normal((rows, cols), dtype=np.float32)
         signal = electrons / (ELECTRONS_PER_NS * settings.dwell_ns)
         full_scale = (1 << settings.bit_depth) - 1
         grey = (settings.contrast * signal + settings.brightness) * full_scale
-        grey += rng.standard_normal((rows, cols), dtype=np.float32) * (0.004 * full_scale)
         dtype = np.uint8 if settings.bit_depth <= 8 else np.uint16
         return np.clip(grey, 0, full_scale).astype(dtype)
 
