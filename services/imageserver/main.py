@@ -49,7 +49,10 @@ def make_source(settings: Settings, args: argparse.Namespace, context) -> Replay
     source = args.source or ("replay" if args.replay_dir else config.source)
     if source == "sim":
         request = ScanRequest(dwell_ns=args.dwell_ns or config.scan_dwell_ns,
-                              magnification=args.magnification or config.scan_magnification)
+                              magnification=args.magnification or config.scan_magnification,
+                              working_distance_um=config.scan_working_distance_um,
+                              brightness=config.scan_brightness, contrast=config.scan_contrast,
+                              bit_depth=config.scan_bit_depth)
         return SimSource(connect(settings.fakelab.host, settings.fakelab.scan_port), request,
                          timeout_s=config.scan_timeout_s, max_message_bytes=settings.max_message_bytes,
                          context=context)

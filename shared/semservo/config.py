@@ -69,6 +69,10 @@ class ImageServerSettings(BaseModel):
     dwell_ns: PositiveFloat = Field(720.0, description="dwell time per pixel, when a file does not say")
     scan_dwell_ns: PositiveFloat | None = Field(None, description="sim: dwell to request (default: the preset's)")
     scan_magnification: PositiveFloat | None = Field(None, description="sim: magnification to request")
+    scan_working_distance_um: float | None = Field(None, description="sim: focal plane height (default: the part's top)")
+    scan_brightness: float = Field(0.0, ge=-1, le=1, description="sim: offset, fraction of full scale")
+    scan_contrast: float = Field(1.0, gt=0, le=10, description="sim: gain")
+    scan_bit_depth: Literal[8, 16] = Field(8, description="sim: 8- or 16-bit frames")
     scan_timeout_s: PositiveFloat = Field(10.0, description="sim: give up on a scan after this long")
 
 
