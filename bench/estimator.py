@@ -295,8 +295,10 @@ def plot(results: dict, path: Path) -> None:
     axes[0, 0].legend(fontsize=8)
 
     curves = results["rotation"]["curves"]
+    order = np.argsort(curves["angles"])
     for method in ("semservo", "imreg_dft.similarity"):
-        axes[0, 1].semilogy(curves["angles"], np.maximum(curves[method], 1e-4), "o-", label=method)
+        axes[0, 1].semilogy(np.asarray(curves["angles"])[order], np.maximum(np.asarray(curves[method])[order], 1e-4),
+                            "o-", label=method)
     axes[0, 1].set_xlabel("true rotation (degrees)")
     axes[0, 1].set_ylabel("error (degrees)")
     axes[0, 1].set_title("Rotation, moderate noise")
@@ -307,7 +309,7 @@ def plot(results: dict, path: Path) -> None:
         axes[1, 0].plot(curve[:, 0], curve[:, 1], ".-", label=method, alpha=0.8)
     axes[1, 0].set_xlabel("dx against the reference (px)")
     axes[1, 0].set_ylabel("dy against the reference (px)")
-    axes[1, 0].set_title("Real 2013 run: each frame's shift (frame 0 at top left)")
+    axes[1, 0].set_title("Real 2013 run: each frame's shift (frame 0 near (-54, +41))")
     axes[1, 0].invert_yaxis()
     axes[1, 0].legend(fontsize=8)
 

@@ -125,9 +125,10 @@ def main(argv: list[str] | None = None) -> int:
     scanner = ScanServer(world, settings.bind(config.scan_port), runtime.context, settings.max_message_bytes,
                          runtime.counters).start()
     runtime.report_errors_from(lambda: scanner.last_error)
+    # Said plainly on stdout: this is what a user plugs a stage service or a script into.
     if pty is not None:
-        log.info("NV 40/3 on pseudo-terminal %s", pty.path)
-    log.info("NV 40/3 on TCP %s (pyserial URL)", tcp.url.replace(settings.bind_host, config.host))
+        print(f"NV 40/3 serial port (pseudo-terminal): {pty.path}", flush=True)
+    print(f"NV 40/3 serial port (TCP, pyserial URL): {tcp.url.replace(settings.bind_host, config.host)}", flush=True)
     log.info("SEM scans on %s, preset %s (%s), speed-up x%g", connect(config.host, config.scan_port),
              preset_name, world.preset.description, world.speedup)
 

@@ -261,6 +261,10 @@ def command_fakelab(args: argparse.Namespace) -> int:
     return fakelab_main(args.fakelab_args)
 
 
+#: Commands whose own parser takes every argument after the command's name.
+PASS_THROUGH = {"fakelab"}
+
+
 def command_frames(args: argparse.Namespace) -> int:
     settings = Settings()
     endpoint = args.endpoint or connect(settings.imageserver.host, settings.imageserver.frames_port)
@@ -341,11 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     service.set_defaults(handler=command_service)
 
     fakelab = commands.add_parser(
-        "fakelab", help="run the simulated lab alone (SEM + NV 40/3 emulator)",
-        description="Run the simulated SEM and the emulated NV 40/3 amplifier; the log says where the "
-                    "amplifier's serial port is (a pseudo-terminal path and a socket:// URL for pyserial). "
-                    "Options after 'fakelab' go to it (see 'semservo fakelab -- --help').")
-    fakelab.add_argument("fakelab_args", nargs=argparse.REMAINDER, help="options: --preset, --speedup, --no-pty")
+        "fakelab", help="run the simulated lab alone (SEM + NV 40/3 emulator); prints its serial port",
+        add_help=False)
+    fakelab.add_argument("fakelab_args", nargs=argparse.REMAINDER)
     fakelab.set_defaults(handler=command_fakelab)
 
     frames = commands.add_parser("frames", help="watch a frame stream and print each header")
@@ -392,6 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in PASS_THROUGH:  # e.g. semservo fakelab --preset noisy --help
+        return command_fakelab(argparse.Namespace(fakelab_args=argv[1:]))
     args = build_parser().parse_args(argv)
     return args.handler(args)
 

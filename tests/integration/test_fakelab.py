@@ -169,3 +169,18 @@ def test_rotation_stage_and_bad_requests(fakelab):
     with pytest.raises(CommandError, match="preset must be one of"):
         control.request("set_preset", preset="moon")
     assert control.request("set_preset", preset="noisy")["preset"]["dwell_ns"] == 180
+
+
+def test_semservo_fakelab_prints_where_the_serial_port_is(ports):
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-m", "semservo", "fakelab", "--speedup", "10"],
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        lines = [process.stdout.readline() for _ in range(2)]
+    finally:
+        code, _ = stop(process)
+    assert re.search(r"pseudo-terminal\): /dev/pts/\d+", lines[0])
+    assert f"socket://127.0.0.1:{ports['serial_tcp']}" in lines[1]
+    assert code == 0
