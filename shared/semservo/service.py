@@ -51,6 +51,10 @@ class ServiceRuntime:
         self.add_reader(self.control.socket, self.control.handle_one)
         self.report_errors_from(lambda: self.control.last_error)
         self.last_error: str | None = None
+        # From here on a stop request is honoured, even before run(): a SIGTERM during
+        # start-up ends the service cleanly instead of killing it.
+        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, self.request_stop)
 
     def add_reader(self, socket: zmq.Socket, callback: Callable[[], None]) -> None:
         """Call ``callback`` whenever ``socket`` has a message."""
@@ -86,8 +90,6 @@ class ServiceRuntime:
 
     def run(self, step: Step | None = None) -> int:
         """Serve until SIGTERM/SIGINT; returns the process exit code."""
-        signal.signal(signal.SIGTERM, self.request_stop)
-        signal.signal(signal.SIGINT, self.request_stop)
         if self.state == "starting":
             self.state = "running"
         log.info("%s ready, control on %s", self.name, self.control.endpoint)
