@@ -41,7 +41,7 @@ def main() -> int:
         for _ in range(15):
             for kind, (first, last) in (("still", (still_poses, still_poses)), ("moving", (start, end))):
                 began = time.perf_counter()
-                frame = sem.render(settings, first, last, rng)
+                sem.render(settings, first, last, rng)
                 timings[kind].append(time.perf_counter() - began)
         still_ms = float(np.median(timings["still"]) * 1e3)
         moving_ms = float(np.median(timings["moving"]) * 1e3)

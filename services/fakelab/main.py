@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
-from dataclasses import asdict, replace
+from dataclasses import asdict
 
 import pydantic
 import zmq

@@ -4,6 +4,7 @@ containers). Each link has its own line buffer; all share the device's state."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import select
@@ -48,10 +49,8 @@ class PseudoTerminalLink:
         self._stop.set()
         self.thread.join(timeout=1)
         for fd in (self.master, self.slave):
-            try:
+            with contextlib.suppress(OSError):  # already closed
                 os.close(fd)
-            except OSError:
-                pass
 
 
 class TcpLink:

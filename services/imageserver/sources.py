@@ -19,6 +19,7 @@ import zmq
 from semservo.config import pixel_size_nm
 from semservo.imagefiles import ImageFileError, list_frames, read_image
 from semservo.messages import Reply, ScanRequest
+from semservo.transport import ControlClient, ServiceUnavailable
 from semservo.wire import WireError, decode_frame
 
 
@@ -130,10 +131,11 @@ class SourceUnavailable(RuntimeError):
 
 class SimSource:
     """Frames from the simulated SEM of the fake lab, requested with scan settings as a
-    real scan generator would be commanded (request-reply, one frame per request).
+    real scan generator would be commanded (request-reply, one frame per request, over
+    the lazy-pirate :class:`~semservo.transport.ControlClient`).
 
     A request that gets no frame within ``timeout_s`` raises :class:`SourceUnavailable`;
-    the socket is then replaced (lazy pirate) so the next request starts clean.
+    the client then replaces its socket so the next request starts clean.
     """
 
     name = "sim"
@@ -142,28 +144,16 @@ class SimSource:
                  max_message_bytes: int = 64 * 2**20, context: zmq.Context | None = None):
         self.endpoint = endpoint
         self.request = request
-        self.timeout_s = timeout_s
         self.max_message_bytes = max_message_bytes
-        self.context = context or zmq.Context.instance()
-        self.socket: zmq.Socket | None = None
+        self.client = ControlClient(endpoint, timeout_s=timeout_s, retries=1, context=context,
+                                    max_message_bytes=max_message_bytes)
         self.frames = 0
 
-    def _open(self) -> zmq.Socket:
-        socket = self.context.socket(zmq.REQ)
-        socket.setsockopt(zmq.LINGER, 0)
-        socket.setsockopt(zmq.MAXMSGSIZE, 4 * self.max_message_bytes)
-        socket.connect(self.endpoint)
-        return socket
-
     def acquire(self) -> AcquiredImage:
-        if self.socket is None:
-            self.socket = self._open()
-        self.socket.send(self.request.model_dump_json().encode())
-        if not self.socket.poll(int(self.timeout_s * 1000)):
-            self.socket.close(linger=0)
-            self.socket = None
-            raise SourceUnavailable(f"no frame from the fake lab at {self.endpoint} in {self.timeout_s:g} s")
-        parts = self.socket.recv_multipart(copy=False)
+        try:
+            parts = self.client.request_parts(self.request.model_dump_json().encode())
+        except ServiceUnavailable as error:
+            raise SourceUnavailable(f"no frame from the fake lab: {error}") from None
         if len(parts) == 1:
             reply = Reply.model_validate_json(parts[0].bytes)
             raise SourceUnavailable(f"the fake lab refused the scan: {reply.error.message if reply.error else reply}")
@@ -182,5 +172,4 @@ class SimSource:
                 "request": self.request.model_dump()}
 
     def close(self) -> None:
-        if self.socket is not None:
-            self.socket.close(linger=0)
+        self.client.close()

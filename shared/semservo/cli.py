@@ -241,7 +241,7 @@ def command_motion(args: argparse.Namespace) -> int:
                   f"rot {estimate.rotation_deg:+7.3f} deg  conf {estimate.confidence:.2f}  "
                   f"snr {estimate.snr_db:5.1f} dB  latency {estimate.latency_ms:6.2f} ms")
     except KeyboardInterrupt:
-        pass
+        print("interrupted", file=sys.stderr)
     finally:
         subscriber.close()
     if not received:
@@ -282,7 +282,7 @@ def command_frames(args: argparse.Namespace) -> int:
                   f"{header.source}{' ' + header.label if header.label else ''}  "
                   f"mean {frame.pixels.mean():7.2f}")
     except KeyboardInterrupt:
-        pass
+        print("interrupted", file=sys.stderr)
     finally:
         subscriber.close()
     print(stats.summary(subscriber.counters))

@@ -10,6 +10,7 @@ optionally restart with back-off, and stop in reverse order with SIGTERM then SI
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import signal
@@ -81,15 +82,13 @@ def spec(name: str) -> ServiceSpec:
 
 
 class LaunchError(RuntimeError):
-    pass
+    """A service could not be started (it exited, or never reported healthy)."""
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
     # Linux: if the launcher is killed outright, its children get SIGTERM too.
-    try:
+    with contextlib.suppress(OSError):  # not glibc: the child simply lacks the safety net
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
 
 
 @dataclass
@@ -173,12 +172,10 @@ class Launcher:
             code = child.process.poll()
             if code is not None:
                 raise LaunchError(f"{child.spec.name} exited with code {code} while starting (its log is above)")
-            try:
+            with contextlib.suppress(ServiceUnavailable):  # not answering yet: ask again
                 health = self.health(child.spec.name, timeout_s=0.3)
                 if health.healthy:
                     return health
-            except ServiceUnavailable:
-                pass
             if time.monotonic() > deadline:
                 raise LaunchError(f"{child.spec.name} did not report healthy in time")
             time.sleep(0.05)

@@ -246,18 +246,22 @@ class ControlClient:
             self.socket.close(linger=0)
             self.socket = None
 
-    def request_raw(self, payload: bytes, *, timeout_s: float | None = None, retries: int | None = None) -> bytes:
-        """Send raw bytes and return the raw reply (for tests of malformed input)."""
+    def request_parts(self, payload: bytes, *, timeout_s: float | None = None, retries: int | None = None) -> list:
+        """Send raw bytes; return every part of the reply (zero-copy zmq frames)."""
         timeout_ms = int(1000 * (timeout_s or self.timeout_s))
         for attempt in range(1, (retries or self.retries) + 1):
             if self.socket is None:
                 self.socket = self._open()
             self.socket.send(payload)
             if self.socket.poll(timeout_ms, zmq.POLLIN):
-                return self.socket.recv()
+                return self.socket.recv_multipart(copy=False)
             log.debug("no reply from %s (try %d)", self.endpoint, attempt)
             self._discard()
         raise ServiceUnavailable(f"no reply from {self.endpoint} after {retries or self.retries} tries")
+
+    def request_raw(self, payload: bytes, *, timeout_s: float | None = None, retries: int | None = None) -> bytes:
+        """Send raw bytes and return the raw (one-part) reply (for tests of malformed input)."""
+        return self.request_parts(payload, timeout_s=timeout_s, retries=retries)[0].bytes
 
     def request(self, command: str, *, timeout_s: float | None = None, retries: int | None = None, **args: Any) -> dict:
         """Send a command; return its result or raise CommandError / ServiceUnavailable."""

@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 import semservo.estimation as estimation
-from semservo.estimation import MotionEstimator, estimate_snr_db, polygon_mask
+from semservo.estimation import MotionEstimator, estimate_snr_db
 from semservo.pairs import poisson_gaussian, shifted_pair
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zmq
 
-from semservo.messages import FRAME_TOPIC, Reply, Request
+from semservo.messages import Reply, Request
 from semservo.transport import (
     BadRequest,
     CommandError,
