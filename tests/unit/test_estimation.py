@@ -52,6 +52,29 @@ def test_opencv_positive_angle_is_counter_clockwise_as_displayed():
     assert (row, col) == (20, 50)
 
 
+def fourier_shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """``image`` with its content moved by exactly (dx, dy), periodically (phase ramp)."""
+    rows, cols = image.shape
+    v = np.fft.fftfreq(rows)[:, None]
+    u = np.fft.fftfreq(cols)[None, :]
+    return np.fft.ifft2(np.fft.fft2(image) * np.exp(-2j * np.pi * (u * dx + v * dy))).real
+
+
+@pytest.mark.parametrize("precision", ["fast", "full"])
+def test_known_subpixel_shifts_of_a_synthetic_texture(precision):
+    """A smooth periodic random texture moved by exact sub-pixel amounts."""
+    rng = np.random.default_rng(21)
+    noise = rng.normal(0, 1, (256, 320))
+    v, u = np.fft.fftfreq(256)[:, None], np.fft.fftfreq(320)[None, :]
+    texture = np.fft.ifft2(np.fft.fft2(noise) * np.exp(-0.5 * (u**2 + v**2) / 0.08**2)).real  # smooth, periodic
+    texture /= texture.std()
+    reference = 100 + 20 * texture
+    for dx, dy in [(0.5, 0.0), (-1.25, 2.75), (3.3, -0.1), (-7.61, 4.07)]:
+        motion = MotionEstimator(reference, rotation=False, precision=precision).estimate(
+            fourier_shifted(reference, dx, dy))
+        assert motion.dx == pytest.approx(dx, abs=0.02) and motion.dy == pytest.approx(dy, abs=0.02)
+
+
 #: Bounds per precision: (mean, max) error in px on clean and on moderately noisy pairs.
 BOUNDS = {"full": {"clean": (0.02, 0.06), "noisy": (0.03, 0.1)},
           "fast": {"clean": (0.05, 0.12), "noisy": (0.05, 0.15)}}
