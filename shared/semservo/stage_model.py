@@ -1,0 +1,97 @@
+"""Displacement -> voltage models for an open-loop piezo stage (paper section II-E,
+eq. 37 ff.: "these displacements are mapped to the respective channel voltages using our
+displacement-voltage model").
+
+The default is the lab's measured TRITOR model: fourth-order polynomials, one for the
+increasing and one for the decreasing branch of the hysteresis; the model remembers the
+direction each axis last moved in and uses that branch. Pluggable alternatives: a
+linear model, and a model fitted by calibration and loaded from a JSON file.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from semservo.simulation.piezo import TRITOR_POLYNOMIALS
+
+
+class DisplacementModel(Protocol):
+    def voltage_for(self, target_um: float) -> float:
+        """The voltage that should bring the axis to ``target_um`` (absolute travel)."""
+
+    def reset(self, position_um: float) -> None:
+        """Where the axis is now (its open-loop estimate), e.g. after homing."""
+
+
+@dataclass
+class BranchModel:
+    """Hysteresis branches V = p(d) for increasing and decreasing displacement, with the
+    direction of the last move remembered (a move in the same direction stays on its
+    branch; a reversal switches)."""
+
+    increasing: tuple[float, ...]
+    decreasing: tuple[float, ...]
+    position_um: float = 0.0
+    direction: int = 1
+
+    @classmethod
+    def tritor(cls, axis: str) -> "BranchModel":
+        """The lab's measured TRITOR model for axis "x" or "y"."""
+        return cls(TRITOR_POLYNOMIALS[(axis, "increasing")], TRITOR_POLYNOMIALS[(axis, "decreasing")])
+
+    def voltage_for(self, target_um: float) -> float:
+        if target_um != self.position_um:
+            self.direction = 1 if target_um > self.position_um else -1
+        branch = self.increasing if self.direction > 0 else self.decreasing
+        self.position_um = target_um
+        return float(np.polyval(branch, target_um))
+
+    def reset(self, position_um: float) -> None:
+        self.position_um = position_um
+
+    def to_dict(self) -> dict:
+        return {"kind": "branches", "increasing": list(self.increasing), "decreasing": list(self.decreasing)}
+
+
+@dataclass
+class LinearModel:
+    """V = offset + d / gain (gain in um per volt)."""
+
+    gain_um_per_v: float = 0.85
+    offset_v: float = -19.0
+    position_um: float = field(default=0.0)
+
+    def voltage_for(self, target_um: float) -> float:
+        self.position_um = target_um
+        return self.offset_v + target_um / self.gain_um_per_v
+
+    def reset(self, position_um: float) -> None:
+        self.position_um = position_um
+
+    def to_dict(self) -> dict:
+        return {"kind": "linear", "gain_um_per_v": self.gain_um_per_v, "offset_v": self.offset_v}
+
+
+def save_model(model: BranchModel | LinearModel, path: str | Path) -> Path:
+    """Write a model (e.g. a calibration result) as JSON."""
+    path = Path(path)
+    path.write_text(json.dumps(model.to_dict(), indent=2))
+    return path
+
+
+def load_model(path: str | Path) -> BranchModel | LinearModel:
+    """A model from a JSON file written by :func:`save_model` (or by hand)."""
+    try:
+        fields = json.loads(Path(path).read_text())
+        if fields["kind"] == "branches":
+            return BranchModel(tuple(map(float, fields["increasing"])), tuple(map(float, fields["decreasing"])))
+        if fields["kind"] == "linear":
+            return LinearModel(float(fields["gain_um_per_v"]), float(fields["offset_v"]))
+        raise ValueError(f"unknown model kind {fields['kind']!r}")
+    except (OSError, KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{path}: not a displacement model ({error})") from None

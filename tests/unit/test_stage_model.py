@@ -1,0 +1,39 @@
+"""Displacement -> voltage models: the lab's branches with direction memory, linear, files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semservo.simulation.piezo import voltage_for
+from semservo.stage_model import BranchModel, LinearModel, load_model, save_model
+
+
+def test_tritor_model_uses_the_branch_of_the_direction_of_motion():
+    model = BranchModel.tritor("x")
+    model.reset(20.0)
+    assert model.voltage_for(50.0) == pytest.approx(voltage_for("x", "increasing", 50.0))
+    assert model.voltage_for(60.0) == pytest.approx(voltage_for("x", "increasing", 60.0))
+    # Reversal: the decreasing branch, which lies at lower voltage for the same displacement.
+    down = model.voltage_for(55.0)
+    assert down == pytest.approx(voltage_for("x", "decreasing", 55.0))
+    assert down < voltage_for("x", "increasing", 55.0)
+    assert model.voltage_for(55.0) == pytest.approx(down)  # no motion keeps the branch
+
+
+def test_linear_model_and_round_trip_through_a_file(tmp_path):
+    linear = LinearModel(gain_um_per_v=0.9, offset_v=-20.0)
+    assert linear.voltage_for(45.0) == pytest.approx(30.0)
+    for model in (linear, BranchModel.tritor("y")):
+        loaded = load_model(save_model(model, tmp_path / "model.json"))
+        assert type(loaded) is type(model)
+        for target in np.linspace(5, 95, 7):
+            assert loaded.voltage_for(target) == pytest.approx(model.voltage_for(target))
+
+
+def test_bad_model_files_are_clear_errors(tmp_path):
+    (tmp_path / "bad.json").write_text('{"kind": "magic"}')
+    with pytest.raises(ValueError, match="not a displacement model"):
+        load_model(tmp_path / "bad.json")
+    with pytest.raises(ValueError, match="not a displacement model"):
+        load_model(tmp_path / "missing.json")
