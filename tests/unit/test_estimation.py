@@ -115,7 +115,7 @@ def test_unknown_precision_is_refused(frame):
         MotionEstimator(frame, precision="ultra")
 
 
-@pytest.mark.parametrize("angle", [0.4, -3.0, 12.5, -45.0, 90.0, 135.0, -170.0])
+@pytest.mark.parametrize("angle", [0.3, -0.35, 0.4, -3.0, 12.5, -45.0, 90.0, 135.0, -170.0])
 def test_rotation_about_the_beam(frame, reference_estimator, angle):
     motion = reference_estimator.estimate(rotated(frame, angle))
     assert motion.rotation_deg == pytest.approx(angle, abs=0.05)
@@ -142,8 +142,8 @@ def test_tiny_turns_are_reported_and_skipping_their_derotation_changes_nothing(f
     monkeypatch.setattr(estimation, "DEROTATE_ABOVE_DEG", 0.0)
     derotated = MotionEstimator(reference).estimate(current)
     assert skipped.rotation_deg == pytest.approx(angle, abs=0.05)  # the rotation error floor
-    assert skipped.dx == pytest.approx(derotated.dx, abs=0.005)
-    assert skipped.dy == pytest.approx(derotated.dy, abs=0.005)
+    assert skipped.dx == pytest.approx(derotated.dx, abs=0.01)
+    assert skipped.dy == pytest.approx(derotated.dy, abs=0.01)
     assert skipped.dx == pytest.approx(-2, abs=0.08) and skipped.dy == pytest.approx(3, abs=0.08)
 
 
