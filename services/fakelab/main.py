@@ -92,7 +92,7 @@ class ScanServer:
             header = frame_header(
                 pixels, seq=self.sequence, acquired_at_ns=0, pixel_size_nm=settings.pixel_um * 1000,
                 magnification=settings.magnification, dwell_ns=settings.dwell_ns, source="fakelab",
-                label=f"{self.world.preset.name} t={end:.3f}s",
+                label=f"{self.world.preset.name} t={(start + end) / 2:.4f}s",
             )
             self.sequence += 1
             self.counters["frames_scanned"] += 1
@@ -137,9 +137,18 @@ def main(argv: list[str] | None = None) -> int:
                 "serial_tcp": tcp.url.replace(settings.bind_host, config.host),
                 "scan_endpoint": connect(config.host, config.scan_port)}
 
-    def pose(_args: dict) -> dict:
+    def pose(args: dict) -> dict:
+        """The true pose now, or at a past simulated time ``t_s`` (e.g. when a frame was
+        scanned: frame labels carry it)."""
         now = world.now()
-        return {"t_s": now, **asdict(world.pose(now)),
+        when = args.get("t_s", now)
+        try:
+            when = float(when)
+        except (TypeError, ValueError):
+            raise BadRequest("t_s must be a number (simulated seconds)") from None
+        if when > now:
+            raise BadRequest(f"t_s {when:.3f} is in the future (now {now:.3f})")
+        return {"t_s": when, **asdict(world.pose(when)),
                 "voltages": [world.voltage(channel) for channel in (0, 1, 2)]}
 
     def set_rotation_stage(args: dict) -> dict:

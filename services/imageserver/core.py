@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from services.imageserver.sources import AcquiredImage, FrameSource
+from services.imageserver.sources import AcquiredImage, FrameSource, NotReady
 
 
 @dataclass
@@ -44,6 +44,7 @@ class ImageServerCore:
         self.pacer = Pacer(fps)
         self.seq = 0
         self.exhausted = False
+        self.waiting_for_source = False
 
     def set_fps(self, fps: float) -> None:
         if not 0 < fps <= 10_000:
@@ -51,17 +52,24 @@ class ImageServerCore:
         self.pacer = Pacer(fps, self.pacer.next_due)
 
     def seconds_until_due(self, now: float | None = None) -> float | None:
-        """Seconds until the next frame is due; None once the source is exhausted."""
+        """Seconds until the next frame is due; None once the source is exhausted. A
+        background source that had nothing ready is asked again within 5 ms."""
         if self.exhausted:
             return None
-        return self.pacer.seconds_until_due(time.monotonic() if now is None else now)
+        due = self.pacer.seconds_until_due(time.monotonic() if now is None else now)
+        return min(due, 0.005) if self.waiting_for_source else due
 
     def next_frame(self, now: float | None = None) -> tuple[int, AcquiredImage] | None:
         """The (sequence number, image) to publish now, or None if none is due."""
         now = time.monotonic() if now is None else now
         if self.exhausted or self.pacer.seconds_until_due(now) > 0:
             return None
-        image = self.source.acquire()
+        try:
+            image = self.source.acquire()
+        except NotReady:  # a background source has no new frame yet: try again soon
+            self.waiting_for_source = True
+            return None
+        self.waiting_for_source = False
         if image is None:
             self.exhausted = True
             return None

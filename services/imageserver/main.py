@@ -19,7 +19,7 @@ from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
 from semservo.transport import BadRequest, FramePublisher
 from services.imageserver.core import ImageServerCore
-from services.imageserver.sources import ReplaySource, SimSource, SourceUnavailable
+from services.imageserver.sources import BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable
 
 log = logging.getLogger("imageserver")
 
@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def make_source(settings: Settings, args: argparse.Namespace, context) -> ReplaySource | SimSource:
+def make_source(settings: Settings, args: argparse.Namespace, context) -> ReplaySource | BackgroundAcquisition:
     config = settings.imageserver
     source = args.source or ("replay" if args.replay_dir else config.source)
     if source == "sim":
@@ -53,9 +53,12 @@ def make_source(settings: Settings, args: argparse.Namespace, context) -> Replay
                               working_distance_um=config.scan_working_distance_um,
                               brightness=config.scan_brightness, contrast=config.scan_contrast,
                               bit_depth=config.scan_bit_depth)
-        return SimSource(connect(settings.fakelab.host, settings.fakelab.scan_port), request,
-                         timeout_s=config.scan_timeout_s, max_message_bytes=settings.max_message_bytes,
-                         context=context)
+        # A scan takes a frame time: acquire in the background so health stays responsive.
+        return BackgroundAcquisition(
+            SimSource(connect(settings.fakelab.host, settings.fakelab.scan_port), request,
+                      timeout_s=config.scan_timeout_s, max_message_bytes=settings.max_message_bytes),
+            fps=args.fps or config.fps,
+        )
     return ReplaySource(
         args.replay_dir or config.replay_dir,
         pattern=args.glob or config.replay_glob,

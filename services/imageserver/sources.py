@@ -7,6 +7,7 @@ or the simulated SEM plugs in where ``replay`` sits.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,6 +128,68 @@ class ReplaySource:
 
 class SourceUnavailable(RuntimeError):
     """The source cannot deliver a frame now (e.g. the fake lab does not answer)."""
+
+
+class NotReady(Exception):
+    """No new frame yet (the scan is still running); not an error, not the end."""
+
+
+class BackgroundAcquisition:
+    """Runs a blocking source (a scan takes a frame time) in a thread of its own, so the
+    service's sockets, health above all, stay responsive while a frame is acquired.
+
+    :meth:`acquire` never blocks: it returns the newest frame the thread has, raises
+    :class:`NotReady` when there is none yet, and re-raises the thread's last source
+    error (once). The thread paces itself at ``fps`` at most.
+    """
+
+    def __init__(self, source, fps: float):
+        self.source = source
+        self.name = source.name
+        self.fps = fps
+        self._latest: AcquiredImage | None = None
+        self._error: Exception | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"acquire-{source.name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_due = time.monotonic()
+        while not self._stop.is_set():
+            wait = next_due - time.monotonic()
+            if wait > 0 and self._stop.wait(wait):
+                return
+            next_due = max(next_due + 1.0 / self.fps, time.monotonic())
+            try:
+                image = self.source.acquire()
+            except SourceUnavailable as error:
+                with self._lock:
+                    self._error = error
+                self._stop.wait(1.0)
+                continue
+            with self._lock:
+                self._latest, self._error = image, None
+
+    def acquire(self) -> AcquiredImage:
+        with self._lock:
+            image, error = self._latest, self._error
+            self._latest = None
+            self._error = None
+        if image is not None:
+            return image
+        if error is not None:
+            raise error
+        raise NotReady
+
+    def describe(self) -> dict:
+        return self.source.describe()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=15)
+        if hasattr(self.source, "close"):
+            self.source.close()
 
 
 class SimSource:

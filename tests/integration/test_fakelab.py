@@ -12,7 +12,7 @@ import serial
 from semservo import nv40
 from semservo.config import Settings, connect
 from semservo.estimation import MotionEstimator
-from semservo.transport import ControlClient, FrameSubscriber
+from semservo.transport import CommandError, ControlClient, FrameSubscriber
 from tests.integration.helpers import start_service, stop, wait_healthy
 
 pytestmark = pytest.mark.integration
@@ -139,21 +139,28 @@ def test_a_serial_move_shows_in_the_pose_and_the_simulated_frames(fakelab, ports
         before = frames.receive(timeout_s=10)
         assert before is not None and before.header.source == "sim"
         assert before.header.shape == (512, 512) and before.header.magnification == 1200
-        start_pose = control.request("pose")
         port = serial.serial_for_url(info["serial_tcp"], timeout=0.05)
         exchange(port, b"setk,0,1\r")
         exchange(port, b"set,0,44.000\r")
         port.close()
         time.sleep(0.3)  # 15 simulated seconds: settled
-        end_pose = control.request("pose")
         frames.receive(timeout_s=10)  # a frame that may have been scanned during the move
         after = frames.receive(timeout_s=10)
         frames.close()
-        moved_um = end_pose["x_um"] - start_pose["x_um"]
+        # The true poses when the two frames were scanned (mid-scan times in their labels).
+        def scanned_at(frame):
+            return float(re.search(r"t=([\d.]+)s", frame.header.label).group(1))
+
+        pose_before = control.request("pose", t_s=scanned_at(before))
+        pose_after = control.request("pose", t_s=scanned_at(after))
+        moved_um = pose_after["x_um"] - pose_before["x_um"]
         assert 4.0 < moved_um < 8.0  # 6 V up, continuing the rise from home, open loop
         motion = MotionEstimator(before.pixels).estimate(after.pixels)
         pixel_um = before.header.pixel_size_nm / 1000
-        assert motion.dx == pytest.approx(moved_um / pixel_um, abs=0.6)  # drift adds a little
+        assert motion.dx == pytest.approx(moved_um / pixel_um, abs=0.2)
+        assert motion.dy == pytest.approx((pose_after["y_um"] - pose_before["y_um"]) / pixel_um, abs=0.2)
+        with pytest.raises(CommandError, match="future"):
+            control.request("pose", t_s=1e9)
     finally:
         stop(imageserver)
 

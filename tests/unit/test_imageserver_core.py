@@ -106,3 +106,49 @@ def test_core_refuses_bad_rates(tmp_path):
             core.set_fps(bad)
     core.set_fps(25)
     assert core.pacer.fps == 25
+
+
+def test_a_background_source_keeps_the_service_responsive_and_delivers_frames(tmp_path):
+    """A source that blocks for longer than a health request may wait (a scan) runs in
+    its own thread: acquire() never blocks, and every frame still arrives."""
+    import time
+
+    from services.imageserver.sources import BackgroundAcquisition, NotReady
+
+    class SlowScanner:
+        name = "slow"
+
+        def __init__(self):
+            self.count = 0
+
+        def acquire(self):
+            time.sleep(0.2)  # a frame time
+            self.count += 1
+            from services.imageserver.sources import AcquiredImage
+
+            return AcquiredImage(np.full((64, 64), self.count, np.uint8), time.time_ns(), 100.0, 1000.0, 720.0)
+
+        def describe(self):
+            return {"source": self.name}
+
+    source = BackgroundAcquisition(SlowScanner(), fps=50)
+    core = ImageServerCore(source, fps=50)
+    try:
+        started = time.monotonic()
+        with pytest.raises(NotReady):
+            source.acquire()
+        assert time.monotonic() - started < 0.05  # never blocks
+        frames = []
+        deadline = time.monotonic() + 3
+        while len(frames) < 3 and time.monotonic() < deadline:
+            due = core.next_frame()
+            if due is None:
+                if core.waiting_for_source:
+                    assert core.seconds_until_due() <= 0.005  # asks again soon
+                time.sleep(0.005)
+            else:
+                frames.append(due)
+        assert [seq for seq, _ in frames] == [0, 1, 2]
+        assert [int(image.pixels[0, 0]) for _, image in frames] == [1, 2, 3]
+    finally:
+        source.close()
