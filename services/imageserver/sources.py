@@ -20,7 +20,7 @@ import zmq
 from semservo.config import pixel_size_nm
 from semservo.imagefiles import ImageFileError, list_frames, read_image
 from semservo.messages import Reply, ScanRequest
-from semservo.transport import ControlClient, ServiceUnavailable
+from semservo.transport import ControlClient, RequestCancelled, ServiceUnavailable
 from semservo.wire import WireError, decode_frame
 
 
@@ -162,7 +162,9 @@ class BackgroundAcquisition:
                 return
             next_due = max(next_due + 1.0 / self.fps, time.monotonic())
             try:
-                image = self.source.acquire()
+                image = self.source.acquire(cancelled=self._stop.is_set)
+            except NotReady:  # cancelled: we are stopping
+                return
             except SourceUnavailable as error:
                 with self._lock:
                     self._error = error
@@ -212,9 +214,13 @@ class SimSource:
                                     max_message_bytes=max_message_bytes)
         self.frames = 0
 
-    def acquire(self) -> AcquiredImage:
+    def acquire(self, cancelled=None) -> AcquiredImage:
+        """One frame; ``cancelled`` (asked while waiting) abandons the request and
+        raises :class:`NotReady`."""
         try:
-            parts = self.client.request_parts(self.request.model_dump_json().encode())
+            parts = self.client.request_parts(self.request.model_dump_json().encode(), cancelled=cancelled)
+        except RequestCancelled:
+            raise NotReady from None
         except ServiceUnavailable as error:
             raise SourceUnavailable(f"no frame from the fake lab: {error}") from None
         if len(parts) == 1:

@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from typing import Any, Callable
 
@@ -205,6 +206,10 @@ class ServiceUnavailable(RuntimeError):
     """No reply from a service after every try."""
 
 
+class RequestCancelled(RuntimeError):
+    """The caller gave up waiting for a reply (e.g. the service is stopping)."""
+
+
 class CommandError(RuntimeError):
     """The service answered, and the answer was an error."""
 
@@ -246,15 +251,25 @@ class ControlClient:
             self.socket.close(linger=0)
             self.socket = None
 
-    def request_parts(self, payload: bytes, *, timeout_s: float | None = None, retries: int | None = None) -> list:
-        """Send raw bytes; return every part of the reply (zero-copy zmq frames)."""
-        timeout_ms = int(1000 * (timeout_s or self.timeout_s))
+    def request_parts(self, payload: bytes, *, timeout_s: float | None = None, retries: int | None = None,
+                      cancelled: Callable[[], bool] | None = None) -> list:
+        """Send raw bytes; return every part of the reply (zero-copy zmq frames).
+
+        ``cancelled`` is asked every 100 ms while waiting; when it says so the request
+        is abandoned (the socket replaced) and :class:`RequestCancelled` raised.
+        """
+        timeout_s = timeout_s or self.timeout_s
         for attempt in range(1, (retries or self.retries) + 1):
             if self.socket is None:
                 self.socket = self._open()
             self.socket.send(payload)
-            if self.socket.poll(timeout_ms, zmq.POLLIN):
-                return self.socket.recv_multipart(copy=False)
+            deadline = time.monotonic() + timeout_s
+            while (remaining := deadline - time.monotonic()) > 0:
+                if self.socket.poll(int(1000 * min(remaining, 0.1)), zmq.POLLIN):
+                    return self.socket.recv_multipart(copy=False)
+                if cancelled is not None and cancelled():
+                    self._discard()
+                    raise RequestCancelled(f"request to {self.endpoint} cancelled")
             log.debug("no reply from %s (try %d)", self.endpoint, attempt)
             self._discard()
         raise ServiceUnavailable(f"no reply from {self.endpoint} after {retries or self.retries} tries")

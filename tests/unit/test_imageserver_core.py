@@ -121,7 +121,7 @@ def test_a_background_source_keeps_the_service_responsive_and_delivers_frames(tm
         def __init__(self):
             self.count = 0
 
-        def acquire(self):
+        def acquire(self, cancelled=None):
             time.sleep(0.2)  # a frame time
             self.count += 1
             from services.imageserver.sources import AcquiredImage
