@@ -222,19 +222,16 @@ def peak_and_sidelobe(surface: np.ndarray, exclusion: int):
     """(row, col, peak value, peak-to-sidelobe ratio) of a periodic correlation surface,
     the sidelobe being everything outside a (2 exclusion + 1)^2 box around the peak."""
     rows, cols = surface.shape
-    best = -np.inf
-    best_row = best_col = 0
+    flat = surface.ravel()
     total = 0.0
     squares = 0.0
-    for y in range(rows):
-        for x in range(cols):
-            value = surface[y, x]
-            total += value
-            squares += value * value
-            if value > best:
-                best = value
-                best_row = y
-                best_col = x
+    for index in range(flat.size):  # no branch: vectorizes
+        value = flat[index]
+        total += value
+        squares += value * value
+    best_index = np.argmax(flat)
+    best = flat[best_index]
+    best_row, best_col = best_index // cols, best_index % cols
     box_total = 0.0
     box_squares = 0.0
     for dy in range(-exclusion, exclusion + 1):
@@ -246,6 +243,28 @@ def peak_and_sidelobe(surface: np.ndarray, exclusion: int):
     mean = (total - box_total) / count
     variance = max((squares - box_squares) / count - mean * mean, 1e-30)
     return best_row, best_col, best, (best - mean) / math.sqrt(variance)
+
+
+@_jit
+def foroosh_offsets(surface: np.ndarray, peak_row: int, peak_col: int):
+    """Sub-pixel peak offsets (rows, cols) by Foroosh's neighbour ratio (eq. 21-22):
+    with C(s) the larger neighbour (s = +1 or -1), s * C(s) / (C(s) + C(0)), clipped to
+    +-0.5, 0 when the neighbours carry no information. Indices wrap around."""
+    rows, cols = surface.shape
+    centre = surface[peak_row, peak_col]
+    offsets = np.zeros(2)
+    for axis in range(2):
+        if axis == 0:
+            before = surface[(peak_row - 1) % rows, peak_col]
+            after = surface[(peak_row + 1) % rows, peak_col]
+        else:
+            before = surface[peak_row, (peak_col - 1) % cols]
+            after = surface[peak_row, (peak_col + 1) % cols]
+        side, neighbour = (1.0, after) if after >= before else (-1.0, before)
+        denominator = neighbour + centre
+        if neighbour > 0 and denominator > 0:
+            offsets[axis] = min(max(side * neighbour / denominator, -0.5), 0.5)
+    return offsets[0], offsets[1]
 
 
 @_jit
@@ -263,6 +282,15 @@ def magnitude_shifted_into(spectrum: np.ndarray, emphasis: np.ndarray, out: np.n
 
 
 @_jit
+def _edge_pair(source, weights, mean, first, last, col_shift, x):
+    total = 0.0
+    for c in range(2 * x, 2 * x + 2):
+        if first <= c < last:
+            total += (source[c] - mean) * weights[c - col_shift]
+    return total
+
+
+@_jit
 def apodize_halve_into(image: np.ndarray, mean: float, window: np.ndarray, row_shift: int, col_shift: int,
                        scratch: np.ndarray, out: np.ndarray) -> None:
     """out = 2x 2 block means of (image - mean) * window moved by (row_shift, col_shift).
@@ -273,20 +301,30 @@ def apodize_halve_into(image: np.ndarray, mean: float, window: np.ndarray, row_s
     """
     image_rows, image_cols = image.shape
     rows, cols = out.shape
-    # Columns where the moved window reaches: [first, last).
+    # Columns where the moved window reaches: [first, last); half-columns fully inside.
     first, last = max(0, col_shift), min(image_cols, image_cols + col_shift)
+    inner_first, inner_last = (first + 1) // 2, last // 2
     for r in range(image_rows):
         target = scratch[r]
-        for x in range(cols):
-            target[x] = 0.0
         wy = r - row_shift
         if wy < 0 or wy >= image_rows or first >= last:
+            for x in range(cols):
+                target[x] = 0.0
             continue
-        pixels = image[r, first:last]
-        weights = window[wy, first - col_shift:last - col_shift]
-        # Weighted pixels summed into pairs: pixel c adds to half-column c // 2.
-        for k in range(pixels.shape[0]):
-            target[(first + k) // 2] += (pixels[k] - mean) * weights[k]
+        source = image[r]
+        weights = window[wy]
+        # The edge half-columns, and those the window misses (only these few are checked).
+        for x in range(0, min(inner_first, cols)):
+            target[x] = _edge_pair(source, weights, mean, first, last, col_shift, x)
+        for x in range(max(inner_last, 0), cols):
+            target[x] = _edge_pair(source, weights, mean, first, last, col_shift, x)
+        # The bulk: both pixels of each pair inside the window (row views from 0 vectorize).
+        if inner_last > inner_first:
+            pixels = source[2 * inner_first:2 * inner_last]
+            moved = weights[2 * inner_first - col_shift:2 * inner_last - col_shift]
+            pairs = target[inner_first:inner_last]
+            for k in range(pairs.shape[0]):
+                pairs[k] = (pixels[2 * k] - mean) * moved[2 * k] + (pixels[2 * k + 1] - mean) * moved[2 * k + 1]
     for y in range(rows):
         upper = scratch[2 * y]
         lower = scratch[2 * y + 1]

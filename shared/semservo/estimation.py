@@ -430,11 +430,12 @@ class AngularRefiner:
         return centred_shift(best % self.angles, self.angles), float(surface[coarse])
 
 
-def angular_shift(current: np.ndarray, reference: np.ndarray, refiner: AngularRefiner) -> tuple[float, float]:
+def angular_shift(current: np.ndarray, reference_conjugate: np.ndarray, refiner: AngularRefiner) -> tuple[float, float]:
     """Circular shift (samples) of the current angular profile against the reference
-    (eq. 12), from the normalized cross spectrum summed over radii; sub-sample by
-    :class:`AngularRefiner`. Returns (shift, peak height)."""
-    cross = (current * np.conj(reference)).sum(axis=0)
+    (eq. 12; ``reference_conjugate`` is its conjugated angular spectrum), from the
+    normalized cross spectrum summed over radii; sub-sample by :class:`AngularRefiner`.
+    Returns (shift, peak height)."""
+    cross = np.einsum("ij,ij->j", current, reference_conjugate)
     cross /= np.maximum(np.abs(cross), 1e-30)
     return refiner.peak(cross)
 
@@ -665,9 +666,9 @@ class MotionEstimator:
             self.grid = LogPolarGrid.for_shape(self.shape, angles=angles)
             self.refiner = AngularRefiner.for_angles(angles)
             self.emphasis = highpass_emphasis(self.shape)
-            self.reference_angular = angular_spectrum(
+            self.reference_angular_conjugate = np.conj(angular_spectrum(
                 log_polar_magnitude(np.conj(self.reference_conjugate), self.emphasis, self.grid)
-            )
+            ))
             self.angular_plan = pyfftw.FFTW(
                 pyfftw.empty_aligned(self.grid.map_cols.shape, "float32"),
                 pyfftw.empty_aligned((self.grid.map_cols.shape[0], angles // 2 + 1), "complex64"),
@@ -737,73 +738,72 @@ class MotionEstimator:
         """
         spectrum = self._spectrum(image, mean)
         log_polar = log_polar_magnitude(spectrum, self.emphasis, self.grid, self._log_magnitude, self._log_polar)
-        samples, _ = angular_shift(angular_spectrum(log_polar, self.angular_plan), self.reference_angular,
+        samples, _ = angular_shift(angular_spectrum(log_polar, self.angular_plan), self.reference_angular_conjugate,
                                    self.refiner)
         # Angles run from -90 (column 0 of the log-polar grid) to +90 degrees with v
         # along rows (down), so a counter-clockwise turn as displayed moves the profile back.
         return float(-samples * 180.0 / self.grid.angles)
 
-    def _turned_wins(self, search_spectrum: np.ndarray) -> bool:
-        """Does the image turned by 180 degrees correlate better than as it is?
+    def _search(self, search_spectrum: np.ndarray) -> tuple[float, float, float, float]:
+        """Step 1 of the translation: (dy, dx) in full-resolution pixels, peak height and
+        PSR from the half-resolution pair (eq. 18-24). Uses the search plans' buffers."""
+        weight = self.search_lowpass if self.search_lowpass is not None else self.no_weight
+        _kernels.normalized_cross_power_into(search_spectrum, self.search_reference_conjugate, weight,
+                                             self.search_lowpass is not None, self.search_plans.inverse.input_array)
+        surface = self.search_plans.inverse(normalise_idft=True)
+        peak_row, peak_col, height, psr = _kernels.peak_and_sidelobe(surface, PSR_EXCLUSION)
+        offset_row, offset_col = _kernels.foroosh_offsets(surface, peak_row, peak_col)
+        factor = self.search_factor
+        dy = (centred_shift(peak_row, self.search_shape[0]) + offset_row) * factor
+        dx = (centred_shift(peak_col, self.search_shape[1]) + offset_col) * factor
+        return dy, dx, float(height), float(psr)
 
-        Only which peak is higher matters, so the low-frequency quarter of the search
-        spectra suffices (a 128 x 128 inverse FFT per candidate for a 512 frame).
-        """
-        rows = self.search_shape[0] // 4
-        cols = self.search_shape[1] // 4
-        def crop(spectrum):
-            return np.concatenate([spectrum[:rows, :cols + 1], spectrum[-rows:, :cols + 1]])
-        current = crop(search_spectrum)
-        reference = crop(self.search_reference_conjugate)
-        heights = []
-        for candidate in (current, np.conj(current)):
-            cross = candidate * reference
-            cross /= np.maximum(np.abs(cross), 1e-30)
-            heights.append(float(np.fft.irfft2(cross, s=(2 * rows, 2 * cols)).max()))
-        return heights[1] > heights[0]
+    def _turned_height(self, search_spectrum: np.ndarray) -> float:
+        """Search peak height of the image turned by 180 degrees: for a real image under
+        a symmetric window its spectrum is the conjugate (up to a one-pixel shift that
+        does not change the peak height)."""
+        turned = np.conj(search_spectrum)
+        _kernels.normalized_cross_power_into(turned, self.search_reference_conjugate, self.no_weight, False,
+                                             self.search_plans.inverse.input_array)
+        return float(self.search_plans.inverse(normalise_idft=True).max())
+
+    def _fit(self, image: np.ndarray, mean: float, shift: tuple[float, float], filtered: bool) -> tuple[float, float]:
+        """Steps 2 and 3 of the translation: the window moved by the whole-pixel shift,
+        then the band-limited correlation maximum (see :meth:`estimate_translation`)."""
+        dy, dx = shift
+        if self.precision == "fast" and self.search_factor == 2:
+            # On a halved pair: the full-resolution window moved by whole full-resolution
+            # pixels, then halved, so the scene weighting matches to within half a pixel.
+            _kernels.apodize_halve_into(image, mean, self.window, int(round(dy)), int(round(dx)),
+                                        self._search_scratch, self.search_plans.forward.input_array)
+            spectrum = self.search_plans.forward()
+            band = self.search_filtered_fit_band if filtered else self.search_fit_band
+            search_dy, search_dx = refine_on_band(spectrum, self.fit_search_reference_conjugate, band,
+                                                  (dy / 2, dx / 2), workspace=self._search_band_workspace)
+            # Block means are centred half a search pixel in: the shift scales exactly.
+            return search_dy * 2, search_dx * 2
+        spectrum = self._spectrum(image, mean, int(round(dy)), int(round(dx)))
+        band = self.filtered_fit_band if filtered else self.fit_band
+        return refine_on_band(spectrum, self.reference_conjugate, band, (dy, dx), workspace=self._band_workspace)
 
     def estimate_translation(self, image: np.ndarray, mean: float, search_spectrum: np.ndarray, *,
                              filtered: bool) -> tuple[float, float, float, float]:
         """(dx, dy, peak height, PSR) of ``image`` (mean ``mean``) against the reference.
 
         1. Search: the peak of the inverse normalized cross-power spectrum (eq. 18-20)
-           of the 2x block-averaged pair (``search_spectrum`` is the current one's),
+           of the half-resolution pair (``search_spectrum`` is the current one's),
            sub-pixel by Foroosh's neighbour ratio (eq. 21-22), centred (eq. 23-24). Its
            sharpness gives the confidence.
-        2. The full-resolution image is windowed with the window moved by the nearest
-           whole-pixel shift, so both images weight the same scene: a window fixed on
-           the frame weighs the moved content differently and biases towards zero.
+        2. The image is windowed with the window moved by the nearest whole-pixel shift,
+           so both images weight the same scene: a window fixed on the frame weighs the
+           moved content differently and biases towards zero.
         3. The sub-pixel shift is the maximum of the band-limited correlation surface
            (:func:`refine_on_band`); when the frame is filtered (section II-D) the band
            is weighted by the 5 x 5 Gaussian's transfer function.
         """
-        factor = self.search_factor
-        weight = self.search_lowpass if self.search_lowpass is not None else self.no_weight
-        _kernels.normalized_cross_power_into(search_spectrum, self.search_reference_conjugate, weight,
-                                             self.search_lowpass is not None, self.search_plans.inverse.input_array)
-        surface = self.search_plans.inverse(normalise_idft=True)
-        peak_row, peak_col, height, psr = _kernels.peak_and_sidelobe(surface, PSR_EXCLUSION)
-        peak = (int(peak_row), int(peak_col))
-        offset_row, offset_col = foroosh_subpixel(surface, peak)
-        search_dy = centred_shift(peak[0], self.search_shape[0]) + offset_row
-        search_dx = centred_shift(peak[1], self.search_shape[1]) + offset_col
-        dy, dx = search_dy * factor, search_dx * factor
-        if self.precision == "fast" and factor == 2:
-            # Steps 2 and 3 on a halved pair: the full-resolution window moved by whole
-            # full-resolution pixels, then halved (so the scene weighting matches to
-            # within half a pixel), and the band-limited correlation maximum found there.
-            _kernels.apodize_halve_into(image, mean, self.window, int(round(dy)), int(round(dx)),
-                                        self._search_scratch, self.search_plans.forward.input_array)
-            spectrum = self.search_plans.forward()
-            band = self.search_filtered_fit_band if filtered else self.search_fit_band
-            search_dy, search_dx = refine_on_band(spectrum, self.fit_search_reference_conjugate, band,
-                                                  (search_dy, search_dx), workspace=self._search_band_workspace)
-            # Block means are centred half a search pixel in: the shift scales exactly.
-            return search_dx * factor, search_dy * factor, float(height), float(psr)
-        spectrum = self._spectrum(image, mean, int(round(dy)), int(round(dx)))
-        band = self.filtered_fit_band if filtered else self.fit_band
-        dy, dx = refine_on_band(spectrum, self.reference_conjugate, band, (dy, dx), workspace=self._band_workspace)
-        return dx, dy, float(height), float(psr)
+        dy, dx, height, psr = self._search(search_spectrum)
+        dy, dx = self._fit(image, mean, (dy, dx), filtered)
+        return dx, dy, height, psr
 
     def estimate(self, image) -> Motion:
         """Motion of ``image`` against the reference. ValueError for bad input."""
@@ -822,17 +822,17 @@ class MotionEstimator:
                 image = rotate_about_centre(original, -angle, self._derotated)
                 derotated = True
             search_spectrum = self._search_spectrum_of(image, mean)
-            # theta or theta + 180? Turning the de-rotated image by 180 degrees conjugates
-            # its spectrum (real image, symmetric window; up to a one-pixel shift that
-            # does not change the peak height), so one extra inverse FFT compares them.
-            if self._turned_wins(search_spectrum):
+            dy, dx, height, psr = self._search(search_spectrum)
+            # theta or theta + 180? The magnitude spectrum cannot tell; the translation
+            # peak can: compare it with the peak of the image turned by 180 degrees.
+            if self._turned_height(search_spectrum) > height:
                 angle += 180.0 if angle < 0 else -180.0
                 image = rotate_about_centre(original, -angle, self._derotated)
                 derotated = True
-                search_spectrum = self._search_spectrum_of(image, mean)
+                dy, dx, height, psr = self._search(self._search_spectrum_of(image, mean))
         else:
-            search_spectrum = self._search_spectrum_of(image, mean)
-        dx, dy, height, psr = self.estimate_translation(image, mean, search_spectrum, filtered=filtered)
+            dy, dx, height, psr = self._search(self._search_spectrum_of(image, mean))
+        dy, dx = self._fit(image, mean, (dy, dx), filtered)
         if derotated:
             # The shift was measured on the de-rotated image; turn it back into the
             # current image's axes (counter-clockwise as displayed, rows down).

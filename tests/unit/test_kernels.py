@@ -1,0 +1,56 @@
+"""The estimator's fused numba kernels against plain numpy references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semservo import _kernels
+from semservo.estimation import _statistics, foroosh_subpixel
+
+rng = np.random.default_rng(0)
+
+
+@pytest.mark.parametrize("shift", [(0, 0), (3, -5), (-2, 7), (0, 79), (0, -80), (64, 0)])
+def test_apodize_into_and_apodize_halve_into_match_numpy(shift):
+    rows_shift, cols_shift = shift
+    image = rng.random((64, 80)).astype(np.float32)
+    window = rng.random((64, 80)).astype(np.float32)
+    moved = np.zeros_like(window)
+    ys, xs = np.mgrid[0:64, 0:80]
+    wy, wx = ys - rows_shift, xs - cols_shift
+    inside = (wy >= 0) & (wy < 64) & (wx >= 0) & (wx < 80)
+    moved[inside] = window[wy[inside], wx[inside]]
+    expected = (image - 0.3) * moved
+    full = np.empty_like(image)
+    _kernels.apodize_into(image, 0.3, window, rows_shift, cols_shift, full)
+    np.testing.assert_allclose(full, expected, atol=1e-6)
+    halved = np.empty((32, 40), np.float32)
+    _kernels.apodize_halve_into(image, 0.3, window, rows_shift, cols_shift, np.empty((64, 40), np.float32), halved)
+    np.testing.assert_allclose(halved, expected.reshape(32, 2, 40, 2).mean(axis=(1, 3)), atol=1e-6)
+
+
+def test_peak_sidelobe_and_foroosh_match_numpy():
+    for _ in range(20):
+        surface = rng.random((32, 48)).astype(np.float32)
+        row, col = int(rng.integers(0, 32)), int(rng.integers(0, 48))
+        surface[row, col] = 5.0
+        peak_row, peak_col, height, psr = _kernels.peak_and_sidelobe(surface, 5)
+        assert (peak_row, peak_col, height) == (row, col, 5.0)
+        box = np.zeros_like(surface, bool)
+        box[np.ix_(np.arange(row - 5, row + 6) % 32, np.arange(col - 5, col + 6) % 48)] = True
+        sidelobe = surface[~box].astype(np.float64)
+        assert psr == pytest.approx((5.0 - sidelobe.mean()) / sidelobe.std(), rel=1e-4)
+        assert _kernels.foroosh_offsets(surface, row, col) == pytest.approx(foroosh_subpixel(surface, (row, col)))
+
+
+def test_frame_statistics_match_numpy_and_catch_non_finite_values():
+    image = rng.random((300, 200)).astype(np.float32)
+    mean, finite, r0, down1, down2, along1, along2 = _statistics(image)
+    centred = image[75:225].astype(np.float64) - image.mean()
+    assert finite and mean == pytest.approx(image.mean(), rel=1e-6)
+    assert r0 == pytest.approx(np.mean(centred**2), rel=1e-5)
+    assert down1 == pytest.approx(np.mean(centred[1:] * centred[:-1]), rel=1e-4, abs=1e-6)
+    assert along2 == pytest.approx(np.mean(centred[:, 2:] * centred[:, :-2]), rel=1e-4, abs=1e-6)
+    image[5, 7] = np.nan
+    assert not _statistics(image)[1]
