@@ -35,8 +35,10 @@ def connected_pair(context, latest_only):
         publisher.publish(probe, seq=0, acquired_at_ns=0, **METADATA)
         if subscriber.receive(timeout_s=0.02) is not None:
             break
-    while subscriber.receive(timeout_s=0.05) is not None:
-        pass
+    probes_left = 0
+    while subscriber.receive(timeout_s=0.05) is not None:  # drain the remaining probes
+        probes_left += 1
+    assert probes_left < 200
     subscriber.counters.clear()
     return publisher, subscriber
 
