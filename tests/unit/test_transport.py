@@ -26,20 +26,25 @@ METADATA = dict(pixel_size_nm=100.0, magnification=2123.0, dwell_ns=720.0, sourc
 LIMIT = 2**20
 
 
-def connected_pair(context, latest_only):
-    publisher = FramePublisher("tcp://127.0.0.1:*", context=context, send_hwm=1000)
-    subscriber = FrameSubscriber(publisher.endpoint, max_message_bytes=LIMIT, latest_only=latest_only, context=context)
-    # PUB/SUB slow joiner: publish probes until one arrives, then the link is up.
-    probe = np.zeros((8, 8), np.uint8)
+def wait_until_joined(send_probe, subscriber) -> None:
+    """PUB/SUB slow joiner: send probes until one arrives, then drain the rest, so the
+    test starts on a live link with clean counters."""
     for _ in range(200):
-        publisher.publish(probe, seq=0, acquired_at_ns=0, **METADATA)
+        send_probe()
         if subscriber.receive(timeout_s=0.02) is not None:
             break
     probes_left = 0
-    while subscriber.receive(timeout_s=0.05) is not None:  # drain the remaining probes
+    while subscriber.receive(timeout_s=0.05) is not None:
         probes_left += 1
     assert probes_left < 200
     subscriber.counters.clear()
+
+
+def connected_pair(context, latest_only):
+    publisher = FramePublisher("tcp://127.0.0.1:*", context=context, send_hwm=1000)
+    subscriber = FrameSubscriber(publisher.endpoint, max_message_bytes=LIMIT, latest_only=latest_only, context=context)
+    probe = np.zeros((8, 8), np.uint8)
+    wait_until_joined(lambda: publisher.publish(probe, seq=0, acquired_at_ns=0, **METADATA), subscriber)
     return publisher, subscriber
 
 
@@ -99,14 +104,7 @@ def test_malformed_messages_are_dropped_counted_and_the_subscriber_goes_on(conte
         "nonfinite": nan_message,
         "oversized": oversized,
     }
-    # Slow joiner: send good frames until one arrives.
-    for _ in range(200):
-        raw.send_multipart([topic, good_header, good_pixels])
-        if subscriber.receive(timeout_s=0.02) is not None:
-            break
-    while subscriber.receive(timeout_s=0.05) is not None:
-        pass
-    subscriber.counters.clear()
+    wait_until_joined(lambda: raw.send_multipart([topic, good_header, good_pixels]), subscriber)
     for parts in malformed.values():
         raw.send_multipart(parts)
     raw.send_multipart([topic, good_header, good_pixels])
