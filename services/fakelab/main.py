@@ -20,7 +20,7 @@ from semservo.config import Settings, connect
 from semservo.logs import configure
 from semservo.messages import Reply, ScanRequest
 from semservo.service import ServiceRuntime
-from semservo.simulation.sem import ScanSettings
+from semservo.simulation.sem import SEM, ScanSettings
 from semservo.simulation.world import PRESETS, World
 from semservo.transport import BadRequest
 from semservo.wire import encode_frame, frame_header
@@ -163,8 +163,8 @@ def main(argv: list[str] | None = None) -> int:
         if name not in PRESETS:
             raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
         with world.lock:
-            new = World(PRESETS[name], speedup=world.speedup, seed=world.seed)
-            world.preset, world.sem = new.preset, new.sem
+            world.preset = PRESETS[name]
+            world.sem = SEM(world.preset.scene, world.seed)
         return describe({})
 
     runtime.control.register("info", describe)

@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def make_source(settings: Settings, args: argparse.Namespace, context) -> ReplaySource | BackgroundAcquisition:
+def make_source(settings: Settings, args: argparse.Namespace) -> ReplaySource | BackgroundAcquisition:
     config = settings.imageserver
     source = args.source or ("replay" if args.replay_dir else config.source)
     if source == "sim":
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     config = settings.imageserver
 
     runtime = ServiceRuntime("imageserver", settings, settings.bind(config.control_port))
-    source = make_source(settings, args, runtime.context)
+    source = make_source(settings, args)
     core = ImageServerCore(source, fps=args.fps or config.fps)
     publisher = FramePublisher(settings.bind(config.frames_port), context=runtime.context)
     log.info("publishing %s on %s at %.1f fps", source.describe(), publisher.endpoint, core.pacer.fps)

@@ -257,13 +257,6 @@ def centred_shift(index: float, length: int) -> float:
     return index - length if index >= length / 2 else index
 
 
-def peak_to_sidelobe(surface: np.ndarray, peak: tuple[int, int] | None = None,
-                     exclusion: int = PSR_EXCLUSION) -> float:
-    """(peak - sidelobe mean) / sidelobe std of a correlation surface, the sidelobe
-    excluding a (2 exclusion + 1)^2 box around the (highest) peak."""
-    return float(_kernels.peak_and_sidelobe(np.ascontiguousarray(surface, dtype=np.float32), exclusion)[3])
-
-
 def confidence_from_psr(psr: float) -> float:
     """Map a peak-to-sidelobe ratio to [0, 1] (see the module docstring)."""
     return float(1.0 - np.exp(-max(psr - 6.0, 0.0) / 8.0))
@@ -402,6 +395,7 @@ class AngularRefiner:
     fine_offsets: np.ndarray
     fine_basis: np.ndarray
     hermitian_weights: np.ndarray
+    frequencies: np.ndarray  # 0 .. angles // 2
 
     @classmethod
     def for_angles(cls, angles: int) -> "AngularRefiner":
@@ -413,14 +407,14 @@ class AngularRefiner:
         coarse = np.linspace(-1, 1, 21)
         fine = np.linspace(-0.1, 0.1, 41)
         basis = lambda offsets: np.exp(2j * np.pi * np.outer(offsets, k) / angles).astype(np.complex64)  # noqa: E731
-        return cls(angles, coarse, basis(coarse), fine, basis(fine), weights)
+        return cls(angles, coarse, basis(coarse), fine, basis(fine), weights, k)
 
     def peak(self, cross: np.ndarray) -> tuple[float, float]:
         """(sub-sample peak position in [-angles/2, angles/2), peak height) of the
         inverse transform of the normalized 1-D cross spectrum ``cross``."""
         surface = np.fft.irfft(cross, n=self.angles)
         coarse = int(np.argmax(surface))
-        k = np.arange(cross.size)
+        k = self.frequencies
         weighted = (self.hermitian_weights * cross).astype(np.complex64)
         at_coarse = weighted * np.exp(2j * np.pi * coarse * k / self.angles).astype(np.complex64)
         first = float(self.coarse_offsets[int(np.argmax((self.coarse_basis @ at_coarse).real))])
@@ -545,16 +539,6 @@ class FFTPlans:
         if pyfftw.export_wisdom() != before:
             _save_wisdom()
         return plans
-
-    def rfft2(self, image: np.ndarray) -> np.ndarray:
-        """Spectrum of ``image``; the returned array is the plan's buffer, reused next call."""
-        self.forward.input_array[...] = image
-        return self.forward()
-
-    def irfft2(self, spectrum: np.ndarray) -> np.ndarray:
-        """Real inverse (normalized); the returned array is the plan's buffer."""
-        self.inverse.input_array[...] = spectrum
-        return self.inverse(normalise_idft=True)
 
 
 # --------------------------------------------------------------------------------------
@@ -769,7 +753,7 @@ class MotionEstimator:
 
     def _fit(self, image: np.ndarray, mean: float, shift: tuple[float, float], filtered: bool) -> tuple[float, float]:
         """Steps 2 and 3 of the translation: the window moved by the whole-pixel shift,
-        then the band-limited correlation maximum (see :meth:`estimate_translation`)."""
+        then the band-limited correlation maximum (see :meth:`estimate`)."""
         dy, dx = shift
         if self.precision == "fast" and self.search_factor == 2:
             # On a halved pair: the full-resolution window moved by whole full-resolution
@@ -786,14 +770,14 @@ class MotionEstimator:
         band = self.filtered_fit_band if filtered else self.fit_band
         return refine_on_band(spectrum, self.reference_conjugate, band, (dy, dx), workspace=self._band_workspace)
 
-    def estimate_translation(self, image: np.ndarray, mean: float, search_spectrum: np.ndarray, *,
-                             filtered: bool) -> tuple[float, float, float, float]:
-        """(dx, dy, peak height, PSR) of ``image`` (mean ``mean``) against the reference.
+    def estimate(self, image) -> Motion:
+        """Motion of ``image`` against the reference. ValueError for bad input.
+
+        Rotation first (if on, :meth:`estimate_rotation`), then translation:
 
         1. Search: the peak of the inverse normalized cross-power spectrum (eq. 18-20)
-           of the half-resolution pair (``search_spectrum`` is the current one's),
-           sub-pixel by Foroosh's neighbour ratio (eq. 21-22), centred (eq. 23-24). Its
-           sharpness gives the confidence.
+           of the half-resolution pair, sub-pixel by Foroosh's neighbour ratio (eq.
+           21-22), centred (eq. 23-24); its sharpness gives the confidence.
         2. The image is windowed with the window moved by the nearest whole-pixel shift,
            so both images weight the same scene: a window fixed on the frame weighs the
            moved content differently and biases towards zero.
@@ -801,12 +785,6 @@ class MotionEstimator:
            (:func:`refine_on_band`); when the frame is filtered (section II-D) the band
            is weighted by the 5 x 5 Gaussian's transfer function.
         """
-        dy, dx, height, psr = self._search(search_spectrum)
-        dy, dx = self._fit(image, mean, (dy, dx), filtered)
-        return dx, dy, height, psr
-
-    def estimate(self, image) -> Motion:
-        """Motion of ``image`` against the reference. ValueError for bad input."""
         image, statistics = self._check(image)
         mean = float(statistics[0])
         snr_db = _snr_from(statistics)

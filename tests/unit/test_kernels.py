@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from semservo import _kernels
-from semservo.estimation import _statistics, foroosh_subpixel
+from semservo.estimation import _statistics, foroosh_subpixel, normalized_cross_power
 
 rng = np.random.default_rng(0)
 
@@ -54,3 +54,13 @@ def test_frame_statistics_match_numpy_and_catch_non_finite_values():
     assert along2 == pytest.approx(np.mean(centred[:, 2:] * centred[:, :-2]), rel=1e-4, abs=1e-6)
     image[5, 7] = np.nan
     assert not _statistics(image)[1]
+
+
+def test_normalized_cross_power_kernel_matches_eq_18():
+    current = (rng.normal(size=(16, 9)) + 1j * rng.normal(size=(16, 9))).astype(np.complex64)
+    reference = (rng.normal(size=(16, 9)) + 1j * rng.normal(size=(16, 9))).astype(np.complex64)
+    weight = rng.random((16, 9)).astype(np.float32)
+    out = np.empty_like(current)
+    _kernels.normalized_cross_power_into(current, np.conj(reference), weight, True, out)
+    expected, _ = normalized_cross_power(current, np.conj(reference))
+    np.testing.assert_allclose(out, expected * weight, rtol=1e-5, atol=1e-6)
