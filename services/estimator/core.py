@@ -134,6 +134,8 @@ class EstimatorCore:
             confidence=min(1.0, max(0.0, motion.confidence)), snr_db=motion.snr_db, filtered=motion.filtered,
             pixel_size_nm=frame.header.pixel_size_nm,
             frame_acquired_at_ns=frame.header.acquired_at_ns, frame_published_at_ns=frame.header.published_at_ns,
+            frame_scan_started_at_ns=frame.header.scan_started_at_ns,
+            frame_source_interval_s=frame.header.source_interval_s,
             published_at_ns=now, estimation_ms=elapsed_ms,
             latency_ms=(now - frame.header.published_at_ns) / 1e6,
         )

@@ -11,8 +11,10 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+import time
 from dataclasses import asdict
 
+import numpy as np
 import pydantic
 import zmq
 
@@ -83,16 +85,19 @@ class ScanServer:
                 if request is None:
                     raise ValueError(f"a scan request is one JSON part, got {len(parts)}")
                 settings = scan_settings(self.world, request)
+                scan_started_at_ns = time.time_ns()
                 pixels, start, end = self.world.scan(settings)
+                acquired_at_ns = time.time_ns()
             except (pydantic.ValidationError, ValueError) as error:
                 self.counters["scans_refused"] += 1
                 self.last_error = f"scan refused: {error}"
                 self.socket.send(Reply.failure("bad_request", str(error)).model_dump_json().encode())
                 continue
             header = frame_header(
-                pixels, seq=self.sequence, acquired_at_ns=0, pixel_size_nm=settings.pixel_um * 1000,
+                pixels, seq=self.sequence, acquired_at_ns=acquired_at_ns, pixel_size_nm=settings.pixel_um * 1000,
                 magnification=settings.magnification, dwell_ns=settings.dwell_ns, source="fakelab",
                 label=f"{self.world.preset.name} t={(start + end) / 2:.4f}s",
+                scan_started_at_ns=scan_started_at_ns, source_interval_s=(start, end),
             )
             self.sequence += 1
             self.counters["frames_scanned"] += 1
@@ -119,8 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     def make_emulator() -> NV403Emulator:
         return NV403Emulator(world, channels=channels)
 
-    pty = None if args.no_pty else PseudoTerminalLink(make_emulator).start()
-    tcp = TcpLink(make_emulator, settings.bind_host, config.serial_tcp_port).start()
+    plugged = threading.Event()
+    plugged.set()
+    pty = None if args.no_pty else PseudoTerminalLink(make_emulator, plugged).start()
+    tcp = TcpLink(make_emulator, settings.bind_host, config.serial_tcp_port, plugged).start()
     runtime = ServiceRuntime("fakelab", settings, settings.bind(config.control_port))
     scanner = ScanServer(world, settings.bind(config.scan_port), runtime.context, settings.max_message_bytes,
                          runtime.counters).start()
@@ -139,7 +146,18 @@ def main(argv: list[str] | None = None) -> int:
 
     def pose(args: dict) -> dict:
         """The true pose now, or at a past simulated time ``t_s`` (e.g. when a frame was
-        scanned: frame labels carry it)."""
+        scanned: frame labels carry it), or averaged over a scan ``interval_s`` (t0, t1):
+        what a frame shows, with the vibration averaged out as the scan averages it."""
+        if "interval_s" in args:
+            try:
+                start, end = (float(value) for value in args["interval_s"])
+            except (TypeError, ValueError):
+                raise BadRequest("interval_s must be two numbers (simulated seconds)") from None
+            if not start <= end <= world.now():
+                raise BadRequest(f"interval_s must be ordered and past (now {world.now():.3f})")
+            samples = [asdict(world.pose(t)) for t in np.linspace(start, end, 64)]
+            return {"interval_s": [start, end],
+                    **{key: float(np.mean([sample[key] for sample in samples])) for key in samples[0]}}
         now = world.now()
         when = args.get("t_s", now)
         try:
@@ -167,7 +185,17 @@ def main(argv: list[str] | None = None) -> int:
             world.sem = SEM(world.preset.scene, world.seed)
         return describe({})
 
+    def serial_link(args: dict) -> dict:
+        """Pull (``{"plugged": false}``) or plug back the serial cable."""
+        if "plugged" in args:
+            if not isinstance(args["plugged"], bool):
+                raise BadRequest("plugged must be true or false")
+            (plugged.set if args["plugged"] else plugged.clear)()
+            log.warning("serial cable %s", "plugged in" if args["plugged"] else "PULLED")
+        return {"plugged": plugged.is_set()}
+
     runtime.control.register("info", describe)
+    runtime.control.register("serial_link", serial_link)
     runtime.control.register("pose", pose)
     runtime.control.register("set_rotation_stage", set_rotation_stage)
     runtime.control.register("set_preset", set_preset)

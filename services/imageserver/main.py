@@ -130,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
                 dwell_ns=image.dwell_ns,
                 source=source.name,
                 label=image.label,
+                scan_started_at_ns=image.scan_started_at_ns,
+                source_interval_s=image.source_interval_s,
             )
             runtime.counters["frames_published"] += 1
         if core.exhausted and runtime.state == "running":

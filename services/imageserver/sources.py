@@ -34,6 +34,8 @@ class AcquiredImage:
     magnification: float
     dwell_ns: float
     label: str | None = None
+    scan_started_at_ns: int | None = None  # None: the source does not know (a file)
+    source_interval_s: tuple[float, float] | None = None
 
 
 class FrameSource(Protocol):
@@ -232,9 +234,11 @@ class SimSource:
             raise SourceUnavailable(f"malformed frame from the fake lab: {error}") from None
         self.frames += 1
         header = frame.header
-        return AcquiredImage(pixels=frame.pixels, acquired_at_ns=header.published_at_ns,
+        return AcquiredImage(pixels=frame.pixels, acquired_at_ns=header.acquired_at_ns or header.published_at_ns,
                              pixel_size_nm=header.pixel_size_nm, magnification=header.magnification,
-                             dwell_ns=header.dwell_ns, label=header.label)
+                             dwell_ns=header.dwell_ns, label=header.label,
+                             scan_started_at_ns=header.scan_started_at_ns,
+                             source_interval_s=header.source_interval_s)
 
     def describe(self) -> dict:
         return {"source": self.name, "endpoint": self.endpoint, "frames": self.frames,

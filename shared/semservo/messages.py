@@ -50,6 +50,10 @@ class FrameHeader(_Message):
     dwell_ns: PositiveFloat = Field(description="dwell time per pixel")
     source: str = Field(min_length=1, max_length=200, description="which source made it, e.g. 'replay'")
     label: str | None = Field(None, max_length=500, description="source-specific name, e.g. the file")
+    scan_started_at_ns: int | None = Field(
+        None, ge=0, description="Unix time (ns) the scan began: a frame shows a move only if it began after it")
+    source_interval_s: tuple[float, float] | None = Field(
+        None, description="the scan's start and end on the source's own clock (the fake lab's simulated time)")
 
     @property
     def nbytes(self) -> int:
@@ -126,6 +130,8 @@ class MotionEstimate(_Message):
     pixel_size_nm: PositiveFloat
     frame_acquired_at_ns: int = Field(ge=0)
     frame_published_at_ns: int = Field(ge=0)
+    frame_scan_started_at_ns: int | None = Field(None, ge=0, description="the frame's scan_started_at_ns")
+    frame_source_interval_s: tuple[float, float] | None = Field(None, description="the frame's source_interval_s")
     published_at_ns: int = Field(ge=0, description="Unix time (ns) this estimate was sent")
     estimation_ms: float = Field(ge=0, description="time spent estimating")
     latency_ms: float = Field(description="frame published -> estimate published")

@@ -166,3 +166,10 @@ class NV403Driver:
         """All three channels at once (the device ignores it unless all are remote)."""
         self.transact("setall", *(float(v) for v in volts))
         return self.read_voltages()
+
+    def set_channels(self, volts: dict[int, float]) -> tuple[float, float, float]:
+        """Write several set points (one ``set`` each, the first written at once), then
+        read all outputs back with one ``measure``."""
+        for channel, value in volts.items():
+            self.transact("set", channel, float(value))
+        return self.read_voltages()

@@ -27,6 +27,10 @@ class DisplacementModel(Protocol):
     def reset(self, position_um: float) -> None:
         """Where the axis is now (its open-loop estimate), e.g. after homing."""
 
+    def position_for(self, voltage: float) -> float:
+        """The displacement the model expects at ``voltage`` (its inverse), e.g. to know
+        where the axis is when the link opens."""
+
 
 @dataclass
 class BranchModel:
@@ -54,6 +58,19 @@ class BranchModel:
     def reset(self, position_um: float) -> None:
         self.position_um = position_um
 
+    def position_for(self, voltage: float) -> float:
+        """Inverse of the current branch by bisection over the stroke (-10..120 um; the
+        branches are monotonic there)."""
+        branch = self.increasing if self.direction > 0 else self.decreasing
+        low, high = -10.0, 120.0
+        for _ in range(60):
+            middle = (low + high) / 2
+            if np.polyval(branch, middle) < voltage:
+                low = middle
+            else:
+                high = middle
+        return (low + high) / 2
+
     def to_dict(self) -> dict:
         return {"kind": "branches", "increasing": list(self.increasing), "decreasing": list(self.decreasing)}
 
@@ -72,6 +89,9 @@ class LinearModel:
 
     def reset(self, position_um: float) -> None:
         self.position_um = position_um
+
+    def position_for(self, voltage: float) -> float:
+        return (voltage - self.offset_v) * self.gain_um_per_v
 
     def to_dict(self) -> dict:
         return {"kind": "linear", "gain_um_per_v": self.gain_um_per_v, "offset_v": self.offset_v}

@@ -1,0 +1,335 @@
+"""The stage service's core: one NV 40/3 on one serial link, and every safety rule,
+whatever the caller asks. No sockets here (the service's main wires them); the serial
+link is real (pyserial, through :class:`semservo.nv40_driver.NV403Driver`).
+
+Safety, in the order a move is checked:
+
+1. the stage must not be stopped (``stop``) or held (the watchdog tripped);
+2. the serial link must be up: nothing is pretended to have happened;
+3. each target displacement within the travel limits (um, the model's estimate);
+4. each voltage within the soft limits (and the device's own, read at connect);
+5. each voltage step within ``max_step_v``, and the rate since that channel's last
+   write within ``max_rate_v_per_s``.
+
+A move that breaks any rule is refused as a whole with the reason (:class:`Refused`),
+never clipped. The watchdog: a run's controller arms it; if the controller then goes
+silent for ``timeout_s`` (no move, no heartbeat) the stage holds where it is and
+refuses moves until it is armed again or resumed.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+from semservo import nv40
+from semservo.nv40_driver import LinkError, NV403Driver
+from semservo.stage_model import BranchModel, LinearModel, load_model
+
+log = logging.getLogger("stage")
+
+#: Back-off between reconnection attempts after the link is lost (seconds).
+RECONNECT_BACKOFF_S = (0.25, 0.5, 1.0, 2.0, 4.0)
+#: How often an idle link is checked (a pulled cable is seen even when nothing moves).
+LINK_CHECK_S = 1.0
+
+
+class Refused(ValueError):
+    """A command the stage will not carry out; ``code`` says which rule."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class StageLimits:
+    voltage_min: float = nv40.LAB_SAFE_VOLTAGE[0]
+    voltage_max: float = nv40.LAB_SAFE_VOLTAGE[1]
+    travel_min_um: float = 0.0
+    travel_max_um: float = 100.0
+    max_step_v: float = 25.0
+    max_rate_v_per_s: float = 200.0
+
+
+@dataclass
+class Watchdog:
+    timeout_s: float = 0.0
+    owner: str | None = None
+    last_contact: float = 0.0
+
+    @property
+    def armed(self) -> bool:
+        return self.timeout_s > 0
+
+
+@dataclass
+class StageCore:
+    url: str
+    limits: StageLimits = field(default_factory=StageLimits)
+    channels: dict[str, int] = field(default_factory=lambda: {"x": 0, "y": 1})
+    models: dict = field(default_factory=dict)  # axis -> BranchModel | LinearModel
+    clock: Callable[[], float] = time.monotonic
+    open_driver: Callable[[str], NV403Driver] = NV403Driver.open
+
+    def __post_init__(self):
+        for axis in self.channels:
+            self.models.setdefault(axis, BranchModel.tritor(axis if axis in ("x", "y") else "x"))
+        self.driver: NV403Driver | None = None
+        self.link = "connecting"
+        self.state = "ready"  # ready | stopped | held
+        self.state_reason = ""
+        self.device: dict = {}
+        self.device_limits: tuple[float, float] = (nv40.VOLTAGE_MIN, nv40.VOLTAGE_MAX)
+        self.voltages: dict[str, float] = {}
+        self.last_write: dict[str, float] = {}
+        self.watchdog = Watchdog()
+        self.last_error: str | None = None
+        self.attempts = 0
+        self.next_attempt = 0.0
+        self.last_io = 0.0
+        self.counters = {"moves": 0, "refused": 0, "link_lost": 0, "reconnects": 0}
+        self.log_archive: list = []  # entries of drivers closed after a link loss
+
+    # -- the link ----------------------------------------------------------------------
+    def connect(self) -> bool:
+        """Open the port, identify the amplifier, take remote control of our channels,
+        read its limits and the current outputs. False (and the reason in health) if
+        any of it fails."""
+        self._close_driver()
+        try:
+            self.driver = self.open_driver(self.url)
+            self.device = self.driver.identify()
+            for channel in self.channels.values():
+                self.driver.set_remote(channel, True)
+            self.device_limits = self.driver.voltage_limits()
+            measured = self.driver.read_voltages()
+        except (LinkError, nv40.ProtocolError) as error:
+            self._lost(f"cannot connect to {self.url}: {error}")
+            return False
+        self.voltages = {axis: measured[channel] for axis, channel in self.channels.items()}
+        for axis, model in self.models.items():
+            model.reset(model.position_for(self.voltages[axis]))
+        if self.link != "connected" and self.counters["link_lost"]:
+            self.counters["reconnects"] += 1
+        self.link, self.attempts, self.last_error = "connected", 0, None
+        self.last_io = self.clock()
+        log.info("NV 40/3 on %s: %s, voltage range %s", self.url, self.device.get("prompt"), self.device_limits)
+        return True
+
+    def _close_driver(self) -> None:
+        if self.driver is not None:
+            self.log_archive.extend(self.driver.log)
+            try:
+                self.driver.close()
+            except Exception:  # noqa: BLE001 - a dead port may fail to close; it is gone either way
+                log.debug("closing the old port failed", exc_info=True)
+            self.driver = None
+
+    def _lost(self, reason: str) -> None:
+        if self.link == "connected":
+            self.counters["link_lost"] += 1
+            log.error("serial link lost: %s", reason)
+        self.link = "lost"
+        self.last_error = reason
+        delay = RECONNECT_BACKOFF_S[min(self.attempts, len(RECONNECT_BACKOFF_S) - 1)]
+        self.attempts += 1
+        self.next_attempt = self.clock() + delay
+
+    def _io(self, action: Callable[[NV403Driver], object]):
+        """Run one exchange with the amplifier; a link failure is recorded and raised as
+        :class:`Refused` with code ``link_lost``."""
+        if self.link != "connected" or self.driver is None:
+            raise Refused("link_lost", f"serial link to {self.url} is down: {self.last_error}")
+        try:
+            result = action(self.driver)
+        except LinkError as error:
+            self._lost(str(error))
+            raise Refused("link_lost", f"serial link to {self.url} lost: {error}") from None
+        self.last_io = self.clock()
+        return result
+
+    def poll(self) -> float:
+        """Periodic work: reconnect with back-off, check an idle link, run the watchdog.
+        Returns the seconds until it is due again."""
+        now = self.clock()
+        if self.link != "connected":
+            if now >= self.next_attempt:
+                self.connect()
+            return max(0.05, self.next_attempt - self.clock()) if self.link != "connected" else 0.1
+        if self.watchdog.armed and self.state == "ready" and now - self.watchdog.last_contact > self.watchdog.timeout_s:
+            self.state = "held"
+            self.state_reason = (f"watchdog: {self.watchdog.owner or 'the controller'} silent for "
+                                 f"{now - self.watchdog.last_contact:.2f} s; holding at {self._voltages_text()}")
+            self.watchdog = Watchdog()
+            log.warning("%s", self.state_reason)
+        if now - self.last_io > LINK_CHECK_S:
+            try:
+                self._io(lambda driver: driver.read_voltages())
+            except Refused:
+                return 0.05
+        return 0.05 if self.watchdog.armed else 0.2
+
+    # -- commands ----------------------------------------------------------------------
+    def _voltages_text(self) -> str:
+        return ", ".join(f"{axis} {volts:.3f} V" for axis, volts in self.voltages.items())
+
+    def _check_ready(self) -> None:
+        if self.state == "stopped":
+            raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first")
+        if self.state == "held":
+            raise Refused("held", f"the stage is held: {self.state_reason}")
+        if self.link != "connected":
+            raise Refused("link_lost", f"serial link to {self.url} is down: {self.last_error}")
+
+    def _check_voltages(self, volts: dict[str, float], now: float) -> None:
+        low = max(self.limits.voltage_min, self.device_limits[0])
+        high = min(self.limits.voltage_max, self.device_limits[1])
+        for axis, value in volts.items():
+            if axis not in self.channels:
+                raise Refused("bad_axis", f"unknown axis {axis!r}; axes: {', '.join(self.channels)}")
+            if not low <= value <= high:
+                raise Refused("voltage_limit", f"{axis}: {value:.3f} V is outside the soft limits {low:g}..{high:g} V")
+            step = abs(value - self.voltages[axis])
+            if step > self.limits.max_step_v:
+                raise Refused("step_limit", f"{axis}: a {step:.2f} V step exceeds the maximum of "
+                                            f"{self.limits.max_step_v:g} V per command")
+            since = now - self.last_write.get(axis, -1e9)
+            if step > 0 and step / max(since, 1e-6) > self.limits.max_rate_v_per_s:
+                raise Refused("rate_limit", f"{axis}: {step:.2f} V {since * 1000:.1f} ms after the last write exceeds "
+                                            f"{self.limits.max_rate_v_per_s:g} V/s")
+
+    def _write(self, volts: dict[str, float], owner: str | None) -> dict:
+        now = self.clock()
+        written_at_ns = time.time_ns()
+        readback = self._io(lambda driver: driver.set_channels({self.channels[a]: v for a, v in volts.items()}))
+        for axis, value in volts.items():
+            self.voltages[axis] = readback[self.channels[axis]]
+            self.last_write[axis] = now
+        if owner is not None and owner == self.watchdog.owner:
+            self.watchdog.last_contact = now
+        self.counters["moves"] += 1
+        mismatch = {axis: self.voltages[axis] for axis, value in volts.items() if abs(self.voltages[axis] - value) > 0.01}
+        if mismatch:
+            # The amplifier did not take the set point (e.g. a channel under knob control).
+            raise Refused("not_applied", f"the amplifier reads back {mismatch} instead of {volts}")
+        return {"written_at_ns": written_at_ns, "voltages": dict(self.voltages), "positions_um": self.positions()}
+
+    def positions(self) -> dict[str, float]:
+        return {axis: model.position_um for axis, model in self.models.items()}
+
+    def move(self, targets: dict[str, float], *, relative: bool = False, owner: str | None = None) -> dict:
+        """Move axes to ``targets`` (um, absolute travel as the model estimates it) or
+        by them (``relative``), through the displacement-voltage model."""
+        try:
+            self._check_ready()
+            goal = {}
+            for axis, value in targets.items():
+                if axis not in self.models:
+                    raise Refused("bad_axis", f"unknown axis {axis!r}; axes: {', '.join(self.models)}")
+                goal[axis] = self.models[axis].position_um + value if relative else value
+                if not self.limits.travel_min_um <= goal[axis] <= self.limits.travel_max_um:
+                    raise Refused("travel_limit", f"{axis}: {goal[axis]:.3f} um is outside the travel limits "
+                                                  f"{self.limits.travel_min_um:g}..{self.limits.travel_max_um:g} um")
+            # Voltages from a copy of each model: a refused move must not change its state.
+            volts = {}
+            for axis, value in goal.items():
+                trial = _copy_model(self.models[axis])
+                volts[axis] = trial.voltage_for(value)
+            self._check_voltages(volts, self.clock())
+        except Refused:
+            self.counters["refused"] += 1
+            raise
+        result = self._write(volts, owner)
+        for axis, value in goal.items():
+            self.models[axis].voltage_for(value)  # commit: position and branch direction
+        result["positions_um"] = self.positions()
+        return result
+
+    def set_voltages(self, volts: dict[str, float], *, owner: str | None = None) -> dict:
+        """Raw voltages (calibration, the paper's homing), same limits as a move. The
+        model's position follows the model's inverse on the branch of the move."""
+        try:
+            self._check_ready()
+            self._check_voltages(volts, self.clock())
+        except Refused:
+            self.counters["refused"] += 1
+            raise
+        before = dict(self.voltages)
+        result = self._write(volts, owner)
+        for axis, value in volts.items():
+            model = self.models[axis]
+            if hasattr(model, "direction") and value != before[axis]:
+                model.direction = 1 if value > before[axis] else -1
+            model.reset(model.position_for(self.voltages[axis]))
+        result["positions_um"] = self.positions()
+        return result
+
+    def heartbeat(self, owner: str | None = None) -> dict:
+        if owner is not None and owner == self.watchdog.owner:
+            self.watchdog.last_contact = self.clock()
+        return {"state": self.state, "watchdog": self.watchdog.armed}
+
+    def arm(self, timeout_s: float, owner: str) -> dict:
+        """A run starts: hold if ``owner`` is silent for ``timeout_s``. Clears a hold."""
+        if not 0.05 <= timeout_s <= 600:
+            raise Refused("bad_request", f"watchdog timeout must be 0.05..600 s, got {timeout_s}")
+        if self.state == "stopped":
+            raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first")
+        self.watchdog = Watchdog(timeout_s, owner, self.clock())
+        self.state, self.state_reason = "ready", ""
+        return self.describe()
+
+    def disarm(self, owner: str | None = None) -> dict:
+        if owner is None or owner == self.watchdog.owner:
+            self.watchdog = Watchdog()
+        return self.describe()
+
+    def stop(self, reason: str = "stop requested") -> dict:
+        """Hold at once and refuse moves until :meth:`resume`. Works in any state, link
+        up or not (nothing is sent: the amplifier keeps its outputs)."""
+        self.state, self.state_reason = "stopped", reason
+        self.watchdog = Watchdog()
+        log.warning("stage stopped: %s", reason)
+        return self.describe()
+
+    def resume(self) -> dict:
+        self.state, self.state_reason = "ready", ""
+        return self.describe()
+
+    def release(self) -> dict:
+        """Give the channels back to the front-panel knobs, and stop."""
+        self._io(lambda driver: [driver.set_remote(channel, False) for channel in self.channels.values()])
+        return self.stop("released to the front panel")
+
+    def command_log(self, since_ns: int = 0, limit: int = 5000) -> list[dict]:
+        entries = self.log_archive + (self.driver.log if self.driver else [])
+        return [{"time_ns": entry.time_ns, "direction": entry.direction, "text": entry.text}
+                for entry in entries if entry.time_ns >= since_ns][-limit:]
+
+    def describe(self) -> dict:
+        return {
+            "url": self.url, "link": self.link, "state": self.state, "reason": self.state_reason,
+            "device": self.device.get("prompt"), "voltages": dict(self.voltages), "positions_um": self.positions(),
+            "limits": {**self.limits.__dict__, "device_voltage": list(self.device_limits)},
+            "watchdog": {"armed": self.watchdog.armed, "timeout_s": self.watchdog.timeout_s,
+                         "owner": self.watchdog.owner},
+            "models": {axis: model.to_dict()["kind"] for axis, model in self.models.items()},
+            "last_error": self.last_error, **self.counters,
+        }
+
+
+def _copy_model(model):
+    if isinstance(model, BranchModel):
+        return BranchModel(model.increasing, model.decreasing, model.position_um, model.direction)
+    if isinstance(model, LinearModel):
+        return LinearModel(model.gain_um_per_v, model.offset_v, model.position_um)
+    raise TypeError(f"unknown model {model!r}")
+
+
+def models_from(paths: dict[str, str | None], axes) -> dict:
+    """The default TRITOR branches per axis, or a model file (e.g. from ``semservo
+    calibrate``) where one is given."""
+    return {axis: load_model(paths[axis]) if paths.get(axis) else BranchModel.tritor(axis) for axis in axes}

@@ -1,0 +1,230 @@
+"""The Fourier-based visual servoing law (paper section II-E, eq. 30-37): small pure
+functions from a motion estimate to a stage displacement, shared by the controller
+service, the calibration routine, the positioning benchmark and lab scripts.
+
+Units: translation errors are in pixels of the current image, the rotation error in
+radians (theta-u, eq. 30); velocities in the same units per second; displacements of
+the stage in micrometres (x, y) and degrees (rotation about the beam).
+
+Sign conventions, written down once:
+
+* The error is the motion estimate itself, e = s - s* with s* = 0 (eq. 31): the content
+  displacement of the current image against the taught one (x right, y down, rotation
+  counter-clockwise as displayed; :mod:`semservo.estimation`).
+* The law drives e to zero: v = -lambda (H + diag H)^-1 L^T e (eq. 36). A stage move
+  that shifts the content by +1 px changes e by +1 px, so the stage must move the
+  content by -e: the camera-to-stage transform (:class:`CameraToStage`) maps a content
+  motion in pixels to the stage motion that causes it.
+* theta-u (eq. 34): we use the interaction matrix of ViSP's ``vpFeatureThetaU`` for the
+  ``cdRc`` representation, L_w = I + (theta/2)[u]x + (1 - sinc theta / sinc^2(theta/2))[u]x^2.
+  The paper prints the middle term with a minus sign, which is ViSP's form for the
+  inverse rotation (``cRcd``) up to the overall sign. With rotation about the beam only
+  (u = z) the two agree: the z-z entry is 1 either way, and the sign choice matters only
+  once the tilts are servoed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+#: Degrees of freedom this law can drive, in the order of the error vector.
+DEGREES_OF_FREEDOM = ("x", "y", "rotation")
+
+
+# --------------------------------------------------------------------------------------
+# Features and error (eq. 30-32)
+
+
+def error_vector(dx_px: float, dy_px: float, rotation_deg: float, dofs: Sequence[str]) -> np.ndarray:
+    """e = s - s* (eq. 31) for the chosen degrees of freedom: translation in pixels,
+    the rotation feature u theta about the beam (u = z) in radians."""
+    values = {"x": dx_px, "y": dy_px, "rotation": math.radians(rotation_deg)}
+    unknown = set(dofs) - set(values)
+    if unknown:
+        raise ValueError(f"unknown degrees of freedom {sorted(unknown)}; known: {', '.join(DEGREES_OF_FREEDOM)}")
+    return np.array([values[dof] for dof in dofs], dtype=float)
+
+
+def cost(error: np.ndarray) -> float:
+    """C = e^T e (eq. 32)."""
+    return float(error @ error)
+
+
+# --------------------------------------------------------------------------------------
+# Interaction matrix (eq. 33-34)
+
+
+def skew(vector: Sequence[float]) -> np.ndarray:
+    """[u]x, the cross-product matrix."""
+    x, y, z = vector
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def theta_u_interaction(theta: float, axis: Sequence[float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """L_w for the theta-u rotation feature (eq. 34), in ViSP's ``cdRc`` form:
+    I + (theta/2)[u]x + (1 - sinc(theta) / sinc^2(theta/2)) [u]x^2.
+    Singular only at theta = 2 pi, as the paper notes."""
+    u = np.asarray(axis, dtype=float)
+    norm = np.linalg.norm(u)
+    if norm == 0:
+        raise ValueError("the rotation axis u must not be zero")
+    ux = skew(u / norm)
+    sinc = np.sinc(theta / np.pi)  # numpy's sinc is sin(pi x)/(pi x)
+    half_sinc = np.sinc(theta / (2 * np.pi))
+    return np.eye(3) + theta / 2 * ux + (1 - sinc / half_sinc**2) * ux @ ux
+
+
+def interaction_matrix(dofs: Sequence[str], theta: float = 0.0) -> np.ndarray:
+    """The decoupled L_f (eq. 33): L_v = I for translation, the z-z entry of L_w for
+    rotation about the beam, zeros between them."""
+    size = len(dofs)
+    matrix = np.eye(size)
+    if "rotation" in dofs:
+        index = list(dofs).index("rotation")
+        matrix[index, index] = theta_u_interaction(theta)[2, 2]
+    return matrix
+
+
+# --------------------------------------------------------------------------------------
+# Gains (eq. 35)
+
+
+@dataclass(frozen=True)
+class AdaptiveGain:
+    """lambda_a = sigma_e / Lambda (eq. 35), clipped to [minimum, maximum] (per second).
+
+    sigma_e is read as the root-mean-square of the error components (the spread of the
+    error about zero, its target): a variance about the error's own mean would vanish
+    whenever the components are equal, e.g. a diagonal offset, and stop the stage. The
+    gain grows with the error, so the stage moves fast when far and slows near the
+    target; the floor keeps the last pixels from taking forever.
+
+    Why these defaults: with L = I the law and eq. 37 give e_k+1 = (1 - a) e_k - a e_k-1
+    with a = lambda T / 4 (T the sampling time), which approaches without overshoot
+    (real roots) for a <= 3 - 2 sqrt(2) = 0.17. The paper's SEM gives T = 0.65-0.9 s
+    (a fresh frame every second scan), so lambda <= 0.8 per second.
+    """
+
+    scale: float = 50.0  # Lambda, in error units x seconds
+    minimum: float = 0.5
+    maximum: float = 0.8
+
+    def __call__(self, error: np.ndarray) -> float:
+        sigma = float(np.sqrt(np.mean(error**2))) if error.size else 0.0
+        return float(np.clip(sigma / self.scale, self.minimum, self.maximum))
+
+
+@dataclass(frozen=True)
+class ExponentialGain:
+    """The usual visual-servoing adaptive gain (as ViSP's ``vpAdaptiveGain``):
+    lambda(x) = (l0 - l_inf) exp(-slope0 x / (l0 - l_inf)) + l_inf with x = ||e||_inf;
+    l0 near zero error, l_inf far away, slope0 the slope at zero."""
+
+    at_zero: float = 0.8
+    at_infinity: float = 0.5
+    slope_at_zero: float = 0.02
+
+    def __call__(self, error: np.ndarray) -> float:
+        x = float(np.max(np.abs(error))) if error.size else 0.0
+        span = self.at_zero - self.at_infinity
+        if span <= 0:
+            return self.at_infinity
+        return span * math.exp(-self.slope_at_zero * x / span) + self.at_infinity
+
+
+# --------------------------------------------------------------------------------------
+# The law (eq. 36) and the displacement (eq. 37)
+
+
+def levenberg_marquardt_velocity(error: np.ndarray, interaction: np.ndarray, gain: float) -> np.ndarray:
+    """v = -lambda_a (H + diag(H))^-1 L^T e, H = L^T L (eq. 36), in the camera frame
+    (the camera-to-stage transform is applied by :class:`CameraToStage`)."""
+    hessian = interaction.T @ interaction
+    damped = hessian + np.diag(np.diag(hessian))
+    return -gain * np.linalg.solve(damped, interaction.T @ error)
+
+
+def displacement(previous_velocity: np.ndarray, velocity: np.ndarray, sampling_time_s: float) -> np.ndarray:
+    """d = v_avg t with v_avg = (v0 + v_cur) / 2 (eq. 37): v0 the velocity commanded at
+    the previous iteration, t the measured time between the two iterations."""
+    if sampling_time_s < 0:
+        raise ValueError(f"sampling time must not be negative, got {sampling_time_s}")
+    return (previous_velocity + velocity) / 2 * sampling_time_s
+
+
+@dataclass(frozen=True)
+class CameraToStage:
+    """^cV_p of eq. 36 for the planar axes: how a stage move shows in the image.
+
+    ``axis_signs``: +1 when moving the stage axis forward moves the content towards +x
+    (right) / +y (down) of the image. ``orientation_deg``: the stage x axis seen in the
+    image, counter-clockwise as displayed from the image's x axis. The pixel size comes
+    with each frame (P = D / G, eq. 43), so a change of magnification needs nothing here.
+    """
+
+    axis_signs: tuple[int, int] = (1, 1)
+    orientation_deg: float = 0.0
+    rotation_sign: int = 1  # +1: a positive rotation stage turn turns content counter-clockwise
+
+    def stage_move_um(self, content_dx_px: float, content_dy_px: float, pixel_size_nm: float) -> tuple[float, float]:
+        """The stage move (um, stage axes) that moves the content by (dx, dy) px."""
+        scale = pixel_size_nm / 1000.0
+        theta = math.radians(self.orientation_deg)
+        # Content moves (cos, -sin) for a stage x move: y is down, angles counter-clockwise.
+        image = np.array([content_dx_px, content_dy_px]) * scale
+        to_image = np.array([[math.cos(theta), math.sin(theta)], [-math.sin(theta), math.cos(theta)]])
+        stage = np.linalg.solve(to_image, image)
+        return float(stage[0] * self.axis_signs[0]), float(stage[1] * self.axis_signs[1])
+
+    def content_move_px(self, stage_dx_um: float, stage_dy_um: float, pixel_size_nm: float) -> tuple[float, float]:
+        """Inverse of :meth:`stage_move_um`."""
+        theta = math.radians(self.orientation_deg)
+        to_image = np.array([[math.cos(theta), math.sin(theta)], [-math.sin(theta), math.cos(theta)]])
+        stage = np.array([stage_dx_um * self.axis_signs[0], stage_dy_um * self.axis_signs[1]])
+        image = to_image @ stage / (pixel_size_nm / 1000.0)
+        return float(image[0]), float(image[1])
+
+
+@dataclass
+class ControlLaw:
+    """One iteration of the paper's controller, with the state it needs between
+    iterations (the previous velocity, for eq. 37). No sockets, no clocks: the caller
+    passes the measured sampling time."""
+
+    dofs: tuple[str, ...] = ("x", "y")
+    gain: AdaptiveGain | ExponentialGain = field(default_factory=AdaptiveGain)
+    camera_to_stage: CameraToStage = field(default_factory=CameraToStage)
+    previous_velocity: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.previous_velocity = None
+
+    def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
+             sampling_time_s: float) -> dict:
+        """Error, cost, gain, camera velocity (eq. 30-36) and the stage displacement
+        (eq. 37): ``{"x_um", "y_um", "rotation_deg"}`` for the chosen DOFs."""
+        error = error_vector(dx_px, dy_px, rotation_deg, self.dofs)
+        theta = math.radians(rotation_deg) if "rotation" in self.dofs else 0.0
+        interaction = interaction_matrix(self.dofs, theta)
+        gain = self.gain(error)
+        velocity = levenberg_marquardt_velocity(error, interaction, gain)
+        previous = self.previous_velocity if self.previous_velocity is not None else velocity
+        moved = displacement(previous, velocity, sampling_time_s)
+        self.previous_velocity = velocity
+        content = dict(zip(self.dofs, moved))
+        x_um, y_um = self.camera_to_stage.stage_move_um(content.get("x", 0.0), content.get("y", 0.0), pixel_size_nm)
+        move = {}
+        if "x" in self.dofs:
+            move["x_um"] = x_um
+        if "y" in self.dofs:
+            move["y_um"] = y_um
+        if "rotation" in self.dofs:
+            move["rotation_deg"] = math.degrees(content["rotation"]) * self.camera_to_stage.rotation_sign
+        return {
+            "error": error.tolist(), "cost": cost(error), "gain": gain,
+            "velocity": velocity.tolist(), "move": move,
+        }
