@@ -31,7 +31,8 @@ def recorded_run() -> Path:
 def ports(monkeypatch) -> dict[str, int]:
     """Fresh loopback ports for every service, set in the environment children inherit."""
     chosen = {name: free_port() for name in ("frames", "control", "motion", "estimator_control",
-                                             "fakelab_control", "scan", "serial_tcp")}
+                                             "fakelab_control", "scan", "serial_tcp", "stage_control",
+                                             "controller_control", "controller_status")}
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__FRAMES_PORT", str(chosen["frames"]))
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__CONTROL_PORT", str(chosen["control"]))
     monkeypatch.setenv("SEMSERVO_ESTIMATOR__MOTION_PORT", str(chosen["motion"]))
@@ -39,6 +40,10 @@ def ports(monkeypatch) -> dict[str, int]:
     monkeypatch.setenv("SEMSERVO_FAKELAB__CONTROL_PORT", str(chosen["fakelab_control"]))
     monkeypatch.setenv("SEMSERVO_FAKELAB__SCAN_PORT", str(chosen["scan"]))
     monkeypatch.setenv("SEMSERVO_FAKELAB__SERIAL_TCP_PORT", str(chosen["serial_tcp"]))
+    monkeypatch.setenv("SEMSERVO_STAGE__CONTROL_PORT", str(chosen["stage_control"]))
+    monkeypatch.setenv("SEMSERVO_STAGE__SERIAL_URL", f"socket://127.0.0.1:{chosen['serial_tcp']}")
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__CONTROL_PORT", str(chosen["controller_control"]))
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__STATUS_PORT", str(chosen["controller_status"]))
     return chosen
 
 

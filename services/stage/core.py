@@ -267,6 +267,7 @@ class StageCore:
         result["positions_um"] = self.positions()
         return result
 
+
     def heartbeat(self, owner: str | None = None) -> dict:
         if owner is not None and owner == self.watchdog.owner:
             self.watchdog.last_contact = self.clock()
@@ -323,7 +324,8 @@ class StageCore:
 
 def _copy_model(model):
     if isinstance(model, BranchModel):
-        return BranchModel(model.increasing, model.decreasing, model.position_um, model.direction)
+        return BranchModel(model.increasing, model.decreasing, model.position_um, model.direction, model.offset_v,
+                           model.merge_um)
     if isinstance(model, LinearModel):
         return LinearModel(model.gain_um_per_v, model.offset_v, model.position_um)
     raise TypeError(f"unknown model {model!r}")

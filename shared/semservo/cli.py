@@ -45,6 +45,11 @@ def _replay_environment(args: argparse.Namespace) -> None:
         "SEMSERVO_IMAGESERVER__MAGNIFICATION": args.magnification and str(args.magnification),
     }
     os.environ.update({key: value for key, value in overrides.items() if value})
+    speedup = float(os.environ.get("SEMSERVO_FAKELAB__SPEEDUP") or 1.0)
+    if speedup != 1.0 and "SEMSERVO_STAGE__MAX_RATE_V_PER_S" not in os.environ:
+        # Simulated time runs faster, so commands come faster in wall time: the rate
+        # limit is a limit per simulated second.
+        os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(200.0 * speedup)
 
 
 def command_up(args: argparse.Namespace) -> int:

@@ -99,6 +99,39 @@ class EstimatorSettings(BaseModel):
     fft_effort: Literal["FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"] = "FFTW_MEASURE"
 
 
+class StageSettings(BaseModel):
+    """The stage service: the NV 40/3 on its serial link, and its safety limits."""
+
+    host: str = Field("127.0.0.1", description="address other services connect to")
+    control_port: int = Field(5570, ge=1, le=65535, description="REP socket for moves, stop, state, health")
+    serial_url: str = Field("socket://127.0.0.1:5592",
+                            description="pyserial URL: /dev/ttyUSB0, a pseudo-terminal path or socket://host:port")
+    axes: dict[str, int] = Field(default_factory=lambda: {"x": 0, "y": 1}, description="axis name -> NV 40/3 channel")
+    model_files: dict[str, str] = Field(default_factory=dict,
+                                        description="axis -> displacement model JSON (semservo calibrate); default TRITOR")
+    voltage_min: float = Field(-19.0, ge=-20, le=130, description="soft lower voltage limit (the lab's)")
+    voltage_max: float = Field(110.0, ge=-20, le=130, description="soft upper voltage limit (the lab's)")
+    travel_min_um: float = Field(0.0, description="soft travel limit, model displacement")
+    travel_max_um: float = Field(100.0, description="soft travel limit, model displacement")
+    max_step_v: PositiveFloat = Field(25.0, le=150, description="largest voltage change one command may ask")
+    max_rate_v_per_s: PositiveFloat = Field(200.0, description="fastest voltage change between commands")
+
+
+class ControllerSettings(BaseModel):
+    """The controller: motion estimates in, stage moves out (eq. 30-37)."""
+
+    host: str = Field("127.0.0.1", description="address other services connect to")
+    control_port: int = Field(5580, ge=1, le=65535, description="REP socket for start, stop, status, runs")
+    status_port: int = Field(5581, ge=1, le=65535, description="PUB socket: status and per-iteration records")
+    runs_dir: Path = Field(Path("runs"), description="where run records (JSON) are written")
+    watchdog_s: PositiveFloat = Field(3.0, le=600, description="the stage holds if the controller is silent this long")
+    axis_signs: tuple[int, int] = Field((1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
+    orientation_deg: float = Field(0.0, description="camera-to-stage: stage x axis in the image, counter-clockwise")
+    rotation_sign: Literal[-1, 1] = 1
+    rotation_stage: Literal["none", "fakelab"] = Field(
+        "fakelab", description="what turns the sample about the beam: the simulated rotation stage, or nothing")
+
+
 class Settings(BaseSettings):
     """Everything a semservo process needs to know about its place in the system."""
 
@@ -112,6 +145,8 @@ class Settings(BaseSettings):
     fakelab: FakelabSettings = Field(default_factory=FakelabSettings)
     imageserver: ImageServerSettings = Field(default_factory=ImageServerSettings)
     estimator: EstimatorSettings = Field(default_factory=EstimatorSettings)
+    stage: StageSettings = Field(default_factory=StageSettings)
+    controller: ControllerSettings = Field(default_factory=ControllerSettings)
 
     def bind(self, port: int) -> str:
         return f"tcp://{self.bind_host}:{port}"

@@ -189,6 +189,11 @@ class CameraToStage:
         return float(image[0]), float(image[1])
 
 
+#: lambda T for which e_k+1 = (1 - a) e_k - a e_k-1, a = lambda T / 4, still approaches
+#: without overshoot: a = 3 - 2 sqrt(2) (see AdaptiveGain).
+NO_OVERSHOOT_GAIN_TIMES_T = 4 * (3 - 2 * math.sqrt(2))
+
+
 @dataclass
 class ControlLaw:
     """One iteration of the paper's controller, with the state it needs between
@@ -211,6 +216,10 @@ class ControlLaw:
         theta = math.radians(rotation_deg) if "rotation" in self.dofs else 0.0
         interaction = interaction_matrix(self.dofs, theta)
         gain = self.gain(error)
+        # Eq. 37 scales the move with the sampling time, so a slow image source (or a
+        # sped-up simulation that renders slower than it scans) would overshoot: the
+        # gain is capped where the loop stops approaching monotonically.
+        gain = min(gain, NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
         velocity = levenberg_marquardt_velocity(error, interaction, gain)
         previous = self.previous_velocity if self.previous_velocity is not None else velocity
         moved = displacement(previous, velocity, sampling_time_s)

@@ -71,6 +71,26 @@ SERVICES: tuple[ServiceSpec, ...] = (
         },
         summary="Fourier motion estimates of each frame against the taught reference",
     ),
+    ServiceSpec(
+        name="stage",
+        module="services.stage.main",
+        control=lambda s: connect(s.stage.host, s.stage.control_port),
+        endpoints=lambda s: {
+            "control (REP)": connect(s.stage.host, s.stage.control_port),
+            "NV 40/3 serial": s.stage.serial_url,
+        },
+        summary="the NV 40/3 on RS-232: limits, watchdog, stop",
+    ),
+    ServiceSpec(
+        name="controller",
+        module="services.controller.main",
+        control=lambda s: connect(s.controller.host, s.controller.control_port),
+        endpoints=lambda s: {
+            "status (PUB)": connect(s.controller.host, s.controller.status_port),
+            "control (REP)": connect(s.controller.host, s.controller.control_port),
+        },
+        summary="the visual servoing law: motion in, stage moves out",
+    ),
 )
 
 

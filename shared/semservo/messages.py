@@ -149,3 +149,15 @@ class ScanRequest(_Message):
     rows: int = Field(512, ge=64, le=4096)
     cols: int = Field(512, ge=64, le=4096)
     bit_depth: Literal[8, 16] = 8
+
+
+CONTROLLER_TOPIC = b"controller"
+
+
+class ControllerEvent(_Message):
+    """What the controller publishes (topic ``controller``): its status whenever it
+    changes, and every iteration's record as it happens."""
+
+    kind: Literal["status", "iteration"]
+    run_id: str | None = None
+    data: dict[str, Any] = Field(default_factory=dict)

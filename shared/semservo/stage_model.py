@@ -36,36 +36,54 @@ class DisplacementModel(Protocol):
 class BranchModel:
     """Hysteresis branches V = p(d) for increasing and decreasing displacement, with the
     direction of the last move remembered (a move in the same direction stays on its
-    branch; a reversal switches)."""
+    branch; a reversal switches).
+
+    A reversal does not jump to the other branch: the branches are up to 15 % of the
+    stroke apart, so a jump would turn a 0.1 um correction into a 10 V step, and a
+    servo loop into a limit cycle. The new branch is followed with an offset that makes
+    the voltage continuous at the reversal point (a minor loop starts where the axis
+    is), and the offset fades over ``merge_um`` of travel as the minor loop joins the
+    major branch.
+    """
 
     increasing: tuple[float, ...]
     decreasing: tuple[float, ...]
     position_um: float = 0.0
     direction: int = 1
+    offset_v: float = 0.0
+    merge_um: float = 25.0
 
     @classmethod
     def tritor(cls, axis: str) -> "BranchModel":
         """The lab's measured TRITOR model for axis "x" or "y"."""
         return cls(TRITOR_POLYNOMIALS[(axis, "increasing")], TRITOR_POLYNOMIALS[(axis, "decreasing")])
 
+    def _branch(self) -> tuple[float, ...]:
+        return self.increasing if self.direction > 0 else self.decreasing
+
     def voltage_for(self, target_um: float) -> float:
         if target_um != self.position_um:
-            self.direction = 1 if target_um > self.position_um else -1
-        branch = self.increasing if self.direction > 0 else self.decreasing
+            direction = 1 if target_um > self.position_um else -1
+            if direction != self.direction:
+                here = float(np.polyval(self._branch(), self.position_um)) + self.offset_v
+                self.direction = direction
+                self.offset_v = here - float(np.polyval(self._branch(), self.position_um))
+            self.offset_v *= float(np.exp(-abs(target_um - self.position_um) / self.merge_um))
         self.position_um = target_um
-        return float(np.polyval(branch, target_um))
+        return float(np.polyval(self._branch(), target_um)) + self.offset_v
 
     def reset(self, position_um: float) -> None:
         self.position_um = position_um
+        self.offset_v = 0.0
 
     def position_for(self, voltage: float) -> float:
         """Inverse of the current branch by bisection over the stroke (-10..120 um; the
         branches are monotonic there)."""
-        branch = self.increasing if self.direction > 0 else self.decreasing
+        branch = self._branch()
         low, high = -10.0, 120.0
         for _ in range(60):
             middle = (low + high) / 2
-            if np.polyval(branch, middle) < voltage:
+            if np.polyval(branch, middle) + self.offset_v < voltage:
                 low = middle
             else:
                 high = middle

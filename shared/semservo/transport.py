@@ -354,6 +354,8 @@ class ControlServer:
             return Reply.success(handler(request.args))
         except BadRequest as error:
             return self._reject("bad_request", str(error))
+        except CommandError as error:  # a refusal with its own code (e.g. a stage limit)
+            return self._reject(error.code, error.message)
         except Exception as error:  # a handler bug must not take the service down
             log.exception("command %s failed", request.command)
             return self._reject("internal", f"{type(error).__name__}: {error}")

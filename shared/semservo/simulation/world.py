@@ -82,6 +82,8 @@ class World:
 
     def __post_init__(self):
         self.lock = threading.RLock()
+        self.render_lock = threading.Lock()
+        self._frozen_at: float | None = None
         self.started = self.clock()
         self.axes = {0: PiezoAxis("x"), 1: PiezoAxis("y"), 2: PiezoAxis("x")}
         for axis in self.axes.values():
@@ -93,7 +95,11 @@ class World:
         self.frames = 0
 
     def now(self) -> float:
-        """Simulated seconds since the world started."""
+        """Simulated seconds since the world started (standing still while a sped-up
+        world renders a frame, see :meth:`scan`)."""
+        frozen = self._frozen_at
+        if frozen is not None:
+            return frozen
         return (self.clock() - self.started) * self.speedup
 
     # -- the stage ---------------------------------------------------------------
@@ -152,9 +158,22 @@ class World:
         active = settings.cols * (settings.dwell_ns + settings.pixel_dead_ns) * 1e-9
         line_start = [self.pose(start + row * line) for row in range(settings.rows)]
         line_end = [self.pose(start + row * line + active) for row in range(settings.rows)]
-        with self.lock:
+        rendering_since = self.clock()
+        if self.speedup > 1:
+            # Simulated time stands still while the simulator computes: a real scan
+            # generator has no render time, and a sped-up clock would otherwise turn
+            # 20 ms of arithmetic into a long pause between frames.
+            with self.lock:
+                self._frozen_at = self.now()
+        # The stage stays free while the SEM renders (its own lock), so serial commands
+        # are not delayed by the simulator's arithmetic.
+        with self.render_lock:
             pixels = self.sem.render(self.levels(start, settings), line_start, line_end, self.rng)
             self.frames += 1
+        if self.speedup > 1:
+            with self.lock:
+                self.started += self.clock() - rendering_since
+                self._frozen_at = None
         return pixels, start, end
 
     def describe(self) -> dict:

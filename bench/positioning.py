@@ -1,0 +1,288 @@
+"""Positioning benchmark: the whole system on the paper's conditions (Table III), and
+the loop's latency and throughput.
+
+For each preset of the simulated lab (optimal, noisy, high-magnification, unstable,
+high-quality-reference, mask-reference, repeated-pattern) the real processes are
+started (fake lab sped up, image server, estimator, stage service on the emulated
+NV 40/3 over TCP serial, controller). The reference is taught at the home pose (case
+5: scanned at the preset's slow reference dwell and uploaded; case 6: an Otsu mask of
+the live frame). Then ``--trials`` times: jog the stage by a random offset of up to a
+quarter of the field of view per axis, start a run, wait for its end, and compare the
+true pose (from the simulator, averaged over 0.5 s of simulated time) with the taught
+one.
+
+Latency: frame published -> voltage command written on the serial line, over every
+move of every run. Throughput: a replayed recording at 200 frames/s through estimator,
+controller and stage (holding, acting on every fresh frame).
+
+Prints the table beside the paper's, writes bench/results/positioning.json and
+positioning.png (Fig. 9-like: error, cost and voltages per iteration for one trial of
+each condition).
+
+    ./dev bench positioning            # or: python bench/positioning.py --trials 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import io
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from semservo.config import Settings, connect
+from semservo.launcher import Launcher
+from semservo.messages import ScanRequest
+from semservo.simulation.world import PRESETS
+from semservo.transport import ControlClient
+from semservo.wire import decode_frame
+
+SPEEDUP = 20
+#: Table III of the paper: accuracy x, y (um) for cases 1-6.
+PAPER = {"optimal": (0.11, 0.19), "noisy": (0.14, 0.23), "high-magnification": (0.04, 0.11),
+         "unstable": (0.22, 0.37), "high-quality-reference": (0.09, 0.13), "mask-reference": (0.29, 0.47)}
+
+
+def say(text: str) -> None:
+    print(text, flush=True)
+
+
+class Stack:
+    def __init__(self, env: dict[str, str], log_path: Path):
+        os.environ.update(env)
+        self.settings = Settings()
+        self.log = open(log_path, "a", encoding="utf-8")  # noqa: SIM115
+        self.launcher = Launcher(self.settings, out=self.log, color=False)
+        self.launcher.start(timeout_s=120)
+        client = lambda port: ControlClient(connect("127.0.0.1", port), timeout_s=10, retries=1)  # noqa: E731
+        s = self.settings
+        self.stage = client(s.stage.control_port)
+        self.estimator = client(s.estimator.control_port)
+        self.controller = client(s.controller.control_port)
+        self.fakelab = client(s.fakelab.control_port)
+
+    def close(self) -> None:
+        for c in (self.stage, self.estimator, self.controller, self.fakelab):
+            c.close()
+        self.launcher.stop()
+        self.log.close()
+
+    def true_pose(self, span_s: float = 0.5) -> np.ndarray:
+        now = self.fakelab.request("pose")["t_s"]
+        pose = self.fakelab.request("pose", interval_s=[now - span_s, now])
+        return np.array([pose["x_um"], pose["y_um"]])
+
+    def settle(self, frames: int = 3) -> None:
+        seq = self.estimator.request("report")["latest_frame_seq"] or 0
+        deadline = time.monotonic() + 60
+        while (self.estimator.request("report")["latest_frame_seq"] or 0) < seq + frames:
+            if time.monotonic() > deadline:
+                raise RuntimeError("no frames")
+            time.sleep(0.05)
+
+    def jog(self, offset_um: np.ndarray, chunk_um: float = 8.0) -> None:
+        """Move by ``offset_um`` in chunks the stage accepts (its step limit)."""
+        steps = int(np.ceil(np.abs(offset_um).max() / chunk_um))
+        for _ in range(steps):
+            self.stage.request("move", targets={"x": float(offset_um[0] / steps), "y": float(offset_um[1] / steps)},
+                               relative=True)
+            time.sleep(0.05)
+
+
+def png_b64(pixels: np.ndarray) -> str:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
+
+
+def teach(stack: Stack, preset) -> dict:
+    stack.settle(2)
+    if preset.reference_dwell_ns:
+        # Case 5: a slow, high-quality scan as the reference, runs at the fast dwell.
+        scan = ControlClient(connect("127.0.0.1", stack.settings.fakelab.scan_port), timeout_s=30, retries=1)
+        parts = scan.request_parts(ScanRequest(dwell_ns=preset.reference_dwell_ns).model_dump_json().encode())
+        scan.close()
+        frame = decode_frame(parts, max_bytes=2**26)
+        return stack.estimator.request("teach", image_b64=png_b64(frame.pixels), label="high-quality reference")
+    if preset.mask_reference:
+        # Case 6: a binary mask of the part, thresholded from the live frame (Otsu).
+        import cv2
+
+        scan = ControlClient(connect("127.0.0.1", stack.settings.fakelab.scan_port), timeout_s=30, retries=1)
+        frame = decode_frame(scan.request_parts(ScanRequest().model_dump_json().encode()), max_bytes=2**26)
+        scan.close()
+        blurred = cv2.GaussianBlur(frame.pixels, (0, 0), 3)
+        _, mask = cv2.threshold(blurred, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        return stack.estimator.request("teach", mask_b64=png_b64(mask.astype(np.uint8)))
+    return stack.estimator.request("teach")
+
+
+def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path) -> dict:
+    preset = PRESETS[name]
+    env = {"SEMSERVO_FAKELAB__PRESET": name, "SEMSERVO_FAKELAB__SPEEDUP": str(SPEEDUP),
+           "SEMSERVO_STAGE__MAX_RATE_V_PER_S": str(200 * SPEEDUP), "SEMSERVO_IMAGESERVER__FPS": "100",
+           "SEMSERVO_IMAGESERVER__SOURCE": "sim", "SEMSERVO_CONTROLLER__RUNS_DIR": str(out / "runs")}
+    stack = Stack(env, out / "positioning-services.log")
+    results = []
+    try:
+        reference = teach(stack, preset)
+        stack.settle(2)
+        taught = stack.true_pose()
+        pixel_um = reference.get("pixel_size_nm", 0) / 1000 or None
+        for trial in range(trials):
+            field_um = 512 * (pixel_um or 0.177)
+            offset = rng.uniform(-field_um / 4, field_um / 4, 2)
+            stack.jog(offset)
+            stack.settle(3)
+            started = stack.controller.request("start", tolerance_px=0.1, max_iterations=150)
+            deadline = time.monotonic() + 240
+            while (status := stack.controller.request("status"))["state"] == "servoing":
+                if time.monotonic() > deadline:
+                    stack.controller.request("stop", reason="benchmark timeout")
+                    break
+                time.sleep(0.1)
+            stack.settle(2)
+            record = stack.controller.request("run")
+            pixel_um = record["records"][-1]["pixel_size_nm"] / 1000 if record["records"] else pixel_um
+            final = stack.true_pose()
+            moved = [r for r in record["records"] if r["action"] == "moved"]
+            intervals = [r["frame_source_interval_s"] for r in record["records"] if r.get("frame_source_interval_s")]
+            results.append({
+                "trial": trial, "run_id": started["run_id"], "state": status["state"], "reason": status["reason"],
+                "offset_um": offset.tolist(), "iterations": record["outcome"]["iterations"] if record.get("outcome") else None,
+                "sim_time_s": intervals[-1][1] - intervals[0][0] if intervals else None,
+                "true_error_um": (final - taught).tolist(), "pixel_um": pixel_um,
+                "latency_ms": [r["latency_ms"] for r in moved],
+                "trajectory": [{"iteration": r["iteration"], "error": r.get("error"), "cost": r.get("cost"),
+                                "voltages": r.get("voltages")} for r in moved],
+            })
+            error_px = np.abs(final - taught) / pixel_um
+            say(f"  {name} trial {trial + 1}/{trials}: {status['state']} in {results[-1]['iterations']} iterations, "
+                f"true error {error_px[0]:.3f}, {error_px[1]:.3f} px")
+    finally:
+        stack.close()
+    return {"preset": name, "description": preset.description, "trials": results}
+
+
+def throughput(out: Path, seconds: float = 10.0, fps: float = 200.0) -> dict:
+    env = {"SEMSERVO_IMAGESERVER__SOURCE": "replay", "SEMSERVO_IMAGESERVER__REPLAY_GLOB": "frame5*",
+           "SEMSERVO_IMAGESERVER__FPS": str(fps), "SEMSERVO_STAGE__MAX_RATE_V_PER_S": "100000",
+           "SEMSERVO_CONTROLLER__RUNS_DIR": str(out / "runs"), "SEMSERVO_FAKELAB__SPEEDUP": "1"}
+    stack = Stack(env, out / "positioning-services.log")
+    try:
+        stack.settle(5)
+        stack.estimator.request("teach")
+        stack.controller.request("start", tolerance_px=0.001, hold=True, max_iterations=100_000, max_move_um=0.05,
+                                 min_confidence=0.0)
+        time.sleep(seconds)
+        stack.controller.request("stop", reason="throughput measured")
+        record = stack.controller.request("run")
+    finally:
+        stack.close()
+    records = record["records"]
+    moved = [r for r in records if r["action"] == "moved"]
+    span = (records[-1]["t_ns"] - records[0]["t_ns"]) / 1e9 if len(records) > 1 else seconds
+    return {"offered_fps": fps, "estimates_handled_per_s": len(records) / span, "moves_per_s": len(moved) / span,
+            "latency_ms": [r["latency_ms"] for r in moved]}
+
+
+def summarize(result: dict) -> dict:
+    trials = result["trials"]
+    ok = [t for t in trials if t["state"] == "converged"]
+    errors_px = np.array([np.abs(t["true_error_um"]) / t["pixel_um"] for t in ok]) if ok else np.zeros((0, 2))
+    errors_um = np.array([np.abs(t["true_error_um"]) for t in ok]) if ok else np.zeros((0, 2))
+    return {
+        "success": f"{len(ok)}/{len(trials)}",
+        "iterations": float(np.mean([t["iterations"] for t in ok])) if ok else None,
+        "sim_time_s": float(np.mean([t["sim_time_s"] for t in ok if t["sim_time_s"]])) if ok else None,
+        "error_px_mean": errors_px.mean(axis=0).tolist() if ok else None,
+        "error_px_std": errors_px.std(axis=0).tolist() if ok else None,
+        "error_um_mean": errors_um.mean(axis=0).tolist() if ok else None,
+        "error_um_std": errors_um.std(axis=0).tolist() if ok else None,
+    }
+
+
+def plot(results: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(len(results), 3, figsize=(12, 2.2 * len(results)), squeeze=False)
+    for row, result in enumerate(results):
+        trial = next((t for t in result["trials"] if t["state"] == "converged"), result["trials"][0])
+        trajectory = trial["trajectory"]
+        iterations = [p["iteration"] for p in trajectory]
+        error = np.array([p["error"] for p in trajectory]) if trajectory else np.zeros((0, 2))
+        if len(error):
+            axes[row, 0].plot(iterations, error[:, 0], label="e_x (px)")
+            axes[row, 0].plot(iterations, error[:, 1], label="e_y (px)")
+            axes[row, 1].semilogy(iterations, [max(p["cost"], 1e-6) for p in trajectory])
+            axes[row, 2].plot(iterations, [p["voltages"]["x"] for p in trajectory], label="x (V)")
+            axes[row, 2].plot(iterations, [p["voltages"]["y"] for p in trajectory], label="y (V)")
+        axes[row, 0].set_ylabel(result["preset"], fontsize=8)
+        if row == 0:
+            axes[row, 0].set_title("error (px)")
+            axes[row, 1].set_title("cost C = e^T e")
+            axes[row, 2].set_title("channel voltages (V)")
+            axes[row, 0].legend(fontsize=7)
+            axes[row, 2].legend(fontsize=7)
+    for axis in axes[-1]:
+        axis.set_xlabel("iteration")
+    figure.tight_layout()
+    figure.savefig(path, dpi=90)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--trials", type=int, default=10, help="trials per condition")
+    parser.add_argument("--presets", nargs="*", default=list(PRESETS), help="conditions to run")
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--no-throughput", action="store_true", help="skip the 200 frames/s replay run")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(args.seed)
+    results = []
+    for name in args.presets:
+        say(f"{name}: {PRESETS[name].description}")
+        results.append(run_preset(name, args.trials, rng, args.out))
+    loop = None if args.no_throughput else throughput(args.out)
+
+    say("\nPositioning from random starts up to 1/4 of the field (true final error from the simulator)")
+    say(f"{'condition':24s} {'success':>7s} {'iter':>5s} {'sim s':>6s}  {'error px x, y (std)':>26s}  "
+        f"{'error um x, y (std)':>28s}  {'paper um x, y':>13s}")
+    latencies = []
+    for result in results:
+        summary = result["summary"] = summarize(result)
+        latencies += [value for t in result["trials"] for value in t["latency_ms"]]
+        if summary["error_px_mean"] is None:
+            say(f"{result['preset']:24s} {summary['success']:>7s}")
+            continue
+        px, pxs, um, ums = summary["error_px_mean"], summary["error_px_std"], summary["error_um_mean"], summary["error_um_std"]
+        paper = PAPER.get(result["preset"])
+        say(f"{result['preset']:24s} {summary['success']:>7s} {summary['iterations']:5.1f} {summary['sim_time_s']:6.1f}  "
+            f"{px[0]:.3f}, {px[1]:.3f} ({pxs[0]:.3f}, {pxs[1]:.3f})  {um[0]:.4f}, {um[1]:.4f} ({ums[0]:.4f}, {ums[1]:.4f})  "
+            f"{'%.2f, %.2f' % paper if paper else '-':>13s}")
+    if latencies:
+        say(f"\nLatency frame published -> voltage command written, {len(latencies)} moves in the runs above: "
+            f"p50 {np.percentile(latencies, 50):.2f} ms, p99 {np.percentile(latencies, 99):.2f} ms")
+    if loop and loop["latency_ms"]:
+        say(f"Replay at {loop['offered_fps']:.0f} frames/s: the controller handled {loop['estimates_handled_per_s']:.0f} "
+            f"estimates/s and wrote {loop['moves_per_s']:.0f} moves/s; latency p50 "
+            f"{np.percentile(loop['latency_ms'], 50):.2f} ms, p99 {np.percentile(loop['latency_ms'], 99):.2f} ms")
+    (args.out / "positioning.json").write_text(json.dumps({"results": results, "throughput": loop}, indent=1))
+    plot(results, args.out / "positioning.png")
+    say(f"wrote {args.out / 'positioning.json'} and {args.out / 'positioning.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

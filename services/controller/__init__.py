@@ -1,0 +1,7 @@
+"""The controller: turns motion estimates into stage moves (paper eq. 30-37).
+
+``core`` holds the run state machine, the freshness and confidence rules and the run
+records, and reaches the stage through a port (no sockets); ``main`` wires it to the
+estimator's motion stream, the stage service, the fake lab's rotation stage, a control
+socket and a status stream.
+"""

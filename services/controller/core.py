@@ -1,0 +1,339 @@
+"""The controller's core: motion estimates in, stage moves out, one run at a time.
+
+No sockets here: the stage and the rotation stage are reached through ports (objects
+with ``request(command, args) -> dict`` that raise :class:`CommandError` or
+:class:`ServiceUnavailable`), so the same core runs behind ZeroMQ in the service and
+in-process in tests. The law itself is :class:`semservo.control.ControlLaw` (eq. 30-37).
+
+A run is a small state machine::
+
+    idle --start--> servoing --(mean error of the last N fresh frames under tolerance)--> converged
+                       |  \\--(diverging, iteration limit, scene lost, stage refused)--> failed
+                       \\--stop--> stopped
+
+Only a fresh, confident estimate moves the stage. Fresh: the frame's scan began after
+the last move was written (a frame scanned during a move shows a mix of both
+positions, and acting on it would count the move twice). Confident: the estimate's
+peak confidence is at least ``min_confidence``. Anything else holds the stage, and is
+recorded.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+import uuid
+from pathlib import Path
+from typing import Callable, Literal, Protocol
+
+import numpy as np
+from pydantic import BaseModel, Field, PositiveFloat, PositiveInt
+
+from semservo.control import AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain
+from semservo.messages import MotionEstimate
+from semservo.transport import CommandError, ServiceUnavailable
+
+log = logging.getLogger("controller")
+
+ControllerState = Literal["idle", "servoing", "converged", "failed", "stopped"]
+
+
+class Port(Protocol):
+    def request(self, command: str, args: dict | None = None) -> dict: ...
+
+
+class RunSettings(BaseModel):
+    """What a positioning run may be told; every field has a sane default."""
+
+    model_config = {"extra": "forbid"}
+
+    dofs: list[Literal["x", "y", "rotation"]] = Field(["x", "y"], min_length=1, description="degrees of freedom")
+    tolerance_px: PositiveFloat = Field(0.1, le=50, description="converged when the translation error is below")
+    tolerance_deg: PositiveFloat = Field(0.05, le=10, description="and the rotation error below (rotation DOF)")
+    converge_frames: PositiveInt = Field(3, le=100, description="converged when the mean error of this many fresh frames is under tolerance")
+    max_iterations: PositiveInt = Field(150, le=100_000, description="moves before the run fails")
+    gain: Literal["adaptive", "exponential"] = Field("adaptive", description="eq. 35, or the exponential gain")
+    gain_scale: PositiveFloat = Field(50.0, description="Lambda of eq. 35 (error x s)")
+    gain_min: PositiveFloat = Field(0.5, le=10, description="per second")
+    gain_max: PositiveFloat = Field(0.8, le=10, description="per second")
+    min_confidence: float = Field(0.5, ge=0, le=1, description="lower-confidence estimates hold the stage")
+    lost_after: PositiveInt = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
+    max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per iteration (saturation)")
+    hold: bool = Field(False, description="keep servoing after convergence (hold against drift)")
+    diverge_factor: float = Field(4.0, gt=1, description="cost above this x its minimum ...")
+    diverge_iterations: PositiveInt = Field(5, description="... for this many moves in a row: diverging")
+
+
+class ControllerCore:
+    def __init__(self, stage: Port, *, rotation: Port | None = None, camera: CameraToStage | None = None,
+                 runs_dir: Path | None = None, watchdog_s: float = 3.0, name: str = "controller",
+                 clock: Callable[[], float] = time.monotonic, publish: Callable[[str, dict], None] | None = None):
+        self.stage = stage
+        self.rotation = rotation
+        self.camera = camera or CameraToStage()
+        self.runs_dir = runs_dir
+        self.watchdog_s = watchdog_s
+        self.owner = f"{name}-{uuid.uuid4().hex[:6]}"
+        self.clock = clock
+        self.publish = publish or (lambda kind, data: None)
+        self.state: ControllerState = "idle"
+        self.reason = ""
+        self.run: dict | None = None
+        self.settings = RunSettings()
+        self.law = ControlLaw()
+        self.last_heartbeat = 0.0
+        self._journal = None
+
+    # -- run lifecycle -----------------------------------------------------------------
+    def start(self, settings: RunSettings, reference_id: str) -> dict:
+        if self.state == "servoing":
+            raise RuntimeError(f"run {self.run['id']} is active")
+        if "rotation" in settings.dofs and self.rotation is None:
+            raise ValueError("rotation is not a degree of freedom here: no rotation stage is configured")
+        stage_state = self.stage.request("arm", {"hold_after_s": self.watchdog_s, "owner": self.owner})
+        gain = (ExponentialGain(settings.gain_max, settings.gain_min) if settings.gain == "exponential"
+                else AdaptiveGain(settings.gain_scale, settings.gain_min, settings.gain_max))
+        self.law = ControlLaw(tuple(settings.dofs), gain, self.camera)
+        self.settings = settings
+        now_ns = time.time_ns()
+        self.run = {
+            "id": time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6],
+            "reference_id": reference_id, "settings": settings.model_dump(), "started_at_ns": now_ns,
+            "stage_at_start": stage_state, "iterations": 0, "records": [], "outcome": None,
+            "last_command_ns": now_ns, "last_source_end_s": None, "low_confidence": 0,
+            "min_cost": math.inf, "rising": 0, "held_stale": 0, "recent": [],
+        }
+        self.state, self.reason = "servoing", ""
+        self.last_heartbeat = self.clock()
+        self._open_journal()
+        self._status()
+        log.info("run %s started (reference %s, dofs %s)", self.run["id"], reference_id, settings.dofs)
+        return self.status()
+
+    def stop(self, reason: str = "stop requested") -> dict:
+        """Stop at once: the stage is told to stop first (it refuses further moves until
+        resumed), then the run ends as ``stopped``."""
+        try:
+            self.stage.request("stop", {"reason": reason})
+        except (CommandError, ServiceUnavailable) as error:
+            log.error("could not tell the stage to stop: %s", error)
+        if self.state == "servoing":
+            self._finish("stopped", reason)
+        return self.status()
+
+    def _finish(self, state: ControllerState, reason: str) -> None:
+        self.state, self.reason = state, reason
+        try:
+            if state != "stopped":  # a finished run releases the watchdog; stop already did
+                self.stage.request("disarm", {"owner": self.owner})
+        except (CommandError, ServiceUnavailable) as error:
+            log.warning("disarming the stage watchdog failed: %s", error)
+        run = self.run
+        run["outcome"] = {"state": state, "reason": reason, "finished_at_ns": time.time_ns(),
+                          "iterations": run["iterations"]}
+        try:
+            run["stage_log"] = self.stage.request("log", {"since_ns": run["started_at_ns"]}).get("entries", [])
+        except (CommandError, ServiceUnavailable) as error:
+            run["stage_log"] = []
+            run["outcome"]["stage_log_error"] = str(error)
+        self._write_summary()
+        log.info("run %s %s: %s after %d iterations", run["id"], state, reason, run["iterations"])
+        self._status()
+
+    # -- the loop ----------------------------------------------------------------------
+    def on_estimate(self, estimate: MotionEstimate) -> dict | None:
+        """One estimate in; the iteration record out (None when no run is active)."""
+        run = self.run
+        if self.state not in ("servoing",) or run is None or estimate.reference_id != run["reference_id"]:
+            return None
+        scan_started = estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
+        record = {
+            "seq": estimate.seq, "dx_px": estimate.dx_px, "dy_px": estimate.dy_px,
+            "rotation_deg": estimate.rotation_deg, "confidence": estimate.confidence, "snr_db": estimate.snr_db,
+            "pixel_size_nm": estimate.pixel_size_nm, "frame_acquired_at_ns": estimate.frame_acquired_at_ns,
+            "frame_published_at_ns": estimate.frame_published_at_ns,
+            "estimate_published_at_ns": estimate.published_at_ns,
+            "frame_source_interval_s": estimate.frame_source_interval_s,
+        }
+        if scan_started < run["last_command_ns"]:
+            run["held_stale"] += 1
+            return self._record(record, "held: stale (scanned during the last move)")
+        if estimate.confidence < self.settings.min_confidence:
+            run["low_confidence"] += 1
+            if run["low_confidence"] >= self.settings.lost_after:
+                self._record(record, "held: low confidence")
+                self._finish("failed", f"scene lost: {run['low_confidence']} low-confidence frames in a row")
+                return record
+            return self._record(record, "held: low confidence")
+        run["low_confidence"] = 0
+
+        translation = math.hypot(estimate.dx_px, estimate.dy_px)
+        record["error_px"] = translation
+        # Converged when the mean of the last N fresh errors is under the tolerance: the
+        # mean, not each one, so estimation noise near the tolerance cannot keep a
+        # finished run going (or end one by luck).
+        recent = run.setdefault("recent", [])
+        recent.append((estimate.dx_px, estimate.dy_px, estimate.rotation_deg))
+        del recent[:-self.settings.converge_frames]
+        mean_dx, mean_dy, mean_rotation = np.mean(recent, axis=0)
+        within = len(recent) == self.settings.converge_frames and math.hypot(mean_dx, mean_dy) <= \
+            self.settings.tolerance_px and ("rotation" not in self.settings.dofs
+                                            or abs(mean_rotation) <= self.settings.tolerance_deg)
+        if within and not self.settings.hold:
+            self._record(record, "within tolerance")
+            self._finish("converged", f"mean error of the last {len(recent)} fresh frames "
+                                      f"{math.hypot(mean_dx, mean_dy):.3f} px, under {self.settings.tolerance_px:g} px")
+            return record
+        if run["iterations"] >= self.settings.max_iterations:
+            self._finish("failed", f"iteration limit ({self.settings.max_iterations}) reached")
+            return record
+
+        end_s = estimate.frame_source_interval_s[1] if estimate.frame_source_interval_s else None
+        sampling_time = self._sampling_time(estimate, end_s)
+        step = self.law.step(estimate.dx_px, estimate.dy_px, estimate.rotation_deg, estimate.pixel_size_nm,
+                             sampling_time)
+        cost = step["cost"]
+        run["min_cost"] = min(run["min_cost"], cost)
+        # Divergence is judged against the best cost so far, but never against less than
+        # (5 x tolerance)^2: near the target the cost is mostly estimation noise.
+        floor = (5 * self.settings.tolerance_px) ** 2
+        run["rising"] = run["rising"] + 1 if cost > self.settings.diverge_factor * max(run["min_cost"], floor) else 0
+        move = dict(step["move"])
+        planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
+        saturated = planar > self.settings.max_move_um
+        if saturated:
+            scale = self.settings.max_move_um / planar
+            for key in ("x_um", "y_um"):
+                if key in move:
+                    move[key] *= scale
+        record.update(error=step["error"], cost=cost, gain=step["gain"], velocity=step["velocity"],
+                      sampling_time_s=sampling_time, move=move, saturated=saturated)
+        if run["rising"] >= self.settings.diverge_iterations:
+            self._record(record, "held: diverging")
+            self._finish("failed", f"diverging: cost above {self.settings.diverge_factor:g}x its minimum for "
+                                   f"{run['rising']} moves")
+            return record
+        targets = {axis: move[f"{axis}_um"] for axis in ("x", "y") if f"{axis}_um" in move}
+        try:
+            if targets:
+                written = self.stage.request("move", {"targets": targets, "relative": True, "owner": self.owner})
+                record["command_written_at_ns"] = written["written_at_ns"]
+                record["voltages"] = written["voltages"]
+                record["positions_um"] = written["positions_um"]
+            if "rotation_deg" in move and self.rotation is not None:
+                self.rotation.request("turn", {"by_deg": move["rotation_deg"]})
+                record.setdefault("command_written_at_ns", time.time_ns())
+        except CommandError as refusal:
+            self._record(record, f"refused by the stage: {refusal.code}")
+            self._finish("failed", f"the stage refused the move ({refusal.code}): {refusal.message}")
+            return record
+        except ServiceUnavailable as error:
+            self._record(record, "stage unreachable")
+            self._finish("failed", f"the stage service is unreachable: {error}")
+            return record
+        run["iterations"] += 1
+        run["last_command_ns"] = record["command_written_at_ns"]
+        run["last_source_end_s"] = end_s
+        run["last_acted_acquired_ns"] = estimate.frame_acquired_at_ns
+        self.last_heartbeat = self.clock()
+        record["latency_ms"] = (record["command_written_at_ns"] - estimate.frame_published_at_ns) / 1e6
+        return self._record(record, "moved")
+
+    def _sampling_time(self, estimate: MotionEstimate, end_s: float | None) -> float:
+        """The measured time between this iteration and the last (eq. 37), on the image
+        source's clock when it has one (the fake lab's simulated time), else the frames'
+        acquisition times. The first iteration takes two scan durations: a fresh frame
+        comes every second scan."""
+        run = self.run
+        if end_s is not None and run["last_source_end_s"] is not None:
+            return max(end_s - run["last_source_end_s"], 1e-3)
+        if end_s is None and run.get("last_acted_acquired_ns"):
+            return max((estimate.frame_acquired_at_ns - run["last_acted_acquired_ns"]) / 1e9, 1e-3)
+        if estimate.frame_source_interval_s:
+            start, end = estimate.frame_source_interval_s
+            return max(2 * (end - start), 1e-3)
+        return 0.5
+
+    def tick(self) -> float:
+        """Periodic work: keep the stage's watchdog fed while servoing (a dead
+        controller stops feeding it, and the stage holds)."""
+        if self.state != "servoing":
+            return 0.5
+        now = self.clock()
+        if now - self.last_heartbeat >= self.watchdog_s / 3:
+            try:
+                reply = self.stage.request("heartbeat", {"owner": self.owner})
+                self.last_heartbeat = now
+                if reply.get("state") != "ready":
+                    self._finish("failed", f"the stage is {reply.get('state')}")
+            except ServiceUnavailable as error:
+                self._finish("failed", f"the stage service is unreachable: {error}")
+            except CommandError as error:
+                self._finish("failed", f"the stage refused a heartbeat: {error}")
+        return self.watchdog_s / 6
+
+    # -- records -----------------------------------------------------------------------
+    def _record(self, record: dict, action: str) -> dict:
+        record["action"] = action
+        record["t_ns"] = time.time_ns()
+        record["iteration"] = self.run["iterations"]
+        self.run["records"].append(record)
+        if self._journal is not None:
+            self._journal.write(json.dumps(record, default=_jsonable) + "\n")
+            self._journal.flush()
+        self.publish("iteration", record)
+        return record
+
+    def _open_journal(self) -> None:
+        self._close_journal()
+        if self.runs_dir is None:
+            return
+        self.runs_dir.mkdir(parents=True, exist_ok=True)
+        self._journal = open(self.runs_dir / f"{self.run['id']}.jsonl", "w", encoding="utf-8")  # noqa: SIM115
+
+    def _close_journal(self) -> None:
+        if self._journal is not None:
+            self._journal.close()
+            self._journal = None
+
+    def _write_summary(self) -> None:
+        self._close_journal()
+        if self.runs_dir is None:
+            return
+        path = self.runs_dir / f"{self.run['id']}.json"
+        path.write_text(json.dumps(self.record(), default=_jsonable, indent=1))
+        self.run["path"] = str(path)
+
+    def record(self) -> dict:
+        """The active or last run's full record."""
+        if self.run is None:
+            return {}
+        record = {key: value for key, value in self.run.items() if not key.startswith("last_")}
+        record["min_cost"] = None if math.isinf(record["min_cost"]) else record["min_cost"]
+        return record
+
+    def status(self) -> dict:
+        run = self.run or {}
+        last = next((r for r in reversed(run.get("records", [])) if "error_px" in r), None)
+        moved = [r for r in run.get("records", []) if r.get("action") == "moved"]
+        return {
+            "state": self.state, "reason": self.reason, "run_id": run.get("id"),
+            "iteration": run.get("iterations", 0), "error_px": last and last["error_px"],
+            "error_um": last and last["error_px"] * last["pixel_size_nm"] / 1000,
+            "cost": last and last.get("cost"), "rotation_deg": last and last["rotation_deg"],
+            "last_latency_ms": moved[-1]["latency_ms"] if moved else None,
+            "held_stale": run.get("held_stale", 0), "path": run.get("path"),
+        }
+
+    def _status(self) -> None:
+        self.publish("status", self.status())
+
+
+def _jsonable(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")

@@ -1,0 +1,144 @@
+"""Controller process: motion (SUB, from the estimator) -> core -> stage service (REQ).
+
+Commands: ``start`` {settings...} (teaches nothing: the estimator's current reference is
+the target), ``stop`` {reason}, ``status``, ``run`` (the active or last run's record),
+``health``. Events on the status PUB socket (topic ``controller``): ``status`` and
+``iteration``.
+
+Run it with ``semservo service controller``; settings ``SEMSERVO_CONTROLLER__*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import pydantic
+
+from semservo.config import Settings, connect
+from semservo.control import CameraToStage
+from semservo.logs import configure
+from semservo.messages import CONTROLLER_TOPIC, MOTION_TOPIC, ControllerEvent, MotionEstimate
+from semservo.service import ServiceRuntime
+from semservo.transport import BadRequest, CommandError, ControlClient, MessagePublisher, MessageSubscriber, ServiceUnavailable
+from services.controller.core import ControllerCore, RunSettings
+
+log = logging.getLogger("controller")
+
+
+class ServicePort:
+    """A port onto another service's control socket (lazy pirate, short timeouts: the
+    loop must not stall on a dead peer)."""
+
+    def __init__(self, client: ControlClient):
+        self.client = client
+
+    def request(self, command: str, args: dict | None = None) -> dict:
+        return self.client.request(command, **(args or {}))
+
+
+class FakelabRotationStage:
+    """The simulated rotation stage of the fake lab, as a port with ``turn`` {by_deg}."""
+
+    def __init__(self, client: ControlClient):
+        self.client = client
+
+    def request(self, command: str, args: dict | None = None) -> dict:
+        if command != "turn":
+            raise CommandError("unknown_command", f"the rotation stage knows 'turn', not {command!r}")
+        current = self.client.request("set_rotation_stage")["rotation_deg"]
+        return self.client.request("set_rotation_stage", rotation_deg=current + float(args["by_deg"]))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(
+        prog="semservo service controller",
+        description="Drive the stage until the current image matches the taught one (paper eq. 30-37).",
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    build_parser().parse_args(argv)
+    settings = Settings()
+    configure(settings.log_level)
+    config = settings.controller
+    runtime = ServiceRuntime("controller", settings, settings.bind(config.control_port))
+    runtime.state = "idle"
+    events = MessagePublisher(settings.bind(config.status_port), CONTROLLER_TOPIC, context=runtime.context)
+    timeout = min(settings.request_timeout_s, 1.0)
+    stage_client = ControlClient(connect(settings.stage.host, settings.stage.control_port), timeout_s=timeout,
+                                 retries=2, context=runtime.context)
+    estimator_client = ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
+                                     timeout_s=timeout, retries=2, context=runtime.context)
+    rotation = None
+    if config.rotation_stage == "fakelab":
+        rotation = FakelabRotationStage(ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port),
+                                                      timeout_s=timeout, retries=2, context=runtime.context))
+
+    def publish(kind: str, data: dict) -> None:
+        events.publish(ControllerEvent(kind=kind, run_id=core.run and core.run["id"], data=data))
+
+    core = ControllerCore(
+        ServicePort(stage_client), rotation=rotation,
+        camera=CameraToStage(tuple(config.axis_signs), config.orientation_deg, config.rotation_sign),
+        runs_dir=config.runs_dir, watchdog_s=config.watchdog_s, publish=publish,
+    )
+    motion = MessageSubscriber(connect(settings.estimator.host, settings.estimator.motion_port), MOTION_TOPIC,
+                               MotionEstimate, context=runtime.context, counters=runtime.counters)
+    runtime.report_errors_from(lambda: motion.last_error)
+
+    def start(args: dict) -> dict:
+        try:
+            run_settings = RunSettings.model_validate(args)
+        except pydantic.ValidationError as error:
+            first = error.errors()[0]
+            raise BadRequest(f"{'.'.join(map(str, first['loc'])) or 'settings'}: {first['msg']}") from None
+        if core.state == "servoing":
+            raise CommandError("busy", f"run {core.run['id']} is active; stop it first")
+        try:
+            reference = estimator_client.request("report")["reference"]
+        except (ServiceUnavailable, CommandError) as error:
+            raise CommandError("estimator_unavailable", f"cannot ask the estimator for its reference: {error}") from None
+        if not reference:
+            raise CommandError("no_reference", "teach a reference first: the estimator has none")
+        try:
+            return core.start(run_settings, reference["id"])
+        except ValueError as error:
+            raise BadRequest(str(error)) from None
+        except CommandError as error:
+            raise CommandError(f"stage_{error.code}", f"the stage refused to start a run: {error.message}") from None
+        except ServiceUnavailable as error:
+            raise CommandError("stage_unavailable", f"the stage service is unreachable: {error}") from None
+
+    runtime.control.register("start", start)
+    runtime.control.register("stop", lambda args: core.stop(str(args.get("reason", "stop requested"))))
+    runtime.control.register("status", lambda _args: core.status())
+    runtime.control.register("run", lambda _args: core.record())
+    runtime.details = core.status
+
+    def on_motion() -> None:
+        estimate = motion.receive(timeout_s=0)
+        if estimate is None:
+            return
+        core.on_estimate(estimate)
+        runtime.state = "running" if core.state == "servoing" else "idle"
+
+    runtime.add_reader(motion.socket, on_motion)
+
+    def step() -> float:
+        wait = core.tick()
+        runtime.state = "running" if core.state == "servoing" else "idle"
+        return wait
+
+    try:
+        return runtime.run(step)
+    finally:
+        if core.state == "servoing":
+            core.stop("controller shutting down")
+        events.close()
+        motion.close()
+        runtime.context.term()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,3 @@
+from services.stage.main import main
+
+raise SystemExit(main())

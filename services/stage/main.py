@@ -1,0 +1,127 @@
+"""Stage process: the NV 40/3 on its serial link behind a request-reply socket.
+
+Commands (``semservo.transport.ControlClient``): ``state``, ``move`` {targets: {axis:
+um}, relative, owner}, ``set_voltages`` {voltages: {axis: V}, owner}, ``arm`` {hold_after_s,
+owner}, ``disarm``, ``heartbeat`` {owner}, ``stop`` {reason}, ``resume``, ``release``,
+``log`` {since_ns}, and ``health``. A refused command answers an error whose code names
+the rule (``travel_limit``, ``voltage_limit``, ``step_limit``, ``rate_limit``, ``held``,
+``stopped``, ``link_lost``, ...).
+
+Run it with ``semservo service stage``; settings ``SEMSERVO_STAGE__*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+
+from semservo.config import Settings
+from semservo.logs import configure
+from semservo.service import ServiceRuntime
+from semservo.transport import BadRequest, CommandError
+from services.stage.core import Refused, StageCore, StageLimits, models_from
+
+log = logging.getLogger("stage")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="semservo service stage",
+        description="Own the NV 40/3's serial link: moves through the displacement-voltage model, "
+                    "soft limits, step and rate limits, a watchdog and a stop that always works.",
+    )
+    parser.add_argument("--url", help="pyserial URL of the amplifier (default: settings, the fake lab's TCP port)")
+    return parser
+
+
+def _numbers(mapping, name: str) -> dict[str, float]:
+    if not isinstance(mapping, dict) or not mapping:
+        raise BadRequest(f"{name} must be an object of axis -> number")
+    out = {}
+    for axis, value in mapping.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise BadRequest(f"{name}.{axis} must be a finite number, got {value!r}")
+        out[str(axis)] = float(value)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    settings = Settings()
+    configure(settings.log_level)
+    config = settings.stage
+    runtime = ServiceRuntime("stage", settings, settings.bind(config.control_port))
+    limits = StageLimits(config.voltage_min, config.voltage_max, config.travel_min_um, config.travel_max_um,
+                         config.max_step_v, config.max_rate_v_per_s)
+    core = StageCore(args.url or config.serial_url, limits=limits, channels=dict(config.axes),
+                     models=models_from(config.model_files, config.axes))
+    core.connect()
+
+    def guarded(action):
+        def handler(request_args: dict) -> dict:
+            try:
+                return action(request_args)
+            except Refused as refusal:
+                raise CommandError(refusal.code, str(refusal)) from None
+        return handler
+
+    def owner(request_args: dict) -> str | None:
+        value = request_args.get("owner")
+        return None if value is None else str(value)
+
+    def move(request_args: dict) -> dict:
+        relative = request_args.get("relative", False)
+        if not isinstance(relative, bool):
+            raise BadRequest("relative must be true or false")
+        return core.move(_numbers(request_args.get("targets"), "targets"), relative=relative, owner=owner(request_args))
+
+    def arm(request_args: dict) -> dict:
+        timeout = request_args.get("hold_after_s")
+        if isinstance(timeout, bool) or not isinstance(timeout, (int, float)):
+            raise BadRequest("hold_after_s must be a number of seconds")
+        if owner(request_args) is None:
+            raise BadRequest("owner is required: the watchdog listens to one controller")
+        return core.arm(float(timeout), owner(request_args))
+
+    def since(request_args: dict) -> dict:
+        value = request_args.get("since_ns", 0)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise BadRequest("since_ns must be an integer (Unix ns)")
+        return {"entries": core.command_log(value)}
+
+    commands = {
+        "state": lambda _a: core.describe(),
+        "move": move,
+        "set_voltages": lambda a: core.set_voltages(_numbers(a.get("voltages"), "voltages"), owner=owner(a)),
+        "arm": arm,
+        "disarm": lambda a: core.disarm(owner(a)),
+        "heartbeat": lambda a: core.heartbeat(owner(a)),
+        "stop": lambda a: core.stop(str(a.get("reason", "stop requested"))),
+        "resume": lambda _a: core.resume(),
+        "release": lambda _a: core.release(),
+        "log": since,
+    }
+    for name, action in commands.items():
+        runtime.control.register(name, guarded(action))
+    runtime.report_errors_from(lambda: core.last_error)
+
+    def details() -> dict:
+        return core.describe()
+
+    runtime.details = details
+
+    def step() -> float:
+        wait = core.poll()
+        runtime.state = "running" if core.link == "connected" else "degraded"
+        return wait
+
+    try:
+        return runtime.run(step)
+    finally:
+        core._close_driver()
+        runtime.context.term()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,160 @@
+"""Closing the loop on the real processes: fake lab (simulated SEM + emulated NV 40/3 on
+TCP serial), image server, estimator, stage service and controller, all on loopback.
+
+Truth comes from the fake lab: the true pose averaged over a stretch of simulated time
+(averaging out the vibration, as a scan does).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+
+from semservo.config import Settings, connect
+from semservo.launcher import Launcher
+from semservo.transport import CommandError, ControlClient
+
+pytestmark = pytest.mark.integration
+
+SPEEDUP = 20
+
+
+@pytest.fixture
+def lab(ports, tmp_path, monkeypatch):
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SPEEDUP", str(SPEEDUP))
+    monkeypatch.setenv("SEMSERVO_STAGE__MAX_RATE_V_PER_S", str(200 * SPEEDUP))
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FPS", "100")
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(tmp_path / "runs"))
+    settings = Settings()
+    launcher = Launcher(settings)
+    launcher.start(timeout_s=90)
+
+    def client(port: int) -> ControlClient:
+        return ControlClient(connect("127.0.0.1", port), timeout_s=5, retries=1)
+
+    clients = {
+        "stage": client(settings.stage.control_port), "estimator": client(settings.estimator.control_port),
+        "controller": client(settings.controller.control_port), "fakelab": client(settings.fakelab.control_port),
+    }
+    clients["launcher"] = launcher
+    clients["runs"] = tmp_path / "runs"
+    yield clients
+    for name, value in clients.items():
+        if isinstance(value, ControlClient):
+            value.close()
+    launcher.stop()
+
+
+def true_pose(fakelab: ControlClient, span_s: float = 0.5) -> tuple[float, float]:
+    now = fakelab.request("pose")["t_s"]
+    pose = fakelab.request("pose", interval_s=[now - span_s, now])
+    return pose["x_um"], pose["y_um"]
+
+
+def wait_for(predicate, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
+
+
+def teach_after_frames(lab) -> dict:
+    wait_for(lambda: lab["estimator"].request("report")["latest_frame_seq"] is not None, 30, "a frame")
+    return lab["estimator"].request("teach")
+
+
+def settle(lab, frames: int = 3) -> None:
+    """Let a few frames be scanned after a move (a frame in flight shows the old pose)."""
+    seq = lab["estimator"].request("report")["latest_frame_seq"]
+    wait_for(lambda: lab["estimator"].request("report")["latest_frame_seq"] >= seq + frames, 30, "new frames")
+
+
+def test_positions_from_a_displaced_start_to_the_taught_pose(lab):
+    teach_after_frames(lab)
+    taught = true_pose(lab["fakelab"])
+    moved = lab["stage"].request("move", targets={"x": 6.0, "y": -4.0}, relative=True)
+    assert moved["written_at_ns"] > 0
+    settle(lab)
+    start = true_pose(lab["fakelab"])
+    assert abs(start[0] - taught[0]) > 3 and abs(start[1] - taught[1]) > 2  # really displaced
+
+    run = lab["controller"].request("start", tolerance_px=0.15)
+    status = wait_for(lambda: (s := lab["controller"].request("status"))["state"] != "servoing" and s, 90,
+                      "the run to end")
+    assert status["state"] == "converged", status
+    assert status["run_id"] == run["run_id"]
+    record = lab["controller"].request("run")
+    pixel_um = record["records"][-1]["pixel_size_nm"] / 1000
+    final = true_pose(lab["fakelab"])
+    error_px = [abs(final[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
+    assert max(error_px) < 0.4, f"true final error {error_px} px"
+    moved = [r for r in record["records"] if r["action"] == "moved"]
+    assert moved and all(r["latency_ms"] > 0 for r in moved)
+    assert any(r["action"].startswith("held: stale") for r in record["records"])  # in-flight frames are not acted on
+    assert any(entry["text"].startswith("set,") for entry in record["stage_log"])  # the serial commands are kept
+    assert (lab["runs"] / f"{run['run_id']}.json").is_file()
+
+
+def test_limit_breaking_requests_are_refused_and_nothing_moves(lab):
+    stage = lab["stage"]
+    before = stage.request("state")["voltages"]
+    cases = [
+        ({"targets": {"x": 150.0}}, "travel_limit"),
+        ({"targets": {"x": 30.0}, "relative": True}, "step_limit"),
+    ]
+    for args, code in cases:
+        with pytest.raises(CommandError) as refusal:
+            stage.request("move", **args)
+        assert refusal.value.code == code
+    with pytest.raises(CommandError) as refusal:
+        stage.request("set_voltages", voltages={"y": 120.0})
+    assert refusal.value.code == "voltage_limit" and "120" in refusal.value.message
+    with pytest.raises(CommandError) as refusal:
+        stage.request("move", targets={"x": "far"})
+    assert refusal.value.code == "bad_request"
+    assert stage.request("state")["voltages"] == before
+    assert lab["fakelab"].request("pose")["voltages"][:2] == [before["x"], before["y"]]
+
+
+def test_a_pulled_serial_link_is_reported_and_stops_the_run(lab):
+    teach_after_frames(lab)
+    lab["stage"].request("move", targets={"x": 8.0}, relative=True)
+    lab["controller"].request("start")
+    wait_for(lambda: lab["controller"].request("status")["iteration"] >= 1, 60, "the first iteration")
+    lab["fakelab"].request("serial_link", plugged=False)
+    status = wait_for(lambda: (s := lab["controller"].request("status"))["state"] != "servoing" and s, 30,
+                      "the run to stop")
+    assert status["state"] == "failed"
+    assert "link" in status["reason"] or "stage is" in status["reason"], status
+    health = lab["stage"].request("health")
+    assert health["details"]["link"] == "lost" and health["state"] == "degraded"
+    assert health["last_error"]
+    with pytest.raises(CommandError) as refusal:
+        lab["stage"].request("move", targets={"x": 0.1}, relative=True)
+    assert refusal.value.code == "link_lost"
+    lab["fakelab"].request("serial_link", plugged=True)
+    wait_for(lambda: lab["stage"].request("state")["link"] == "connected", 15, "the stage to reconnect")
+    assert lab["stage"].request("state")["reconnects"] >= 1
+
+
+def test_a_killed_controller_makes_the_stage_hold(lab):
+    teach_after_frames(lab)
+    lab["stage"].request("move", targets={"x": 8.0, "y": 5.0}, relative=True)
+    lab["controller"].request("start")
+    wait_for(lambda: lab["controller"].request("status")["iteration"] >= 1, 60, "the first iteration")
+    pid = lab["controller"].request("health")["pid"]
+    os.kill(pid, signal.SIGKILL)
+    state = wait_for(lambda: (s := lab["stage"].request("state"))["state"] == "held" and s, 15, "the stage to hold")
+    assert "watchdog" in state["reason"]
+    held = state["voltages"]
+    time.sleep(0.5)
+    assert lab["stage"].request("state")["voltages"] == held
+    with pytest.raises(CommandError) as refusal:
+        lab["stage"].request("move", targets={"x": 0.1}, relative=True)
+    assert refusal.value.code == "held"
