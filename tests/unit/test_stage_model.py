@@ -14,11 +14,16 @@ def test_tritor_model_uses_the_branch_of_the_direction_of_motion():
     model.reset(20.0)
     assert model.voltage_for(50.0) == pytest.approx(voltage_for("x", "increasing", 50.0))
     assert model.voltage_for(60.0) == pytest.approx(voltage_for("x", "increasing", 60.0))
-    # Reversal: the decreasing branch, which lies at lower voltage for the same displacement.
+    # Reversal: the decreasing branch's slope, continuous at the reversal point (no
+    # jump between branches), merging onto the decreasing branch over a long move.
+    top = voltage_for("x", "increasing", 60.0)
     down = model.voltage_for(55.0)
-    assert down == pytest.approx(voltage_for("x", "decreasing", 55.0))
-    assert down < voltage_for("x", "increasing", 55.0)
+    offset = top - voltage_for("x", "decreasing", 60.0)
+    assert down == pytest.approx(voltage_for("x", "decreasing", 55.0) + offset * np.exp(-5.0 / model.merge_um))
+    assert down < top
     assert model.voltage_for(55.0) == pytest.approx(down)  # no motion keeps the branch
+    far = model.voltage_for(5.0)
+    assert far == pytest.approx(voltage_for("x", "decreasing", 5.0), abs=0.15 * offset)
 
 
 def test_linear_model_and_round_trip_through_a_file(tmp_path):
