@@ -102,23 +102,27 @@ def png_b64(pixels: np.ndarray) -> str:
     return base64.b64encode(buffer.getvalue()).decode()
 
 
+def scan(stack: Stack, request: ScanRequest) -> np.ndarray:
+    """One frame straight from the fake lab's SEM, with these scan settings."""
+    client = ControlClient(connect("127.0.0.1", stack.settings.fakelab.scan_port), timeout_s=30, retries=1)
+    try:
+        return decode_frame(client.request_parts(request.model_dump_json().encode()),
+                            max_bytes=stack.settings.max_message_bytes).pixels
+    finally:
+        client.close()
+
+
 def teach(stack: Stack, preset) -> dict:
     stack.settle(2)
     if preset.reference_dwell_ns:
         # Case 5: a slow, high-quality scan as the reference, runs at the fast dwell.
-        scan = ControlClient(connect("127.0.0.1", stack.settings.fakelab.scan_port), timeout_s=30, retries=1)
-        parts = scan.request_parts(ScanRequest(dwell_ns=preset.reference_dwell_ns).model_dump_json().encode())
-        scan.close()
-        frame = decode_frame(parts, max_bytes=2**26)
-        return stack.estimator.request("teach", image_b64=png_b64(frame.pixels), label="high-quality reference")
+        pixels = scan(stack, ScanRequest(dwell_ns=preset.reference_dwell_ns))
+        return stack.estimator.request("teach", image_b64=png_b64(pixels), label="high-quality reference")
     if preset.mask_reference:
-        # Case 6: a binary mask of the part, thresholded from the live frame (Otsu).
+        # Case 6: a binary mask of the part, thresholded from a live frame (Otsu).
         import cv2
 
-        scan = ControlClient(connect("127.0.0.1", stack.settings.fakelab.scan_port), timeout_s=30, retries=1)
-        frame = decode_frame(scan.request_parts(ScanRequest().model_dump_json().encode()), max_bytes=2**26)
-        scan.close()
-        blurred = cv2.GaussianBlur(frame.pixels, (0, 0), 3)
+        blurred = cv2.GaussianBlur(scan(stack, ScanRequest()), (0, 0), 3)
         _, mask = cv2.threshold(blurred, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         return stack.estimator.request("teach", mask_b64=png_b64(mask.astype(np.uint8)))
     return stack.estimator.request("teach")

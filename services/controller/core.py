@@ -316,14 +316,15 @@ class ControllerCore:
 
     def status(self) -> dict:
         run = self.run or {}
-        last = next((r for r in reversed(run.get("records", [])) if "error_px" in r), None)
-        moved = [r for r in run.get("records", []) if r.get("action") == "moved"]
+        records = run.get("records", [])
+        last = next((r for r in reversed(records) if "error_px" in r), None)
+        last_moved = next((r for r in reversed(records) if r.get("action") == "moved"), None)
         return {
             "state": self.state, "reason": self.reason, "run_id": run.get("id"),
             "iteration": run.get("iterations", 0), "error_px": last and last["error_px"],
             "error_um": last and last["error_px"] * last["pixel_size_nm"] / 1000,
             "cost": last and last.get("cost"), "rotation_deg": last and last["rotation_deg"],
-            "last_latency_ms": moved[-1]["latency_ms"] if moved else None,
+            "last_latency_ms": last_moved and last_moved["latency_ms"],
             "held_stale": run.get("held_stale", 0), "path": run.get("path"),
         }
 
@@ -334,6 +335,4 @@ class ControllerCore:
 def _jsonable(value):
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
     raise TypeError(f"{type(value).__name__} is not JSON serializable")

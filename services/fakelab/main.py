@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         name = args.get("preset")
         if name not in PRESETS:
             raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
-        with world.lock:
+        with world.lock, world.render_lock:  # not while a frame renders with the old SEM
             world.preset = PRESETS[name]
             world.sem = SEM(world.preset.scene, world.seed)
         return describe({})

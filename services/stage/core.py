@@ -19,14 +19,15 @@ refuses moves until it is armed again or resumed.
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 from semservo import nv40
 from semservo.nv40_driver import LinkError, NV403Driver
-from semservo.stage_model import BranchModel, LinearModel, load_model
+from semservo.stage_model import BranchModel, load_model
 
 log = logging.getLogger("stage")
 
@@ -98,7 +99,7 @@ class StageCore:
         """Open the port, identify the amplifier, take remote control of our channels,
         read its limits and the current outputs. False (and the reason in health) if
         any of it fails."""
-        self._close_driver()
+        self.close()
         try:
             self.driver = self.open_driver(self.url)
             self.device = self.driver.identify()
@@ -111,7 +112,7 @@ class StageCore:
             return False
         self.voltages = {axis: measured[channel] for axis, channel in self.channels.items()}
         for axis, model in self.models.items():
-            model.reset(model.position_for(self.voltages[axis]))
+            model.follow_voltage(self.voltages[axis], self.voltages[axis])
         if self.link != "connected" and self.counters["link_lost"]:
             self.counters["reconnects"] += 1
         self.link, self.attempts, self.last_error = "connected", 0, None
@@ -119,7 +120,8 @@ class StageCore:
         log.info("NV 40/3 on %s: %s, voltage range %s", self.url, self.device.get("prompt"), self.device_limits)
         return True
 
-    def _close_driver(self) -> None:
+    def close(self) -> None:
+        """Close the serial port (its command log is kept)."""
         if self.driver is not None:
             self.log_archive.extend(self.driver.log)
             try:
@@ -234,10 +236,7 @@ class StageCore:
                     raise Refused("travel_limit", f"{axis}: {goal[axis]:.3f} um is outside the travel limits "
                                                   f"{self.limits.travel_min_um:g}..{self.limits.travel_max_um:g} um")
             # Voltages from a copy of each model: a refused move must not change its state.
-            volts = {}
-            for axis, value in goal.items():
-                trial = _copy_model(self.models[axis])
-                volts[axis] = trial.voltage_for(value)
+            volts = {axis: copy.copy(self.models[axis]).voltage_for(value) for axis, value in goal.items()}
             self._check_voltages(volts, self.clock())
         except Refused:
             self.counters["refused"] += 1
@@ -259,14 +258,10 @@ class StageCore:
             raise
         before = dict(self.voltages)
         result = self._write(volts, owner)
-        for axis, value in volts.items():
-            model = self.models[axis]
-            if hasattr(model, "direction") and value != before[axis]:
-                model.direction = 1 if value > before[axis] else -1
-            model.reset(model.position_for(self.voltages[axis]))
+        for axis in volts:
+            self.models[axis].follow_voltage(self.voltages[axis], before[axis])
         result["positions_um"] = self.positions()
         return result
-
 
     def heartbeat(self, owner: str | None = None) -> dict:
         if owner is not None and owner == self.watchdog.owner:
@@ -314,7 +309,7 @@ class StageCore:
         return {
             "url": self.url, "link": self.link, "state": self.state, "reason": self.state_reason,
             "device": self.device.get("prompt"), "voltages": dict(self.voltages), "positions_um": self.positions(),
-            "limits": {**self.limits.__dict__, "device_voltage": list(self.device_limits)},
+            "limits": {**asdict(self.limits), "device_voltage": list(self.device_limits)},
             "watchdog": {"armed": self.watchdog.armed, "timeout_s": self.watchdog.timeout_s,
                          "owner": self.watchdog.owner},
             "models": {axis: model.to_dict()["kind"] for axis, model in self.models.items()},
@@ -322,16 +317,7 @@ class StageCore:
         }
 
 
-def _copy_model(model):
-    if isinstance(model, BranchModel):
-        return BranchModel(model.increasing, model.decreasing, model.position_um, model.direction, model.offset_v,
-                           model.merge_um)
-    if isinstance(model, LinearModel):
-        return LinearModel(model.gain_um_per_v, model.offset_v, model.position_um)
-    raise TypeError(f"unknown model {model!r}")
-
-
 def models_from(paths: dict[str, str | None], axes) -> dict:
-    """The default TRITOR branches per axis, or a model file (e.g. from ``semservo
-    calibrate``) where one is given."""
+    """The default TRITOR branches per axis, or a model file (JSON, as written by
+    :func:`semservo.stage_model.save_model`) where one is given."""
     return {axis: load_model(paths[axis]) if paths.get(axis) else BranchModel.tritor(axis) for axis in axes}

@@ -106,10 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         runtime.control.register(name, guarded(action))
     runtime.report_errors_from(lambda: core.last_error)
 
-    def details() -> dict:
-        return core.describe()
-
-    runtime.details = details
+    runtime.details = core.describe
 
     def step() -> float:
         wait = core.poll()
@@ -119,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return runtime.run(step)
     finally:
-        core._close_driver()
+        core.close()
         runtime.context.term()
 
 

@@ -331,4 +331,3 @@ def apodize_halve_into(image: np.ndarray, mean: float, window: np.ndarray, row_s
         target = out[y]
         for x in range(cols):
             target[x] = (upper[x] + lower[x]) * 0.25
-

@@ -673,6 +673,7 @@ class MotionEstimator:
             turn_samples = np.asarray(TURNED_REFERENCE_DEG) * angles / 180.0
             self.turned_reference_ramps = np.exp(
                 2j * np.pi * np.outer(turn_samples, frequencies) / angles).astype(np.complex64)
+            self.turned_reference_below_deg = min(map(abs, TURNED_REFERENCE_DEG)) / 2
             self.angular_plan = pyfftw.FFTW(
                 pyfftw.empty_aligned(self.grid.map_cols.shape, "float32"),
                 pyfftw.empty_aligned((self.grid.map_cols.shape[0], angles // 2 + 1), "complex64"),
@@ -746,9 +747,9 @@ class MotionEstimator:
         made once: there each radius moves by a different fraction of a bin, the bias
         averages out over radii, and the mean over opposite offsets cancels what is left
         to first order. The image's log-polar spectrum is shared, so this costs one more
-        1-D correlation against the four turned copies at once. Measured over turns from -0.8 to 0.6 degree: mean error
-        0.054 -> 0.004 degree on exact synthetic rotations (400 x 400), 0.08 -> 0.02 on
-        real frames at moderate noise.
+        1-D correlation against the four turned copies at once. Measured over turns from
+        -0.8 to 0.6 degree: mean error 0.054 -> 0.004 degree on exact synthetic rotations
+        (400 x 400), 0.08 -> 0.02 on real frames at moderate noise.
         """
         spectrum = self._spectrum(image, mean)
         log_polar = log_polar_magnitude(spectrum, self.emphasis, self.grid, self._log_magnitude, self._log_polar)
@@ -758,14 +759,12 @@ class MotionEstimator:
         degrees_per_sample = -180.0 / self.grid.angles
         samples, _ = angular_shift(current, self.reference_angular_conjugate, self.refiner)
         angle = samples * degrees_per_sample
-        if abs(angle) < min(map(abs, TURNED_REFERENCE_DEG)) / 2:
+        if abs(angle) < self.turned_reference_below_deg:
             # Against each turned copy, normalized (eq. 12), moved back by its known
             # turn and summed: one surface whose peak is the mean of the four estimates.
             crosses = np.einsum("ij,kij->kj", current, self.turned_reference_angular_conjugates)
             crosses /= np.maximum(np.abs(crosses), 1e-30)
-            combined = np.einsum("kj,kj->j", crosses, self.turned_reference_ramps)
-            combined /= len(TURNED_REFERENCE_DEG)
-            samples, _ = self.refiner.peak(combined)
+            samples, _ = self.refiner.peak(np.einsum("kj,kj->j", crosses, self.turned_reference_ramps))
             angle = samples * degrees_per_sample
         return float(angle)
 

@@ -31,6 +31,10 @@ class DisplacementModel(Protocol):
         """The displacement the model expects at ``voltage`` (its inverse), e.g. to know
         where the axis is when the link opens."""
 
+    def follow_voltage(self, voltage: float, previous_voltage: float) -> None:
+        """The axis was driven to ``voltage`` directly (not through the model): take the
+        direction of that move and the position the model expects there."""
+
 
 @dataclass
 class BranchModel:
@@ -89,6 +93,11 @@ class BranchModel:
                 high = middle
         return (low + high) / 2
 
+    def follow_voltage(self, voltage: float, previous_voltage: float) -> None:
+        if voltage != previous_voltage:
+            self.direction = 1 if voltage > previous_voltage else -1
+        self.reset(self.position_for(voltage))
+
     def to_dict(self) -> dict:
         return {"kind": "branches", "increasing": list(self.increasing), "decreasing": list(self.decreasing)}
 
@@ -110,6 +119,9 @@ class LinearModel:
 
     def position_for(self, voltage: float) -> float:
         return (voltage - self.offset_v) * self.gain_um_per_v
+
+    def follow_voltage(self, voltage: float, previous_voltage: float) -> None:
+        self.reset(self.position_for(voltage))
 
     def to_dict(self) -> dict:
         return {"kind": "linear", "gain_um_per_v": self.gain_um_per_v, "offset_v": self.offset_v}

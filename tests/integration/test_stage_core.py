@@ -39,9 +39,8 @@ def stage(link):
     clock = FakeClock()
     core = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=clock)
     assert core.connect()
-    core.clock_source = clock
     yield core
-    core._close_driver()
+    core.close()
 
 
 def test_connects_takes_remote_control_and_moves_through_the_model(stage, link):
@@ -80,18 +79,18 @@ def test_rate_limit(link):
     assert refusal.value.code == "rate_limit"
     clock.now += 0.1
     core.set_voltages({"x": 45.0})
-    core._close_driver()
+    core.close()
 
 
 def test_watchdog_holds_a_silent_controller_and_stop_always_works(stage):
     stage.arm(2.0, owner="controller-a")
     stage.move({"x": 1.0}, relative=True, owner="controller-a")
-    stage.clock_source.now += 1.5
+    stage.clock.now += 1.5
     stage.heartbeat("controller-a")
-    stage.clock_source.now += 1.5
+    stage.clock.now += 1.5
     stage.poll()
     assert stage.state == "ready"
-    stage.clock_source.now += 2.5
+    stage.clock.now += 2.5
     stage.poll()
     assert stage.state == "held" and "silent" in stage.state_reason
     with pytest.raises(Refused, match="held"):
