@@ -108,7 +108,7 @@ class StageSettings(BaseModel):
                             description="pyserial URL: /dev/ttyUSB0, a pseudo-terminal path or socket://host:port")
     axes: dict[str, int] = Field(default_factory=lambda: {"x": 0, "y": 1}, description="axis name -> NV 40/3 channel")
     model_files: dict[str, str] = Field(default_factory=dict,
-                                        description="axis -> displacement model JSON (semservo calibrate); default TRITOR")
+                                        description="axis -> displacement model JSON (stage_model.save_model); default TRITOR")
     voltage_min: float = Field(-19.0, ge=-20, le=130, description="soft lower voltage limit (the lab's)")
     voltage_max: float = Field(110.0, ge=-20, le=130, description="soft upper voltage limit (the lab's)")
     travel_min_um: float = Field(0.0, description="soft travel limit, model displacement")
