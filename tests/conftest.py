@@ -32,7 +32,8 @@ def ports(monkeypatch) -> dict[str, int]:
     """Fresh loopback ports for every service, set in the environment children inherit."""
     chosen = {name: free_port() for name in ("frames", "control", "motion", "estimator_control",
                                              "fakelab_control", "scan", "serial_tcp", "stage_control",
-                                             "controller_control", "controller_status")}
+                                             "controller_control", "controller_status",
+                                             "gateway_http", "gateway_control")}
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__FRAMES_PORT", str(chosen["frames"]))
     monkeypatch.setenv("SEMSERVO_IMAGESERVER__CONTROL_PORT", str(chosen["control"]))
     monkeypatch.setenv("SEMSERVO_ESTIMATOR__MOTION_PORT", str(chosen["motion"]))
@@ -44,6 +45,8 @@ def ports(monkeypatch) -> dict[str, int]:
     monkeypatch.setenv("SEMSERVO_STAGE__SERIAL_URL", f"socket://127.0.0.1:{chosen['serial_tcp']}")
     monkeypatch.setenv("SEMSERVO_CONTROLLER__CONTROL_PORT", str(chosen["controller_control"]))
     monkeypatch.setenv("SEMSERVO_CONTROLLER__STATUS_PORT", str(chosen["controller_status"]))
+    monkeypatch.setenv("SEMSERVO_GATEWAY__HTTP_PORT", str(chosen["gateway_http"]))
+    monkeypatch.setenv("SEMSERVO_GATEWAY__CONTROL_PORT", str(chosen["gateway_control"]))
     return chosen
 
 

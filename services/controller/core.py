@@ -61,6 +61,9 @@ class RunSettings(BaseModel):
     min_confidence: float = Field(0.5, ge=0, le=1, description="lower-confidence estimates hold the stage")
     lost_after: PositiveInt = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
     max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per iteration (saturation)")
+    integral_time_s: float | None = Field(
+        10.0, gt=0, le=1000,
+        description="integral action T_i in seconds, against drift (null: the paper's proportional law)")
     hold: bool = Field(False, description="keep servoing after convergence (hold against drift)")
     diverge_factor: float = Field(4.0, gt=1, description="cost above this x its minimum ...")
     diverge_iterations: PositiveInt = Field(5, description="... for this many moves in a row: diverging")
@@ -95,7 +98,7 @@ class ControllerCore:
         stage_state = self.stage.request("arm", {"hold_after_s": self.watchdog_s, "owner": self.owner})
         gain = (ExponentialGain(settings.gain_max, settings.gain_min) if settings.gain == "exponential"
                 else AdaptiveGain(settings.gain_scale, settings.gain_min, settings.gain_max))
-        self.law = ControlLaw(tuple(settings.dofs), gain, self.camera)
+        self.law = ControlLaw(tuple(settings.dofs), gain, self.camera, integral_time_s=settings.integral_time_s)
         self.settings = settings
         now_ns = time.time_ns()
         self.run = {

@@ -5,7 +5,7 @@ from __future__ import annotations
 import base64
 import time
 import uuid
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,6 +47,10 @@ def decode_upload(encoded: str) -> np.ndarray:
         raise TeachError(str(error)) from None
 
 
+#: The most frames a reference may average (kept as the last received).
+MAX_FRAMES_AVERAGED = 16
+
+
 class EstimatorCore:
     def __init__(self, *, rotation: bool = True, precision: str = "fast", fft_effort: str = "FFTW_MEASURE",
                  counters: Counter | None = None):
@@ -56,6 +60,7 @@ class EstimatorCore:
         self.estimator: MotionEstimator | None = None
         self.reference: Reference | None = None
         self.latest: Frame | None = None
+        self.recent: deque[Frame] = deque(maxlen=MAX_FRAMES_AVERAGED)
         self.last_estimate: MotionEstimate | None = None
         self.counters: Counter = counters if counters is not None else Counter()
 
@@ -75,12 +80,29 @@ class EstimatorCore:
         self.counters["references_taught"] += 1
         return self.reference.describe()
 
-    def teach_latest(self) -> dict:
+    def teach_latest(self, frames: int = 1) -> dict:
+        """The latest frame becomes the reference, or the mean of the latest ``frames``
+        (frame integration, as an SEM does for a clean image: it also averages out the
+        stage vibration each single scan samples, which at x5000 is ~0.2 px; the stage
+        must stand still over those frames)."""
         if self.latest is None:
             raise TeachError("no frame has been received yet; is the image server running?")
-        frame = self.latest
-        return self._install(np.array(frame.pixels), "frame", frame.header.pixel_size_nm,
-                             frame_seq=frame.header.seq, source=frame.header.source)
+        if not isinstance(frames, int) or not 1 <= frames <= self.recent.maxlen:
+            raise TeachError(f"frames must be a whole number from 1 to {self.recent.maxlen}, got {frames!r}")
+        chosen = list(self.recent)[-frames:]
+        if len(chosen) < frames:
+            raise TeachError(f"only {len(chosen)} frames received so far; {frames} asked for averaging")
+        shapes = {frame.pixels.shape for frame in chosen}
+        if len(shapes) > 1 or len({frame.header.pixel_size_nm for frame in chosen}) > 1:
+            raise TeachError("the scan changed during the frames to average; teach again")
+        frame = chosen[-1]
+        pixels = np.array(frame.pixels) if frames == 1 else np.mean([f.pixels for f in chosen], axis=0, dtype=np.float32)
+        intervals = [f.header.source_interval_s for f in chosen]
+        # On the source's clock (the fake lab's simulated time), when the reference was
+        # scanned: what the simulator's truth for the taught pose is averaged over.
+        scanned = [intervals[0][0], intervals[-1][1]] if all(intervals) else None
+        return self._install(pixels, "frame", frame.header.pixel_size_nm, frame_seq=frame.header.seq,
+                             source=frame.header.source, frames_averaged=frames, source_interval_s=scanned)
 
     def teach_image(self, pixels: np.ndarray, label: str = "upload") -> dict:
         if self.latest is not None and pixels.shape != self.latest.pixels.shape:
@@ -117,6 +139,7 @@ class EstimatorCore:
         """The motion of ``frame`` against the reference; None when there is no reference
         or the frame cannot be compared (counted, with the reason in ``last_error``)."""
         self.latest = frame
+        self.recent.append(frame)
         if self.estimator is None:
             self.counters["frames_without_reference"] += 1
             return None

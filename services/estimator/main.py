@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
                 return taught(core.teach_mask(polygon=args["polygon"]))
             if "mask_b64" in args:
                 return taught(core.teach_mask(mask=decode_upload(args["mask_b64"])))
-            return taught(core.teach_latest())
+            return taught(core.teach_latest(frames=args.get("frames", 1)))
         except TeachError as error:
             raise BadRequest(str(error)) from None
 

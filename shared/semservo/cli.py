@@ -8,6 +8,7 @@
     semservo estimate   measure motion between image files (no services needed)
     semservo teach      teach the running estimator a reference
     semservo motion     watch the estimator's motion stream
+    semservo calibrate  sweep a stage axis, measure it in the images, fit its model
 """
 
 from __future__ import annotations
@@ -313,6 +314,105 @@ def command_health(args: argparse.Namespace) -> int:
     return code
 
 
+class _RequestPort:
+    """A control client as the ``request(command, args)`` port the cores use."""
+
+    def __init__(self, client: ControlClient):
+        self.client = client
+
+    def request(self, command: str, args: dict | None = None) -> dict:
+        return self.client.request(command, **(args or {}))
+
+
+def calibration_ports(settings: Settings, *, frame_timeout_s: float = 30.0, truth: bool = True):
+    """The stage port, the ``next_frame(after_ns)`` source and, when the simulated lab
+    answers, the truth for a :class:`semservo.calibration.Calibrator`; and a closer."""
+    from semservo.calibration import CalibrationError
+
+    stage = ControlClient(connect(settings.stage.host, settings.stage.control_port),
+                          timeout_s=settings.request_timeout_s, retries=1)
+    frames = FrameSubscriber(connect(settings.imageserver.host, settings.imageserver.frames_port),
+                             max_message_bytes=settings.max_message_bytes)
+    fakelab = ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port), timeout_s=1.0, retries=1)
+
+    def next_frame(after_ns: int):
+        deadline = time.monotonic() + frame_timeout_s
+        while time.monotonic() < deadline:
+            frame = frames.receive(timeout_s=0.2)
+            if frame is None:
+                continue
+            started = frame.header.scan_started_at_ns or frame.header.acquired_at_ns
+            if started >= after_ns:
+                return frame
+        raise CalibrationError(f"no frame scanned after the move within {frame_timeout_s:g} s: "
+                               "is the image server running? (semservo health imageserver)")
+
+    simulated = False
+    if truth:
+        try:
+            fakelab.request("health")
+            simulated = True
+        except ServiceUnavailable:
+            simulated = False
+
+    def true_displacement(axis: str):
+        channel_key = f"{axis}_um"
+
+        def truth_of(frame) -> float:
+            return float(fakelab.request("pose", interval_s=list(frame.header.source_interval_s))[channel_key])
+
+        return truth_of
+
+    def close() -> None:
+        for closable in (stage, frames, fakelab):
+            closable.close()
+
+    return _RequestPort(stage), next_frame, (true_displacement if simulated else None), close
+
+
+def command_calibrate(args: argparse.Namespace) -> int:
+    from semservo.calibration import CalibrationError, Calibrator
+    from semservo.control import CameraToStage
+
+    settings = Settings()
+    stage, next_frame, truth, close = calibration_ports(settings, frame_timeout_s=args.frame_timeout,
+                                                        truth=not args.no_truth)
+    config = settings.controller
+
+    def progress(point, done: int, total: int) -> None:
+        arrow = "up" if point.direction > 0 else "down"
+        truth_text = "" if point.true_displacement_um is None else f"  true {point.true_displacement_um:8.3f} um"
+        print(f"[{done:3d}/{total}] {point.voltage:7.2f} V {arrow:<4} {args.axis} {point.displacement_um:8.3f} um"
+              f"{truth_text}  across {point.cross_um:+7.3f} um  conf {point.confidence:.2f}", flush=True)
+
+    calibrator = Calibrator(stage, next_frame, axis=args.axis,
+                            camera=CameraToStage(tuple(config.axis_signs), config.orientation_deg),
+                            settle_s=args.settle, keyframe_px=args.keyframe_px,
+                            truth=truth(args.axis) if truth else None, progress=progress)
+    try:
+        result = calibrator.run(args.low, args.high, args.step)
+    except (CalibrationError, CommandError, ServiceUnavailable, ValueError) as error:
+        print(f"calibration failed: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted: nothing written", file=sys.stderr)
+        return 130
+    finally:
+        close()
+    out = Path(args.out or f"calibration-{args.axis}.json")
+    result.save(out)
+    plot = result.plot(out.with_suffix(".png"))
+    summary = result.summary()
+    print(f"axis {args.axis}: stroke {summary['stroke_um']} um over {args.low:g}..{args.high:g} V, "
+          f"loop {summary['loop_width_percent']} % of stroke, fit residual {summary['fit_residual_um'] * 1000:.0f} nm")
+    if result.true_loop_width is not None:
+        print(f"simulator truth: loop {summary['true_loop_width_percent']} %, measured displacement off the truth "
+              f"by {result.true_error_um['mean']} um mean, {result.true_error_um['max']} um max")
+    print(f"model written to {out} (use it: SEMSERVO_STAGE__MODEL_FILES='{{\"{args.axis}\": \"{out}\"}}'), "
+          f"plot {plot}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="semservo",
@@ -391,6 +491,30 @@ def build_parser() -> argparse.ArgumentParser:
     motion.add_argument("--count", type=int, default=10, help="estimates to print (default 10)")
     motion.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
     motion.set_defaults(handler=command_motion)
+
+    calibrate = commands.add_parser(
+        "calibrate", help="sweep a stage axis, measure it in the images, fit its hysteresis model",
+        description="On the running system (semservo up): walk one axis to LOW volts, sweep it up to HIGH and "
+                    "back in STEP volt steps through the stage service, measure each step's motion from the "
+                    "SEM frames (Fourier registration against key frames), and fit the lab's model: one "
+                    "fourth-order polynomial V = p(d) per hysteresis branch. Writes the model as JSON (the "
+                    "stage service loads it through SEMSERVO_STAGE__MODEL_FILES) and a plot of the loop. On "
+                    "the simulated lab the true displacement is read too and the fit compared with it. Use "
+                    "a magnification at which the whole stroke moves the image by less than its width.")
+    calibrate.add_argument("--axis", choices=["x", "y"], default="x", help="stage axis (default x)")
+    calibrate.add_argument("--low", type=float, default=-19.0, help="sweep from this voltage (default -19)")
+    calibrate.add_argument("--high", type=float, default=96.0,
+                           help="up to this voltage (default 96: the lab's model covers -19..96 V, 0..100 um)")
+    calibrate.add_argument("--step", type=float, default=2.5, help="volts per step (default 2.5)")
+    calibrate.add_argument("--settle", type=float, default=0.3,
+                           help="seconds to wait after each step before a frame counts (default 0.3)")
+    calibrate.add_argument("--keyframe-px", type=float, default=32.0,
+                           help="start a new key frame after the image moved this far (default 32)")
+    calibrate.add_argument("--frame-timeout", type=float, default=30.0,
+                           help="give up when no new frame comes within this many seconds")
+    calibrate.add_argument("--no-truth", action="store_true", help="do not ask the simulated lab for the truth")
+    calibrate.add_argument("--out", help="model file to write (default calibration-AXIS.json; plot beside it)")
+    calibrate.set_defaults(handler=command_calibrate)
 
     health = commands.add_parser("health", help="ask services for their health")
     health.add_argument("names", nargs="*", help="services (default: all)")

@@ -13,7 +13,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field, PositiveFloat
+from pydantic import BaseModel, Field, PositiveFloat, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 #: Screen size constant of the paper's SEM: P = D / G (eq. 43) with D = 212.3 um for a
@@ -132,6 +132,19 @@ class ControllerSettings(BaseModel):
         "fakelab", description="what turns the sample about the beam: the simulated rotation stage, or nothing")
 
 
+class GatewaySettings(BaseModel):
+    """The REST gateway (FastAPI on uvicorn): the one door for scripts and the dashboard."""
+
+    host: str = Field("127.0.0.1", description="address other processes reach it at")
+    http_host: str = Field("127.0.0.1", description="HTTP address to bind; anything but loopback needs api_token")
+    http_port: int = Field(8000, ge=1, le=65535, description="HTTP port: the API, its docs and the dashboard")
+    control_port: int = Field(5585, ge=1, le=65535, description="REP socket for health (the launcher's)")
+    api_token: SecretStr | None = Field(None, description="bearer token for state-changing endpoints")
+    database: Path = Field(Path("runs/semservo.sqlite"), description="SQLite file with every run's record")
+    save_frames: bool = Field(False, description="also keep each run's frames as TIFF beside the database")
+    max_upload_bytes: int = Field(32 * 2**20, ge=1024, description="largest image upload accepted")
+
+
 class Settings(BaseSettings):
     """Everything a semservo process needs to know about its place in the system."""
 
@@ -147,6 +160,7 @@ class Settings(BaseSettings):
     estimator: EstimatorSettings = Field(default_factory=EstimatorSettings)
     stage: StageSettings = Field(default_factory=StageSettings)
     controller: ControllerSettings = Field(default_factory=ControllerSettings)
+    gateway: GatewaySettings = Field(default_factory=GatewaySettings)
 
     def bind(self, port: int) -> str:
         return f"tcp://{self.bind_host}:{port}"

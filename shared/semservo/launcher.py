@@ -91,6 +91,16 @@ SERVICES: tuple[ServiceSpec, ...] = (
         },
         summary="the visual servoing law: motion in, stage moves out",
     ),
+    ServiceSpec(
+        name="gateway",
+        module="services.gateway.main",
+        control=lambda s: connect(s.gateway.host, s.gateway.control_port),
+        endpoints=lambda s: {
+            "REST API, docs, dashboard (HTTP)": f"http://{s.gateway.http_host}:{s.gateway.http_port}/",
+            "control (REP)": connect(s.gateway.host, s.gateway.control_port),
+        },
+        summary="REST API (FastAPI), run records (SQLite), dashboard",
+    ),
 )
 
 
@@ -211,6 +221,21 @@ class Launcher:
         except BaseException:
             self.stop()
             raise
+
+    def restart_service(self, name: str, timeout_s: float = 30.0) -> Health:
+        """Stop one service (SIGTERM, then SIGKILL) and start it again; its health."""
+        child = self.children[name]
+        if child.process.poll() is None:
+            child.process.terminate()
+            try:
+                child.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                child.process.kill()
+                child.process.wait()
+        child.reported_exit = True
+        replacement = self._spawn(child.spec)
+        self.children[name] = replacement
+        return self._wait_healthy(replacement, time.monotonic() + timeout_s)
 
     def table(self) -> str:
         rows = [("service", "pid", "what", "where")]

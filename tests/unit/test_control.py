@@ -74,3 +74,34 @@ def test_the_gain_is_capped_for_slow_sampling():
     law = ControlLaw(dofs=("x",), gain=AdaptiveGain(scale=1, minimum=5, maximum=5))
     step = law.step(10.0, 0.0, 0.0, 100.0, sampling_time_s=4.0)
     assert step["gain"] == pytest.approx(NO_OVERSHOOT_GAIN_TIMES_T / 4.0)
+
+
+def drifting_plant(law: ControlLaw, iterations: int, drift_px_per_s: float = 0.05, sampling_time_s: float = 1.4):
+    """Content starts 3 px off and drifts; the stage moves what it is told."""
+    content = np.array([3.0, -3.0])
+    history = []
+    for _ in range(iterations):
+        step = law.step(content[0], content[1], 0.0, 42.46, sampling_time_s=sampling_time_s)
+        moved_px = CameraToStage().content_move_px(step["move"]["x_um"], step["move"]["y_um"], 42.46)
+        content = content + np.array(moved_px) + drift_px_per_s * sampling_time_s
+        history.append(content.copy())
+    return np.array(history)
+
+
+def test_integral_action_removes_the_steady_error_drift_leaves_a_proportional_law():
+    proportional = drifting_plant(ControlLaw(dofs=("x", "y")), 80)
+    integral = drifting_plant(ControlLaw(dofs=("x", "y"), integral_time_s=10.0), 80)
+    # Proportional: the error settles at drift / gain, about 0.1 px here (x5000, 1.4 s frames).
+    assert np.abs(proportional[-10:]).min() > 0.08
+    assert np.abs(integral[-10:]).max() < 0.01
+
+
+def test_the_integral_does_not_wind_up_far_from_the_target():
+    law = ControlLaw(dofs=("x", "y"), integral_time_s=10.0)
+    law.step(40.0, -30.0, 0.0, 177.0, sampling_time_s=0.9)
+    assert law.integral == pytest.approx([0.0, 0.0])
+    for _ in range(200):
+        law.step(1.5, 0.0, 0.0, 177.0, sampling_time_s=0.9)
+    assert abs(law.integral[0]) <= law.integral_zone * law.integral_time_s
+    law.reset()
+    assert law.integral is None

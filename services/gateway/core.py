@@ -1,0 +1,369 @@
+"""The gateway's core: one object that knows every service through small ports, keeps
+the latest frame, records runs as their events arrive, and answers what the REST API
+asks. No HTTP here (``app.py``) and no sockets of its own (``main.py`` wires them), so
+it is tested with the real services and no web server.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import logging
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from PIL import Image
+
+from semservo.imagefiles import ImageFileError, read_image
+from semservo.messages import ControllerEvent
+from semservo.transport import CommandError, ServiceUnavailable
+from semservo.wire import Frame
+from services.gateway.records import FINISHED, RunStore
+
+log = logging.getLogger("gateway")
+
+#: The services the gateway reports on, in the order a user reads them.
+SERVICE_NAMES = ("fakelab", "imageserver", "estimator", "stage", "controller")
+
+
+class Port(Protocol):
+    def request(self, command: str, args: dict | None = None) -> dict: ...
+
+
+class GatewayError(Exception):
+    """What the API turns into a 4xx/5xx body: ``status``, machine ``code``, words."""
+
+    def __init__(self, status: int, code: str, message: str, **extra):
+        super().__init__(message)
+        self.status, self.code, self.message, self.extra = status, code, message, extra
+
+
+def call(port: Port | None, service: str, command: str, args: dict | None = None) -> dict:
+    """A service command, its failures as :class:`GatewayError` naming the service."""
+    if port is None:
+        raise GatewayError(503, f"{service}_unavailable", f"the {service} service is not configured")
+    try:
+        return port.request(command, args or {})
+    except ServiceUnavailable as error:
+        raise GatewayError(503, f"{service}_unavailable", f"the {service} service does not answer: {error}") from None
+    except CommandError as error:
+        status = 409 if error.code in ("busy",) else 422 if error.code == "bad_request" else 409
+        raise GatewayError(status, error.code, f"{service}: {error.message}", service=service) from None
+
+
+def to_png(pixels: np.ndarray, *, signed: bool = False) -> bytes:
+    """An 8-bit PNG for the browser: levels stretched to the 0.5-99.5 % range (a
+    difference image is centred on grey, positive brighter)."""
+    values = pixels.astype(np.float32)
+    if signed:
+        scale = float(np.percentile(np.abs(values), 99.5)) or 1.0
+        eight = np.clip(128 + 127 * values / scale, 0, 255)
+    else:
+        low, high = np.percentile(values, (0.5, 99.5))
+        eight = np.clip((values - low) * (255.0 / max(float(high - low), 1e-6)), 0, 255)
+    buffer = io.BytesIO()
+    Image.fromarray(eight.astype(np.uint8)).save(buffer, format="PNG", compress_level=1)
+    return buffer.getvalue()
+
+
+def png_b64(pixels: np.ndarray) -> str:
+    """Lossless PNG (8 or 16 bit) of pixels, base64, for the estimator's teach upload."""
+    if pixels.dtype not in (np.uint8, np.uint16):
+        low, high = float(pixels.min()), float(pixels.max())
+        pixels = ((pixels - low) * (65535.0 / max(high - low, 1e-6))).astype(np.uint16)
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
+
+
+@dataclass
+class FrameRate:
+    """Frames per second over the last few seconds."""
+
+    window_s: float = 5.0
+    times: deque = field(default_factory=lambda: deque(maxlen=2000))
+
+    def add(self, t: float) -> None:
+        self.times.append(t)
+
+    def rate(self, now: float) -> float:
+        recent = [t for t in self.times if now - t <= self.window_s]
+        if len(recent) < 2:
+            return 0.0
+        return (len(recent) - 1) / max(recent[-1] - recent[0], 1e-6)
+
+
+class GatewayCore:
+    def __init__(self, ports: dict[str, Port | None], store: RunStore, *,
+                 clock: Callable[[], float] = time.monotonic,
+                 broadcast: Callable[[dict], None] | None = None):
+        self.ports = ports
+        self.store = store
+        self.clock = clock
+        self.broadcast = broadcast or (lambda message: None)
+        self.lock = threading.Lock()
+        self.latest: Frame | None = None
+        self.frame_rate = FrameRate()
+        self.counters: Counter = Counter()
+        self.reference_pixels: np.ndarray | None = None
+        self.reference: dict | None = None
+        self.taught_truth: dict | None = None  # simulated hardware: the true pose of the reference
+        self.last_status: dict = {"state": "idle"}
+        self.last_estimate: dict | None = None
+        self.latencies_ms: deque = deque(maxlen=1000)
+
+    # -- streams (called by main's threads) -------------------------------------
+    def on_frame(self, frame: Frame) -> None:
+        with self.lock:
+            self.latest = frame
+        self.frame_rate.add(self.clock())
+        self.counters["frames"] += 1
+
+    def on_event(self, event: ControllerEvent) -> None:
+        """A controller event: recorded (a run's first sight creates its row), then
+        passed on to the WebSocket listeners."""
+        data, run_id = event.data, event.run_id
+        now_ns = time.time_ns()
+        if run_id is not None and not self.store.exists(run_id):
+            self._record_start(run_id)
+        if event.kind == "iteration" and run_id is not None:
+            self.store.add_iteration(run_id, data)
+            self.counters["iterations"] += 1
+            if data.get("latency_ms") is not None:
+                self.latencies_ms.append(data["latency_ms"])
+            if "error_px" in data:
+                self.last_estimate = data
+        elif event.kind == "status":
+            self.last_status = data
+            self.store.add_event(run_id, now_ns, "status", data)
+            if run_id is not None and data.get("state") in FINISHED and not self.store.is_finished(run_id):
+                self.finish(run_id)
+        self.broadcast({"kind": event.kind, "run_id": run_id, "data": data})
+
+    def _record_start(self, run_id: str) -> None:
+        try:
+            record = call(self.ports.get("controller"), "controller", "run")
+        except GatewayError:
+            record = {}
+        if record.get("id") != run_id:
+            record = {"id": run_id, "started_at_ns": time.time_ns(), "settings": {}}
+        self.store.start_run(run_id, started_at_ns=record["started_at_ns"], settings=record.get("settings", {}),
+                             reference=self.reference if self.reference and
+                             self.reference.get("id") == record.get("reference_id") else
+                             {"id": record.get("reference_id")})
+
+    def finish(self, run_id: str) -> None:
+        """A run ended: complete its rows from the controller's own record (events can be
+        missed on PUB/SUB), its stage command log, and the truth when simulated."""
+        try:
+            record = call(self.ports.get("controller"), "controller", "run")
+        except GatewayError as error:
+            log.error("cannot complete run %s: %s", run_id, error.message)
+            return
+        if record.get("id") != run_id or not record.get("outcome"):
+            return
+        for iteration in record.get("records", []):
+            self.store.add_iteration(run_id, iteration)
+        # The final error as the controller judged it: the mean over the last fresh
+        # frames (those scanned after the last move), as many as convergence asks for.
+        fresh = [r for r in record.get("records", []) if "error_px" in r and not r.get("action", "").startswith("held")]
+        last = fresh[-int(record.get("settings", {}).get("converge_frames", 3)):]
+        final_error_px = float(np.hypot(np.mean([r["dx_px"] for r in last]), np.mean([r["dy_px"] for r in last]))) \
+            if last else None
+        self.store.finish_run(run_id, outcome=record["outcome"], final_error_px=final_error_px,
+                              stage_log=record.get("stage_log", []), truth=self._true_final_error(record))
+        log.info("run %s %s after %s iterations", run_id, record["outcome"]["state"], record["outcome"]["iterations"])
+
+    def _true_final_error(self, record: dict) -> dict | None:
+        """On simulated hardware: the true pose over the scans of the run's last three
+        frames against the true pose over the reference's scans, in um and px."""
+        fakelab = self.ports.get("fakelab")
+        scans = [r["frame_source_interval_s"] for r in record.get("records", [])[-3:]
+                 if r.get("frame_source_interval_s")]
+        if fakelab is None or self.taught_truth is None or not scans:
+            return None
+        if self.taught_truth.get("reference_id") != record.get("reference_id"):
+            return None
+        try:
+            pose = fakelab.request("pose", {"interval_s": [scans[0][0], scans[-1][1]]})
+        except (ServiceUnavailable, CommandError) as error:
+            log.warning("no truth from the fake lab: %s", error)
+            return None
+        pixel_um = record["records"][-1]["pixel_size_nm"] / 1000
+        error_um = [pose["x_um"] - self.taught_truth["x_um"], pose["y_um"] - self.taught_truth["y_um"]]
+        return {"error_um": error_um, "error_px": [value / pixel_um for value in error_um],
+                "error_norm_px": float(np.hypot(*error_um) / pixel_um), "pixel_size_um": pixel_um}
+
+    # -- teaching -------------------------------------------------------------
+    def teach(self, *, frames: int = 1, image: bytes | None = None, mask: bytes | None = None,
+              polygon: list | None = None, label: str | None = None) -> dict:
+        """Teach the estimator; a refusal keeps the previous reference (the estimator
+        installs a new one only when it is built)."""
+        estimator = self.ports.get("estimator")
+        call(estimator, "estimator", "health")  # a dead estimator is named in a second, not after the teach timeout
+        latest = self.latest
+        if image is not None or mask is not None:
+            try:
+                pixels, _ = read_image(image if image is not None else mask)
+            except ImageFileError as error:
+                raise GatewayError(422, "unreadable_image", f"the upload is not a readable PNG/TIFF: {error}") from None
+            if latest is not None and pixels.shape != latest.pixels.shape:
+                raise GatewayError(422, "wrong_size", f"the image is {pixels.shape[1]} x {pixels.shape[0]}, the "
+                                                      f"current scan is {latest.pixels.shape[1]} x {latest.pixels.shape[0]}")
+            if image is not None:
+                result = call(estimator, "estimator", "teach", {"image_b64": png_b64(pixels), "label": label or "upload"})
+                reference_pixels = pixels
+            else:
+                result = call(estimator, "estimator", "teach", {"mask_b64": png_b64((pixels > 0).astype(np.uint8) * 255)})
+                reference_pixels = latest.pixels if latest is not None else pixels
+        elif polygon is not None:
+            result = call(estimator, "estimator", "teach", {"polygon": polygon})
+            reference_pixels = latest.pixels if latest is not None else None
+        else:
+            result = call(estimator, "estimator", "teach", {"frames": frames})
+            reference_pixels = latest.pixels if latest is not None else None
+        with self.lock:
+            self.reference = result
+            self.reference_pixels = None if reference_pixels is None else np.array(reference_pixels)
+        self.taught_truth = self._taught_truth(result)
+        self.counters["references_taught"] += 1
+        self.broadcast({"kind": "reference", "run_id": None, "data": result})
+        return result
+
+    def _taught_truth(self, reference: dict) -> dict | None:
+        fakelab = self.ports.get("fakelab")
+        if fakelab is None:
+            return None
+        try:
+            scanned = reference.get("source_interval_s")
+            if scanned:
+                pose = fakelab.request("pose", {"interval_s": scanned})
+            else:  # an upload or mask: the stage stands where it was taught
+                now = fakelab.request("pose", {})["t_s"]
+                pose = fakelab.request("pose", {"interval_s": [max(now - 0.5, 0.0), now]})
+        except (ServiceUnavailable, CommandError):
+            return None
+        return {"reference_id": reference["id"], "x_um": pose["x_um"], "y_um": pose["y_um"]}
+
+    # -- images ---------------------------------------------------------------
+    def latest_png(self) -> bytes:
+        frame = self.latest
+        if frame is None:
+            raise GatewayError(404, "no_frame", "no frame has arrived yet: is the image server running?")
+        return to_png(frame.pixels)
+
+    def reference_png(self) -> bytes:
+        if self.reference_pixels is None:
+            raise GatewayError(404, "no_reference", "no reference taught through the gateway yet")
+        return to_png(self.reference_pixels)
+
+    def difference_png(self) -> bytes:
+        """I - I* with both levelled to zero mean and unit spread (the SEM's brightness
+        and contrast may differ between them)."""
+        frame, reference = self.latest, self.reference_pixels
+        if frame is None or reference is None:
+            raise GatewayError(404, "no_difference", "the difference needs a live frame and a taught reference")
+        if frame.pixels.shape != reference.shape:
+            raise GatewayError(409, "wrong_size", "the scan changed size since teaching; teach again")
+
+        def levelled(pixels):
+            values = pixels.astype(np.float32)
+            return (values - values.mean()) / max(float(values.std()), 1e-6)
+
+        return to_png(levelled(frame.pixels) - levelled(reference), signed=True)
+
+    # -- stage and runs -------------------------------------------------------
+    def move(self, targets: dict[str, float], relative: bool) -> dict:
+        return call(self.ports.get("stage"), "stage", "move", {"targets": targets, "relative": relative,
+                                                                "owner": "gateway"})
+
+    def stage_state(self) -> dict:
+        return call(self.ports.get("stage"), "stage", "state")
+
+    def start(self, settings: dict) -> dict:
+        controller = self.ports.get("controller")
+        status = call(controller, "controller", "status")
+        if status.get("state") == "servoing":
+            raise GatewayError(409, "run_active", f"run {status['run_id']} is active; stop it first",
+                               run_id=status["run_id"])
+        stage = call(self.ports.get("stage"), "stage", "state")
+        if stage.get("state") in ("stopped", "held"):
+            # A stop ends the previous run and leaves the stage stopped: a new start is the
+            # operator's word that it may move again.
+            call(self.ports.get("stage"), "stage", "resume")
+        try:
+            started = call(controller, "controller", "start", settings)
+        except GatewayError as error:
+            if error.code == "busy":
+                raise GatewayError(409, "run_active", error.message, run_id=call(controller, "controller",
+                                                                                 "status").get("run_id")) from None
+            raise
+        self._record_start(started["run_id"])
+        return started
+
+    def stop(self, reason: str) -> dict:
+        """Stop at once: the stage first (it refuses moves from then on), then the run."""
+        stage_error = None
+        try:
+            call(self.ports.get("stage"), "stage", "stop", {"reason": reason})
+        except GatewayError as error:
+            stage_error = error.message
+        try:
+            status = call(self.ports.get("controller"), "controller", "stop", {"reason": reason})
+        except GatewayError as error:
+            if stage_error is not None:
+                raise GatewayError(503, "stop_failed", f"neither the stage nor the controller answered: "
+                                                       f"{stage_error}; {error.message}") from None
+            status = {"state": "stopped", "reason": reason, "controller": error.message}
+        return {**status, "stage_stopped": stage_error is None, "stage_error": stage_error}
+
+    # -- status ---------------------------------------------------------------
+    def health(self, names: tuple[str, ...] = SERVICE_NAMES) -> dict[str, dict]:
+        report = {}
+        for name in names:
+            port = self.ports.get(name)
+            if port is None:
+                continue
+            try:
+                health = port.request("health", {})
+                report[name] = {"up": True, "state": health["state"], "last_error": health.get("last_error"),
+                                "details": health.get("details", {})}
+            except ServiceUnavailable as error:
+                report[name] = {"up": False, "state": "down", "last_error": str(error), "details": {}}
+            except CommandError as error:
+                report[name] = {"up": True, "state": "error", "last_error": error.message, "details": {}}
+        return report
+
+    def status(self) -> dict:
+        services = self.health()
+        controller = services.get("controller", {})
+        run = controller.get("details", {}) if controller.get("up") else {}
+        stage = services.get("stage", {}).get("details", {})
+        latencies = np.array(self.latencies_ms) if self.latencies_ms else None
+        estimator = services.get("estimator", {}).get("details", {})
+        return {
+            "state": run.get("state", "unknown" if not controller.get("up") else "idle"),
+            "reason": run.get("reason", ""),
+            "run_id": run.get("run_id"),
+            "iteration": run.get("iteration", 0),
+            "error_px": run.get("error_px"),
+            "error_um": run.get("error_um"),
+            "cost": run.get("cost"),
+            "last_latency_ms": run.get("last_latency_ms"),
+            "latency_p50_ms": None if latencies is None else float(np.percentile(latencies, 50)),
+            "latency_p99_ms": None if latencies is None else float(np.percentile(latencies, 99)),
+            "estimation_ms": estimator.get("last_estimation_ms"),
+            "frame_rate": round(self.frame_rate.rate(self.clock()), 2),
+            "latest_frame_seq": self.latest.header.seq if self.latest is not None else None,
+            "reference": self.reference,
+            "stage": {"link": stage.get("link"), "state": stage.get("state"), "reason": stage.get("reason"),
+                      "voltages": stage.get("voltages"), "positions_um": stage.get("positions_um")},
+            "services": {name: {"up": value["up"], "state": value["state"], "last_error": value["last_error"]}
+                         for name, value in services.items()},
+            "down": [name for name, value in services.items() if not value["up"]],
+        }

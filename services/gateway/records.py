@@ -1,0 +1,168 @@
+"""Run records in SQLite (the embedded default): runs, iterations, stage commands and
+events, written as a run goes (one transaction per row, WAL journal) so a crash loses
+at most the row being written, and read back after any restart.
+
+Rows keep the controller's own JSON record beside the columns people query by, so a
+record is never narrowed to what the schema foresaw.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import sqlite3
+import threading
+from pathlib import Path
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS runs (
+    id TEXT PRIMARY KEY,
+    reference_id TEXT,
+    started_at_ns INTEGER NOT NULL,
+    finished_at_ns INTEGER,
+    state TEXT NOT NULL,
+    reason TEXT NOT NULL DEFAULT '',
+    iterations INTEGER NOT NULL DEFAULT 0,
+    final_error_px REAL,
+    settings TEXT NOT NULL,
+    reference TEXT,
+    outcome TEXT,
+    truth TEXT
+);
+CREATE TABLE IF NOT EXISTS iterations (
+    run_id TEXT NOT NULL REFERENCES runs(id),
+    seq INTEGER NOT NULL,
+    iteration INTEGER NOT NULL,
+    action TEXT NOT NULL,
+    t_ns INTEGER NOT NULL,
+    record TEXT NOT NULL,
+    PRIMARY KEY (run_id, seq, action)
+);
+CREATE TABLE IF NOT EXISTS stage_commands (
+    run_id TEXT NOT NULL REFERENCES runs(id),
+    position INTEGER NOT NULL,
+    entry TEXT NOT NULL,
+    PRIMARY KEY (run_id, position)
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    run_id TEXT,
+    t_ns INTEGER NOT NULL,
+    kind TEXT NOT NULL,
+    data TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS iterations_by_run ON iterations(run_id, iteration);
+"""
+
+#: Columns of a run's CSV: one row per iteration, the paper's Fig. 9 quantities.
+CSV_COLUMNS = ("iteration", "seq", "action", "t_ns", "dx_px", "dy_px", "rotation_deg", "error_px", "cost", "gain",
+               "confidence", "snr_db", "move_x_um", "move_y_um", "voltage_x", "voltage_y", "latency_ms")
+
+FINISHED = ("converged", "failed", "stopped")
+
+
+class RunStore:
+    """Thread-safe (one connection, one lock): the gateway's event thread writes while
+    request threads read."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if str(path) != ":memory:":
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.lock = threading.Lock()
+        self.db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
+        self.db.row_factory = sqlite3.Row
+        self.db.execute("PRAGMA journal_mode=WAL")
+        self.db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: durable across a process crash
+        self.db.executescript(SCHEMA)
+
+    def close(self) -> None:
+        with self.lock:
+            self.db.close()
+
+    # -- writing --------------------------------------------------------------
+    def start_run(self, run_id: str, *, started_at_ns: int, settings: dict, reference: dict | None) -> None:
+        with self.lock:
+            self.db.execute(
+                "INSERT OR IGNORE INTO runs (id, reference_id, started_at_ns, state, settings, reference) "
+                "VALUES (?, ?, ?, 'servoing', ?, ?)",
+                (run_id, reference and reference.get("id"), started_at_ns, json.dumps(settings), json.dumps(reference)))
+
+    def add_iteration(self, run_id: str, record: dict) -> None:
+        with self.lock:
+            self.db.execute(
+                "INSERT OR IGNORE INTO iterations (run_id, seq, iteration, action, t_ns, record) VALUES (?, ?, ?, ?, ?, ?)",
+                (run_id, int(record.get("seq", -1)), int(record.get("iteration", 0)), str(record.get("action", "")),
+                 int(record.get("t_ns", 0)), json.dumps(record)))
+            self.db.execute("UPDATE runs SET iterations = MAX(iterations, ?) WHERE id = ?",
+                            (int(record.get("iteration", 0)), run_id))
+
+    def add_event(self, run_id: str | None, t_ns: int, kind: str, data: dict) -> None:
+        with self.lock:
+            self.db.execute("INSERT INTO events (run_id, t_ns, kind, data) VALUES (?, ?, ?, ?)",
+                            (run_id, t_ns, kind, json.dumps(data)))
+
+    def finish_run(self, run_id: str, *, outcome: dict, final_error_px: float | None, stage_log: list[dict],
+                   truth: dict | None) -> None:
+        with self.lock:
+            self.db.execute("BEGIN")
+            self.db.execute(
+                "UPDATE runs SET state = ?, reason = ?, finished_at_ns = ?, iterations = MAX(iterations, ?), "
+                "final_error_px = ?, outcome = ?, truth = ? WHERE id = ?",
+                (outcome["state"], outcome.get("reason", ""), outcome.get("finished_at_ns"),
+                 int(outcome.get("iterations", 0)), final_error_px, json.dumps(outcome), json.dumps(truth), run_id))
+            self.db.executemany("INSERT OR IGNORE INTO stage_commands (run_id, position, entry) VALUES (?, ?, ?)",
+                                [(run_id, index, json.dumps(entry)) for index, entry in enumerate(stage_log)])
+            self.db.execute("COMMIT")
+
+    # -- reading --------------------------------------------------------------
+    def is_finished(self, run_id: str) -> bool:
+        with self.lock:
+            row = self.db.execute("SELECT state FROM runs WHERE id = ?", (run_id,)).fetchone()
+        return row is not None and row["state"] in FINISHED
+
+    def exists(self, run_id: str) -> bool:
+        with self.lock:
+            return self.db.execute("SELECT 1 FROM runs WHERE id = ?", (run_id,)).fetchone() is not None
+
+    def list_runs(self, limit: int = 100, offset: int = 0) -> list[dict]:
+        with self.lock:
+            rows = self.db.execute(
+                "SELECT id, reference_id, started_at_ns, finished_at_ns, state, reason, iterations, final_error_px, "
+                "truth FROM runs ORDER BY started_at_ns DESC LIMIT ? OFFSET ?", (limit, offset)).fetchall()
+        return [{**{key: row[key] for key in row.keys() if key != "truth"},
+                 "truth": json.loads(row["truth"]) if row["truth"] else None} for row in rows]
+
+    def get_run(self, run_id: str) -> dict | None:
+        with self.lock:
+            row = self.db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
+            if row is None:
+                return None
+            iterations = self.db.execute(
+                "SELECT record FROM iterations WHERE run_id = ? ORDER BY iteration, t_ns", (run_id,)).fetchall()
+            commands = self.db.execute(
+                "SELECT entry FROM stage_commands WHERE run_id = ? ORDER BY position", (run_id,)).fetchall()
+        run = {key: row[key] for key in row.keys()}
+        for key in ("settings", "reference", "outcome", "truth"):
+            run[key] = json.loads(run[key]) if run[key] else None
+        run["trajectory"] = [json.loads(r["record"]) for r in iterations]
+        run["stage_commands"] = [json.loads(r["entry"]) for r in commands]
+        return run
+
+    def csv(self, run_id: str) -> str | None:
+        run = self.get_run(run_id)
+        if run is None:
+            return None
+        out = io.StringIO()
+        writer = csv.writer(out)
+        writer.writerow(CSV_COLUMNS)
+        for record in run["trajectory"]:
+            move = record.get("move") or {}
+            voltages = record.get("voltages") or {}
+            writer.writerow([record.get("iteration"), record.get("seq"), record.get("action"), record.get("t_ns"),
+                             record.get("dx_px"), record.get("dy_px"), record.get("rotation_deg"),
+                             record.get("error_px"), record.get("cost"), record.get("gain"), record.get("confidence"),
+                             record.get("snr_db"), move.get("x_um"), move.get("y_um"), voltages.get("x"),
+                             voltages.get("y"), record.get("latency_ms")])
+        return out.getvalue()

@@ -1,0 +1,49 @@
+"""The estimator's core without sockets: teaching from averaged frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semservo.wire import Frame, frame_header
+from services.estimator.core import EstimatorCore, TeachError
+
+
+def frame(pixels: np.ndarray, seq: int, pixel_size_nm: float = 100.0) -> Frame:
+    return Frame(frame_header(pixels, seq=seq, acquired_at_ns=seq, pixel_size_nm=pixel_size_nm,
+                              magnification=1000.0, dwell_ns=720.0, source="test"), pixels)
+
+
+def scene(shift: float, noise_seed: int) -> np.ndarray:
+    rows, cols = np.mgrid[0:128, 0:128]
+    clean = 100 + 50 * np.sin((cols - shift) / 5.0) * np.cos(rows / 7.0)
+    return (clean + np.random.default_rng(noise_seed).normal(0, 20, clean.shape)).astype(np.float32)
+
+
+def test_a_reference_averaged_over_frames_is_their_mean_and_less_noisy():
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    frames = [frame(scene(0.0, seed), seq) for seq, seed in enumerate(range(8))]
+    for each in frames:
+        core.process(each)
+    taught = core.teach_latest(frames=8)
+    assert taught["frames_averaged"] == 8 and taught["frame_seq"] == 7
+    # Eight frames average the noise down by sqrt(8): the estimate of a new noisy frame
+    # against the averaged reference is sharper than against a single frame.
+    averaged = core.process(frame(scene(0.5, 100), 8))
+    core.teach_latest(frames=1)
+    single = core.process(frame(scene(0.5, 101), 9))
+    assert averaged.dx_px == pytest.approx(0.5, abs=0.05)
+    assert averaged.confidence >= single.confidence
+
+
+def test_averaging_asks_for_frames_that_exist_and_share_one_scan():
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    with pytest.raises(TeachError, match="no frame"):
+        core.teach_latest()
+    core.process(frame(scene(0, 1), 0))
+    with pytest.raises(TeachError, match="only 1 frames"):
+        core.teach_latest(frames=4)
+    core.process(frame(scene(0, 2), 1, pixel_size_nm=50.0))
+    with pytest.raises(TeachError, match="scan changed"):
+        core.teach_latest(frames=2)
+    assert core.reference is None  # nothing half-done
