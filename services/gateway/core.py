@@ -27,6 +27,9 @@ from services.gateway.records import FINISHED, RunStore
 
 log = logging.getLogger("gateway")
 
+#: How long one round of health answers serves /status (seconds).
+HEALTH_TTL_S = 0.25
+
 #: The services the gateway reports on, in the order a user reads them.
 SERVICE_NAMES = ("fakelab", "imageserver", "estimator", "stage", "controller")
 
@@ -116,6 +119,8 @@ class GatewayCore:
         self.last_status: dict = {"state": "idle"}
         self.last_estimate: dict | None = None
         self.latencies_ms: deque = deque(maxlen=1000)
+        self.health_lock = threading.Lock()
+        self._health_cache: tuple[float, dict] = (-1e9, {})
 
     # -- streams (called by main's threads) -------------------------------------
     def on_frame(self, frame: Frame) -> None:
@@ -324,6 +329,18 @@ class GatewayCore:
 
     # -- status ---------------------------------------------------------------
     def health(self, names: tuple[str, ...] = SERVICE_NAMES) -> dict[str, dict]:
+        """Every service's health, asked at most every ``HEALTH_TTL_S``: fifty dashboards
+        polling /status must not turn into fifty health requests to each service."""
+        with self.health_lock:
+            cached_at, report = self._health_cache
+            if self.clock() - cached_at < HEALTH_TTL_S and set(names) <= set(report) | set(
+                    name for name in names if self.ports.get(name) is None):
+                return {name: report[name] for name in names if name in report}
+            report = self._ask_health(names)
+            self._health_cache = (self.clock(), report)
+            return report
+
+    def _ask_health(self, names: tuple[str, ...]) -> dict[str, dict]:
         report = {}
         for name in names:
             port = self.ports.get(name)

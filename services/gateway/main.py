@@ -16,6 +16,7 @@ import argparse
 import ipaddress
 import logging
 import threading
+import time
 from pathlib import Path
 
 import uvicorn
@@ -130,6 +131,10 @@ def main(argv: list[str] | None = None) -> int:
                                            access_log=False, lifespan="on"))
     http = threading.Thread(target=server.run, name="http", daemon=True)
     http.start()
+    # Healthy means serving HTTP: health is answered only from runtime.run() on.
+    deadline = time.monotonic() + 15
+    while not server.started and http.is_alive() and time.monotonic() < deadline:
+        time.sleep(0.02)
     url = f"http://{config.http_host}:{config.http_port}"
     print(f"semservo gateway: {url}/ (dashboard), {url}/docs (API){' - token required' if token else ''}",
           flush=True)

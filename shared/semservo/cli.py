@@ -9,6 +9,7 @@
     semservo teach      teach the running estimator a reference
     semservo motion     watch the estimator's motion stream
     semservo calibrate  sweep a stage axis, measure it in the images, fit its model
+    semservo demo       teach, displace the stage, position back, print the result
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import signal
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 from semservo import __version__
 from semservo.config import Settings, connect
@@ -413,6 +416,68 @@ def command_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def command_demo(args: argparse.Namespace) -> int:
+    """Teach, displace, position back, report: on the running system, or on one the demo
+    starts (simulated hardware) and stops again."""
+    from semservo.client import Client, SemservoError
+
+    if args.speedup:
+        os.environ["SEMSERVO_FAKELAB__SPEEDUP"] = str(args.speedup)
+        os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(200 * args.speedup)
+    settings = Settings()
+    url = args.url or f"http://127.0.0.1:{settings.gateway.http_port}"
+    launcher = None
+    lab = Client(url, timeout=30)
+    try:
+        try:
+            lab.status()
+            print(f"using the running system at {url}")
+        except SemservoError:
+            print(f"no system at {url}: starting one on simulated hardware (semservo up does the same)")
+            launcher = Launcher(settings, out=open(os.devnull, "w") if not args.verbose else sys.stdout)
+            launcher.start(timeout_s=120)
+        deadline = time.monotonic() + 60
+        while lab.status()["latest_frame_seq"] is None:
+            if time.monotonic() > deadline:
+                print("no frames reach the gateway: is the image server running?", file=sys.stderr)
+                return 1
+            time.sleep(0.2)
+        reference = lab.teach(frames=args.frames)
+        print(f"1. taught reference {reference['id']} (mean of {args.frames} live frames)")
+        lab.move(x_um=args.offset[0], y_um=args.offset[1])
+        time.sleep(args.settle)
+        print(f"2. displaced the stage by ({args.offset[0]:+g}, {args.offset[1]:+g}) um, as an operator's joystick would")
+        run = lab.start(tolerance_px=args.tolerance)
+        print(f"3. positioning run {run['run_id']} started (tolerance {args.tolerance:g} px); waiting ...", flush=True)
+        result = lab.wait(run["run_id"], timeout=args.timeout)
+        duration_s = ((result["finished_at_ns"] or time.time_ns()) - result["started_at_ns"]) / 1e9
+        print(f"4. {result['state']} after {result['iterations']} iterations in {duration_s:.1f} s"
+              f"{' (' + result['reason'] + ')' if result['reason'] else ''}")
+        if result["final_error_px"] is not None:
+            print(f"   estimated final error {result['final_error_px']:.3f} px")
+        truth = result.get("truth")
+        if truth:
+            print(f"   true final error (simulator) {truth['error_norm_px']:.3f} px = "
+                  f"{1000 * float(np.hypot(*truth['error_um'])):.1f} nm")
+        report = Path(settings.controller.runs_dir) / f"{run['run_id']}-report.png"
+        report.parent.mkdir(parents=True, exist_ok=True)
+        report.write_bytes(lab.http.get(f"/runs/{run['run_id']}/report.png").content)
+        print(f"   report (error, cost, voltages per iteration): {report}")
+        if launcher is None:
+            print(f"   the run's record: {url}/runs/{run['run_id']}  (dashboard: {url}/)")
+        return 0 if result["state"] == "converged" else 1
+    except SemservoError as error:
+        print(f"demo failed: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    finally:
+        lab.close()
+        if launcher is not None:
+            launcher.stop()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="semservo",
@@ -515,6 +580,23 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("--no-truth", action="store_true", help="do not ask the simulated lab for the truth")
     calibrate.add_argument("--out", help="model file to write (default calibration-AXIS.json; plot beside it)")
     calibrate.set_defaults(handler=command_calibrate)
+
+    demo = commands.add_parser(
+        "demo", help="teach, displace the stage, position back, print the result",
+        description="Through the REST API (the gateway): teach the live view, jog the stage away, start a "
+                    "positioning run, wait, and print iterations, time, the estimated and (on simulated "
+                    "hardware) the true final error, with the path of the run's report. Uses the running "
+                    "system, or starts one on simulated hardware and stops it afterwards.")
+    demo.add_argument("--url", help="gateway address (default http://127.0.0.1:HTTP_PORT)")
+    demo.add_argument("--offset", type=float, nargs=2, default=(6.0, -4.0), metavar=("X_UM", "Y_UM"),
+                      help="how far to displace the stage (default 6 -4 um)")
+    demo.add_argument("--tolerance", type=float, default=0.1, help="converged under this error, px (default 0.1)")
+    demo.add_argument("--frames", type=int, default=4, help="live frames averaged into the reference (default 4)")
+    demo.add_argument("--settle", type=float, default=1.0, help="seconds to wait after the jog (default 1)")
+    demo.add_argument("--timeout", type=float, default=300.0, help="give up on the run after this many seconds")
+    demo.add_argument("--speedup", type=float, help="when the demo starts the system: simulated time this much faster")
+    demo.add_argument("--verbose", action="store_true", help="show the services' logs when the demo starts them")
+    demo.set_defaults(handler=command_demo)
 
     health = commands.add_parser("health", help="ask services for their health")
     health.add_argument("names", nargs="*", help="services (default: all)")

@@ -2,7 +2,7 @@
 
     from semservo.client import Client
 
-    with Client() as lab:                        # http://127.0.0.1:8000 by default
+    with Client() as lab:                        # $SEMSERVO_URL, else http://127.0.0.1:8000
         lab.teach()                              # the live frame is the target
         lab.move(x_um=6, y_um=-4)                # jog away (relative, um)
         run = lab.start(tolerance_px=0.1)        # servo back
@@ -94,7 +94,8 @@ def _auth_only(headers) -> dict[str, str]:
 class Client:
     """Synchronous client. ``token``: the API token (default ``$SEMSERVO_API_TOKEN``)."""
 
-    def __init__(self, url: str = DEFAULT_URL, *, token: str | None = None, timeout: float = 10.0):
+    def __init__(self, url: str | None = None, *, token: str | None = None, timeout: float = 10.0):
+        url = url or os.environ.get("SEMSERVO_URL", DEFAULT_URL)
         self.http = httpx.Client(base_url=url, headers=_headers(token), timeout=timeout)
 
     def __enter__(self) -> "Client":
@@ -176,7 +177,8 @@ class Client:
 class AsyncClient:
     """The same API for asyncio scripts."""
 
-    def __init__(self, url: str = DEFAULT_URL, *, token: str | None = None, timeout: float = 10.0):
+    def __init__(self, url: str | None = None, *, token: str | None = None, timeout: float = 10.0):
+        url = url or os.environ.get("SEMSERVO_URL", DEFAULT_URL)
         self.http = httpx.AsyncClient(base_url=url, headers=_headers(token), timeout=timeout)
 
     async def __aenter__(self) -> "AsyncClient":

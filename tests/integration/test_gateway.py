@@ -238,6 +238,36 @@ def test_teach_from_an_upload_and_a_clicked_polygon(system):
     assert mask["kind"] == "mask" and lab.status()["reference"]["id"] == mask["id"]
 
 
+@pytest.mark.parametrize("script, args, expect", [
+    ("position_to_target.py", [], r"converged after \d+ iterations"),
+    ("hold_against_drift.py", ["3"], r"held for 3 s; largest error seen [\d.]+ px"),
+])
+def test_the_examples_run(system, script, args, expect, tmp_path):
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "SEMSERVO_URL": str(system["client"].http.base_url).rstrip("/")}
+    done = subprocess.run([sys.executable, str(Path(__file__).parents[2] / "examples" / script), *args], env=env,
+                          cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert re.search(expect, done.stdout), done.stdout
+
+
+def test_async_client_reads_status_and_runs(system):
+    import asyncio
+
+    from semservo.client import AsyncClient
+
+    async def read():
+        async with AsyncClient(str(system["client"].http.base_url)) as lab:
+            return await lab.status(), await lab.runs(limit=5)
+
+    status, runs = asyncio.run(read())
+    assert status["services"]["controller"]["up"] and runs and runs[0]["state"] in ("converged", "stopped", "failed")
+
+
 def test_a_killed_service_is_named_down(system):
     lab, launcher = system["client"], system["launcher"]
     pid = launcher.health("estimator").pid

@@ -1,0 +1,29 @@
+"""`semservo demo`, what the README shows a newcomer: it starts the system on simulated
+hardware, teaches, displaces the stage, positions back and reports."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.integration
+
+
+def test_the_demo_starts_the_system_positions_and_reports(ports, monkeypatch, tmp_path):
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(tmp_path / "runs"))
+    monkeypatch.setenv("SEMSERVO_GATEWAY__DATABASE", str(tmp_path / "runs" / "semservo.sqlite"))
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FPS", "100")
+    done = subprocess.run([sys.executable, "-m", "semservo", "demo", "--speedup", "20", "--tolerance", "0.15"],
+                          capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = done.stdout
+    assert "starting one on simulated hardware" in out
+    assert re.search(r"4\. converged after \d+ iterations in [\d.]+ s", out), out
+    true_px = float(re.search(r"true final error \(simulator\) ([\d.]+) px", out).group(1))
+    assert true_px < 0.5
+    report = Path(re.search(r"report \(error, cost, voltages per iteration\): (\S+)", out).group(1))
+    assert report.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
