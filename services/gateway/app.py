@@ -171,15 +171,18 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
               summary="Teach the reference: the live frame(s), an uploaded image, or a mask")
     async def teach(
         frames: Annotated[int, Query(ge=1, le=16, description="average this many live frames")] = 1,
+        dwell_ns: Annotated[float | None, Query(gt=0, le=100_000, description="scan the reference once at this "
+                                                "dwell (ns/px): a slow, high-quality reference")] = None,
         image: Annotated[UploadFile | None, File(description="PNG/TIFF reference of the current scan's size")] = None,
         mask: Annotated[UploadFile | None, File(description="PNG/TIFF binary mask (paper case 6)")] = None,
         label: Annotated[str | None, Form(max_length=200)] = None,
     ) -> TeachResult:
-        if image is not None and mask is not None:
-            raise GatewayError(422, "invalid", "give either image or mask, not both", field="image")
+        if sum(given is not None for given in (image, mask, dwell_ns)) > 1:
+            raise GatewayError(422, "invalid", "give one of image, mask, dwell_ns", field="image")
         image_bytes = await read_upload(image, "image") if image is not None else None
         mask_bytes = await read_upload(mask, "mask") if mask is not None else None
-        result = await asyncio.to_thread(core.teach, frames=frames, image=image_bytes, mask=mask_bytes, label=label)
+        result = await asyncio.to_thread(core.teach, frames=frames, image=image_bytes, mask=mask_bytes, label=label,
+                                         dwell_ns=dwell_ns)
         return taught(result)
 
     @app.post("/teach/polygon", response_model=TeachResult, dependencies=[Auth], tags=["teach"],

@@ -14,12 +14,13 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 from PIL import Image
 
-from semservo.imagefiles import ImageFileError, read_image
+from semservo.imagefiles import ImageFileError, read_image, write_image
 from semservo.messages import ControllerEvent
 from semservo.transport import CommandError, ServiceUnavailable
 from semservo.wire import Frame
@@ -104,8 +105,9 @@ class FrameRate:
 class GatewayCore:
     def __init__(self, ports: dict[str, Port | None], store: RunStore, *,
                  clock: Callable[[], float] = time.monotonic,
-                 broadcast: Callable[[dict], None] | None = None):
+                 broadcast: Callable[[dict], None] | None = None, frames_dir: Path | None = None):
         self.ports = ports
+        self.frames_dir = frames_dir  # set: each run's frames are kept there as TIFF with their metadata
         self.store = store
         self.clock = clock
         self.broadcast = broadcast or (lambda message: None)
@@ -128,6 +130,14 @@ class GatewayCore:
             self.latest = frame
         self.frame_rate.add(self.clock())
         self.counters["frames"] += 1
+        run_id = self.last_status.get("run_id")
+        if self.frames_dir is not None and run_id and self.last_status.get("state") == "servoing":
+            header = frame.header
+            (self.frames_dir / run_id).mkdir(parents=True, exist_ok=True)
+            write_image(self.frames_dir / run_id / f"{header.seq:08d}.tif", frame.pixels, seq=header.seq,
+                        acquired_at_ns=header.acquired_at_ns, pixel_size_nm=header.pixel_size_nm,
+                        magnification=header.magnification, dwell_ns=header.dwell_ns)
+            self.counters["frames_saved"] += 1
 
     def on_event(self, event: ControllerEvent) -> None:
         """A controller event: recorded (a run's first sight creates its row), then
@@ -206,12 +216,19 @@ class GatewayCore:
 
     # -- teaching -------------------------------------------------------------
     def teach(self, *, frames: int = 1, image: bytes | None = None, mask: bytes | None = None,
-              polygon: list | None = None, label: str | None = None) -> dict:
+              polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None) -> dict:
         """Teach the estimator; a refusal keeps the previous reference (the estimator
-        installs a new one only when it is built)."""
+        installs a new one only when it is built). ``dwell_ns``: scan the reference once
+        at that dwell (a slow, high-quality reference, paper case 5)."""
         estimator = self.ports.get("estimator")
         call(estimator, "estimator", "health")  # a dead estimator is named in a second, not after the teach timeout
         latest = self.latest
+        scanned_interval = None
+        if dwell_ns is not None:
+            scan = call(self.ports.get("imageserver"), "imageserver", "scan_once", {"dwell_ns": dwell_ns})
+            image = base64.b64decode(scan["image_b64"])
+            label = label or f"one scan at {dwell_ns:g} ns/px"
+            scanned_interval = scan.get("source_interval_s")
         if image is not None or mask is not None:
             try:
                 pixels, _ = read_image(image if image is not None else mask)
@@ -235,7 +252,8 @@ class GatewayCore:
         with self.lock:
             self.reference = result
             self.reference_pixels = None if reference_pixels is None else np.array(reference_pixels)
-        self.taught_truth = self._taught_truth(result)
+        self.taught_truth = self._taught_truth({**result, "source_interval_s": scanned_interval} if scanned_interval
+                                               else result)
         self.counters["references_taught"] += 1
         self.broadcast({"kind": "reference", "run_id": None, "data": result})
         return result

@@ -38,7 +38,7 @@ DASHBOARD = Path(__file__).parent / "dashboard"
 
 #: Commands that do real work before answering get longer than the 1 s default: a
 #: teach plans its FFTs, a finished run's record carries every iteration.
-SLOW_COMMANDS_S = {"teach": 10.0, "start": 5.0, "run": 5.0, "log": 5.0}
+SLOW_COMMANDS_S = {"teach": 10.0, "start": 5.0, "run": 5.0, "log": 5.0, "scan_once": 90.0}
 
 
 class LockedPort:
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         "controller": port(settings.controller.host, settings.controller.control_port),
     }
     store = RunStore(config.database)
-    core = GatewayCore(ports, store)
+    core = GatewayCore(ports, store, frames_dir=config.database.parent / "frames" if config.save_frames else None)
     app = create_app(core, api_token=token, max_upload_bytes=config.max_upload_bytes,
                      static_dir=DASHBOARD if DASHBOARD.is_dir() else None)
     core.broadcast = app.state.publish

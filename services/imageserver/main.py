@@ -8,10 +8,14 @@ and ``replay`` (a folder of frames; implied by ``--replay-dir``).
 from __future__ import annotations
 
 import argparse
+import base64
+import io
 import logging
 from pathlib import Path
 
 import time
+
+from PIL import Image
 
 from semservo.config import Settings, connect
 from semservo.logs import configure
@@ -99,8 +103,35 @@ def main(argv: list[str] | None = None) -> int:
             raise BadRequest(f"fps: {error}") from None
         return {"fps": core.pacer.fps}
 
+    def scan_once(args: dict) -> dict:
+        """One frame scanned with other settings (e.g. a slow dwell for a high-quality
+        reference, paper case 5), returned as a 16-bit PNG in base64 with its header;
+        the stream goes on with the usual settings. Only the scanning (sim) source can."""
+        if not isinstance(source, BackgroundAcquisition) or not isinstance(source.source, SimSource):
+            raise BadRequest("scan_once needs a scanning source (sim); a replay cannot scan")
+        try:
+            request = source.source.request.model_copy(update={
+                key: float(args[key]) for key in ("dwell_ns", "magnification") if args.get(key) is not None})
+            request = ScanRequest.model_validate(request.model_dump())
+        except (TypeError, ValueError) as error:
+            raise BadRequest(f"scan settings: {error}") from None
+        one_off = SimSource(source.source.endpoint, request, timeout_s=max(config.scan_timeout_s, 60.0),
+                            max_message_bytes=settings.max_message_bytes, context=runtime.context)
+        try:
+            image = one_off.acquire()
+        except SourceUnavailable as error:
+            raise BadRequest(str(error)) from None
+        finally:
+            one_off.close()
+        buffer = io.BytesIO()
+        Image.fromarray(image.pixels).save(buffer, format="PNG")
+        return {"image_b64": base64.b64encode(buffer.getvalue()).decode(), "dwell_ns": image.dwell_ns,
+                "magnification": image.magnification, "pixel_size_nm": image.pixel_size_nm,
+                "source_interval_s": image.source_interval_s}
+
     runtime.control.register("info", info)
     runtime.control.register("set_fps", set_fps)
+    runtime.control.register("scan_once", scan_once)
     runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq}
 
     retry_at = 0.0

@@ -68,7 +68,7 @@ def _headers(token: str | None) -> dict[str, str]:
 
 
 def _teach_request(frames: int, image: str | Path | bytes | None, mask: str | Path | bytes | None,
-                   polygon: list | None, label: str | None) -> tuple[str, dict]:
+                   polygon: list | None, label: str | None, dwell_ns: float | None = None) -> tuple[str, dict]:
     if polygon is not None:
         return "/teach/polygon", {"json": {"polygon": polygon}}
     files, data = {}, {}
@@ -78,7 +78,8 @@ def _teach_request(frames: int, image: str | Path | bytes | None, mask: str | Pa
             files[name] = (Path(value).name if not isinstance(value, (bytes, bytearray)) else f"{name}.png", content)
     if label:
         data["label"] = label
-    return "/teach", {"params": {"frames": frames}, "files": files or None, "data": data or None}
+    params = {"frames": frames} if dwell_ns is None else {"frames": frames, "dwell_ns": dwell_ns}
+    return "/teach", {"params": params, "files": files or None, "data": data or None}
 
 
 def _move_body(x_um: float | None, y_um: float | None, relative: bool) -> dict:
@@ -117,10 +118,11 @@ class Client:
             else response.content
 
     def teach(self, *, frames: int = 1, image: str | Path | bytes | None = None, mask: str | Path | bytes | None = None,
-              polygon: list | None = None, label: str | None = None) -> dict:
-        """Teach the live frame (``frames`` > 1 averages that many), an image file, a
-        mask image, or a polygon of corner points [[x, y], ...] on the live frame."""
-        path, kwargs = _teach_request(frames, image, mask, polygon, label)
+              polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None) -> dict:
+        """Teach the live frame (``frames`` > 1 averages that many), one scan at a slow
+        ``dwell_ns`` (a high-quality reference), an image file, a mask image, or a
+        polygon of corner points [[x, y], ...] on the live frame."""
+        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns)
         return self._call("POST", path, **kwargs)
 
     def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:
@@ -200,8 +202,8 @@ class AsyncClient:
             else response.content
 
     async def teach(self, *, frames: int = 1, image=None, mask=None, polygon: list | None = None,
-                    label: str | None = None) -> dict:
-        path, kwargs = _teach_request(frames, image, mask, polygon, label)
+                    label: str | None = None, dwell_ns: float | None = None) -> dict:
+        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns)
         return await self._call("POST", path, **kwargs)
 
     async def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:

@@ -141,7 +141,7 @@ class GatewaySettings(BaseModel):
     control_port: int = Field(5585, ge=1, le=65535, description="REP socket for health (the launcher's)")
     api_token: SecretStr | None = Field(None, description="bearer token for state-changing endpoints")
     database: Path = Field(Path("runs/semservo.sqlite"), description="SQLite file with every run's record")
-    save_frames: bool = Field(False, description="also keep each run's frames as TIFF beside the database")
+    save_frames: bool = Field(False, description="also keep each run's frames as TIFF (frames/<run id>/ beside the database)")
     max_upload_bytes: int = Field(32 * 2**20, ge=1024, description="largest image upload accepted")
 
 

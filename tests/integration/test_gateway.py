@@ -48,12 +48,13 @@ def system(tmp_path_factory):
         env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(folder / "runs"))
         env.setenv("SEMSERVO_GATEWAY__DATABASE", str(folder / "runs" / "semservo.sqlite"))
         env.setenv("SEMSERVO_GATEWAY__MAX_UPLOAD_BYTES", str(2 * 2**20))
+        env.setenv("SEMSERVO_GATEWAY__SAVE_FRAMES", "true")
         settings = Settings()
         launcher = Launcher(settings, out=(folder / "services.log").open("w"))
         launcher.start(timeout_s=90)
         client = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=15)
         try:
-            yield {"client": client, "launcher": launcher, "settings": settings}
+            yield {"client": client, "launcher": launcher, "settings": settings, "folder": folder}
         finally:
             client.close()
             launcher.stop()
@@ -115,6 +116,15 @@ def test_teach_jog_position_and_the_record(system):
     report = lab.http.get(f"/runs/{run['run_id']}/report.png")
     assert report.headers["content-type"] == "image/png"
     assert Image.open(io.BytesIO(report.content)).size == (1000, 320)
+
+    # The run's frames, kept as TIFF with their metadata.
+    from semservo.imagefiles import read_image
+
+    saved = sorted((system["folder"] / "runs" / "frames" / run["run_id"]).glob("*.tif"))
+    assert len(saved) >= result["iterations"]
+    pixels, metadata = read_image(saved[-1])
+    assert pixels.shape == (512, 512) and metadata["pixel_size_nm"] == pytest.approx(result["trajectory"][-1]
+                                                                                     ["pixel_size_nm"])
 
 
 def test_images_metrics_and_events(system):
@@ -226,6 +236,16 @@ def test_bad_uploads_are_refused_and_keep_the_previous_reference(system):
     response = lab.http.post("/teach", params={"frames": 99})
     assert response.status_code == 422 and response.json()["error"]["field"] == "frames"
     assert lab.status()["reference"]["id"] == good["id"]
+
+
+def test_teach_a_slow_high_quality_scan(system):
+    lab = system["client"]
+    frames_flowing(lab)
+    slow = lab.teach(dwell_ns=2900)  # paper case 5: one slow scan as the reference
+    assert slow["kind"] == "image" and "2900 ns/px" in slow["detail"]["label"]
+    assert lab.status()["reference"]["id"] == slow["id"]
+    response = lab.http.post("/teach", params={"dwell_ns": -5})
+    assert response.status_code == 422 and response.json()["error"]["field"] == "dwell_ns"
 
 
 def test_teach_from_an_upload_and_a_clicked_polygon(system):
