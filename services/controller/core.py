@@ -181,6 +181,7 @@ class ControllerCore:
         recent.append((estimate.dx_px, estimate.dy_px, estimate.rotation_deg))
         del recent[:-self.settings.converge_frames]
         mean_dx, mean_dy, mean_rotation = np.mean(recent, axis=0)
+        record["mean_error_px"] = float(math.hypot(mean_dx, mean_dy))  # what convergence is judged on
         within = len(recent) == self.settings.converge_frames and math.hypot(mean_dx, mean_dy) <= \
             self.settings.tolerance_px and ("rotation" not in self.settings.dofs
                                             or abs(mean_rotation) <= self.settings.tolerance_deg)
@@ -320,11 +321,14 @@ class ControllerCore:
     def status(self) -> dict:
         run = self.run or {}
         records = run.get("records", [])
-        last = next((r for r in reversed(records) if "error_px" in r), None)
+        # The error now: of the last fresh frame (one scanned during a move shows a pose in between).
+        last = next((r for r in reversed(records) if "error_px" in r and not r.get("action", "").startswith("held: stale")),
+                    None)
         last_moved = next((r for r in reversed(records) if r.get("action") == "moved"), None)
         return {
             "state": self.state, "reason": self.reason, "run_id": run.get("id"),
             "iteration": run.get("iterations", 0), "error_px": last and last["error_px"],
+            "mean_error_px": last and last.get("mean_error_px"),
             "error_um": last and last["error_px"] * last["pixel_size_nm"] / 1000,
             "cost": last and last.get("cost"), "rotation_deg": last and last["rotation_deg"],
             "last_latency_ms": last_moved and last_moved["latency_ms"],

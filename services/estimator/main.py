@@ -82,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         "reference": core.reference.describe() if core.reference else "none taught: publishing nothing",
         "last_latency_ms": core.last_estimate.latency_ms if core.last_estimate else None,
         "last_estimation_ms": core.last_estimate.estimation_ms if core.last_estimate else None,
+        "last_snr_db": core.last_estimate.snr_db if core.last_estimate else None,
     }
 
     def on_frame() -> None:

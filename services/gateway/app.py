@@ -61,6 +61,14 @@ class MoveRequest(BaseModel):
     relative: bool = Field(True, description="a step from here (jog), or an absolute target")
 
 
+class CenterRequest(BaseModel):
+    """A point of the live image (pixels, x right, y down) to bring to the centre."""
+
+    model_config = {"extra": "forbid"}
+    x_px: float
+    y_px: float
+
+
 class StartResult(BaseModel):
     run_id: str
     state: str
@@ -84,11 +92,13 @@ class Status(BaseModel):
     iteration: int
     error_px: float | None
     error_um: float | None
+    mean_error_px: float | None = None
     cost: float | None
     last_latency_ms: float | None
     latency_p50_ms: float | None
     latency_p99_ms: float | None
     estimation_ms: float | None
+    snr_db: float | None = None
     frame_rate: float
     latest_frame_seq: int | None
     reference: dict | None
@@ -197,6 +207,16 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         if not targets:
             raise GatewayError(422, "invalid", "give x_um and/or y_um", field="x_um")
         return core.move(targets, body.relative)
+
+    @app.post("/stage/center", dependencies=[Auth], tags=["stage"],
+              summary="Click to move: bring this point of the live image to its centre")
+    def center(body: CenterRequest) -> dict:
+        return core.center(body.x_px, body.y_px)
+
+    @app.post("/stage/resume", dependencies=[Auth], tags=["stage"],
+              summary="Let a stopped (or watchdog-held) stage move again")
+    def resume() -> dict:
+        return core.resume()
 
     @app.get("/stage", tags=["stage"], summary="Position, voltages, limits and serial link state")
     def stage() -> dict:

@@ -20,6 +20,7 @@ from typing import Protocol
 import numpy as np
 from PIL import Image
 
+from semservo.control import CameraToStage
 from semservo.imagefiles import ImageFileError, read_image, write_image
 from semservo.messages import ControllerEvent
 from semservo.transport import CommandError, ServiceUnavailable
@@ -105,8 +106,10 @@ class FrameRate:
 class GatewayCore:
     def __init__(self, ports: dict[str, Port | None], store: RunStore, *,
                  clock: Callable[[], float] = time.monotonic,
-                 broadcast: Callable[[dict], None] | None = None, frames_dir: Path | None = None):
+                 broadcast: Callable[[dict], None] | None = None, frames_dir: Path | None = None,
+                 camera: CameraToStage | None = None):
         self.ports = ports
+        self.camera = camera or CameraToStage()
         self.frames_dir = frames_dir  # set: each run's frames are kept there as TIFF with their metadata
         self.store = store
         self.clock = clock
@@ -196,10 +199,12 @@ class GatewayCore:
 
     def _true_final_error(self, record: dict) -> dict | None:
         """On simulated hardware: the true pose over the scans of the run's last three
-        frames against the true pose over the reference's scans, in um and px."""
+        fresh frames (what it judged convergence on) against the true pose over the
+        reference's scans, in um and px."""
         fakelab = self.ports.get("fakelab")
-        scans = [r["frame_source_interval_s"] for r in record.get("records", [])[-3:]
-                 if r.get("frame_source_interval_s")]
+        fresh = [r for r in record.get("records", []) if r.get("frame_source_interval_s")
+                 and not r.get("action", "").startswith("held")]
+        scans = [r["frame_source_interval_s"] for r in fresh[-3:]]
         if fakelab is None or self.taught_truth is None or not scans:
             return None
         if self.taught_truth.get("reference_id") != record.get("reference_id"):
@@ -305,6 +310,26 @@ class GatewayCore:
         return call(self.ports.get("stage"), "stage", "move", {"targets": targets, "relative": relative,
                                                                 "owner": "gateway"})
 
+    def center(self, x_px: float, y_px: float) -> dict:
+        """Move the stage so the live image's point (x, y) comes to the centre (click to
+        move), through the camera-to-stage transform and the frame's pixel size."""
+        frame = self.latest
+        if frame is None:
+            raise GatewayError(409, "no_frame", "no live frame to click on yet")
+        rows, cols = frame.pixels.shape
+        if not (0 <= x_px < cols and 0 <= y_px < rows):
+            raise GatewayError(422, "invalid", f"({x_px:.1f}, {y_px:.1f}) is outside the {cols} x {rows} image",
+                               field="x_px")
+        x_um, y_um = self.camera.stage_move_um(cols / 2 - x_px, rows / 2 - y_px, frame.header.pixel_size_nm)
+        return self.move({"x": x_um, "y": y_um}, relative=True)
+
+    def resume(self) -> dict:
+        """Let a stopped or held stage move again (a run cannot be active then)."""
+        status = call(self.ports.get("controller"), "controller", "status")
+        if status.get("state") == "servoing":
+            raise GatewayError(409, "run_active", f"run {status['run_id']} is active", run_id=status["run_id"])
+        return call(self.ports.get("stage"), "stage", "resume")
+
     def stage_state(self) -> dict:
         return call(self.ports.get("stage"), "stage", "state")
 
@@ -388,11 +413,13 @@ class GatewayCore:
             "iteration": run.get("iteration", 0),
             "error_px": run.get("error_px"),
             "error_um": run.get("error_um"),
+            "mean_error_px": run.get("mean_error_px"),
             "cost": run.get("cost"),
             "last_latency_ms": run.get("last_latency_ms"),
             "latency_p50_ms": None if latencies is None else float(np.percentile(latencies, 50)),
             "latency_p99_ms": None if latencies is None else float(np.percentile(latencies, 99)),
             "estimation_ms": estimator.get("last_estimation_ms"),
+            "snr_db": estimator.get("last_snr_db"),
             "frame_rate": round(self.frame_rate.rate(self.clock()), 2),
             "latest_frame_seq": self.latest.header.seq if self.latest is not None else None,
             "reference": self.reference,

@@ -22,6 +22,7 @@ from pathlib import Path
 import uvicorn
 
 from semservo.config import Settings, connect
+from semservo.control import CameraToStage
 from semservo.logs import configure
 from semservo.messages import CONTROLLER_TOPIC, ControllerEvent
 from semservo.service import ServiceRuntime
@@ -99,7 +100,10 @@ def main(argv: list[str] | None = None) -> int:
         "controller": port(settings.controller.host, settings.controller.control_port),
     }
     store = RunStore(config.database)
-    core = GatewayCore(ports, store, frames_dir=config.database.parent / "frames" if config.save_frames else None)
+    camera = CameraToStage(tuple(settings.controller.axis_signs), settings.controller.orientation_deg,
+                           settings.controller.rotation_sign)
+    core = GatewayCore(ports, store, frames_dir=config.database.parent / "frames" if config.save_frames else None,
+                       camera=camera)
     app = create_app(core, api_token=token, max_upload_bytes=config.max_upload_bytes,
                      static_dir=DASHBOARD if DASHBOARD.is_dir() else None)
     core.broadcast = app.state.publish
