@@ -70,11 +70,13 @@ class RunSettings(BaseModel):
 
 
 class ControllerCore:
-    def __init__(self, stage: Port, *, rotation: Port | None = None, camera: CameraToStage | None = None,
+    def __init__(self, stage: Port, *, rotation: Port | None = None, estimator: Port | None = None,
+                 camera: CameraToStage | None = None,
                  runs_dir: Path | None = None, watchdog_s: float = 3.0, name: str = "controller",
                  clock: Callable[[], float] = time.monotonic, publish: Callable[[str, dict], None] | None = None):
         self.stage = stage
         self.rotation = rotation
+        self.estimator = estimator
         self.camera = camera or CameraToStage()
         self.runs_dir = runs_dir
         self.watchdog_s = watchdog_s
@@ -109,6 +111,7 @@ class ControllerCore:
             "min_cost": math.inf, "rising": 0, "held_stale": 0, "recent": [],
         }
         self.state, self.reason = "servoing", ""
+        self._estimator_measures(rotation="rotation" in settings.dofs)
         self.last_heartbeat = self.clock()
         self._open_journal()
         self._status()
@@ -126,8 +129,20 @@ class ControllerCore:
             self._finish("stopped", reason)
         return self.status()
 
+    def _estimator_measures(self, rotation: bool | None) -> None:
+        """Tell the estimator whether rotation matters (a run without the rotation DOF
+        does not need it, and translation alone is three times faster); None restores
+        its configuration. Not being heard is logged, never fatal."""
+        if self.estimator is None:
+            return
+        try:
+            self.estimator.request("measure", {"rotation": rotation})
+        except (CommandError, ServiceUnavailable) as error:
+            log.warning("could not set the estimator's rotation measurement: %s", error)
+
     def _finish(self, state: ControllerState, reason: str) -> None:
         self.state, self.reason = state, reason
+        self._estimator_measures(rotation=None)
         try:
             if state != "stopped":  # a finished run releases the watchdog; stop already did
                 self.stage.request("disarm", {"owner": self.owner})

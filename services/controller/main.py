@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         events.publish(ControllerEvent(kind=kind, run_id=core.run and core.run["id"], data=data))
 
     core = ControllerCore(
-        ServicePort(stage_client), rotation=rotation,
+        ServicePort(stage_client), rotation=rotation, estimator=ServicePort(estimator_client),
         camera=CameraToStage(tuple(config.axis_signs), config.orientation_deg, config.rotation_sign),
         runs_dir=config.runs_dir, watchdog_s=config.watchdog_s, publish=publish,
     )

@@ -55,6 +55,9 @@ class EstimatorCore:
     def __init__(self, *, rotation: bool = True, precision: str = "fast", fft_effort: str = "FFTW_MEASURE",
                  counters: Counter | None = None):
         self.rotation = rotation
+        # Whether each frame's rotation is measured (a run that cannot turn the sample
+        # switches it off: translation alone takes a third of the time).
+        self.measure_rotation = rotation
         self.precision = precision
         self.fft_effort = fft_effort
         self.estimator: MotionEstimator | None = None
@@ -128,6 +131,13 @@ class EstimatorCore:
         return self._install(np.array(self.latest.pixels), "mask", self.latest.header.pixel_size_nm,
                              mask=shape_mask, **detail)
 
+    def measure(self, rotation: bool | None) -> dict:
+        """Measure rotation per frame or not (None: as configured)."""
+        if rotation and not self.rotation:
+            raise TeachError("rotation is off in this estimator's configuration (SEMSERVO_ESTIMATOR__ROTATION)")
+        self.measure_rotation = self.rotation if rotation is None else bool(rotation)
+        return {"rotation": self.measure_rotation}
+
     def clear(self) -> dict:
         had = self.reference is not None
         self.estimator = None
@@ -148,7 +158,7 @@ class EstimatorCore:
             raise ValueError(f"frame {frame.header.seq} is {frame.header.shape}, the reference is "
                              f"{self.estimator.shape}; teach again after changing the scan")
         started = time.perf_counter()
-        motion = self.estimator.estimate(frame.pixels)
+        motion = self.estimator.estimate(frame.pixels, rotation=self.measure_rotation and self.estimator.rotation)
         elapsed_ms = (time.perf_counter() - started) * 1e3
         now = time.time_ns()
         estimate = MotionEstimate(
@@ -170,6 +180,7 @@ class EstimatorCore:
         return {
             "reference": self.reference.describe() if self.reference else None,
             "rotation": self.rotation,
+            "measure_rotation": self.measure_rotation,
             "precision": self.precision,
             "latest_frame_seq": self.latest.header.seq if self.latest else None,
             "last_estimate": self.last_estimate.model_dump() if self.last_estimate else None,

@@ -76,7 +76,17 @@ def main(argv: list[str] | None = None) -> int:
         return core.clear()
 
     runtime.control.register("teach", teach)
+    def measure(args: dict) -> dict:
+        rotation = args.get("rotation")
+        if rotation is not None and not isinstance(rotation, bool):
+            raise BadRequest("rotation must be true, false or null")
+        try:
+            return core.measure(rotation)
+        except TeachError as error:
+            raise BadRequest(str(error)) from None
+
     runtime.control.register("clear", clear)
+    runtime.control.register("measure", measure)
     runtime.control.register("report", lambda _args: core.report())
     runtime.details = lambda: {
         "reference": core.reference.describe() if core.reference else "none taught: publishing nothing",

@@ -47,3 +47,26 @@ def test_averaging_asks_for_frames_that_exist_and_share_one_scan():
     with pytest.raises(TeachError, match="scan changed"):
         core.teach_latest(frames=2)
     assert core.reference is None  # nothing half-done
+
+
+def test_a_run_that_cannot_turn_switches_rotation_off_and_back():
+    import cv2
+
+    from semservo.estimation import rotate_about_centre
+
+    texture = cv2.GaussianBlur(np.random.default_rng(3).normal(0, 1, (256, 256)).astype(np.float32), (0, 0), 2)
+    core = EstimatorCore(rotation=True, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(texture, 0))
+    core.teach_latest()
+    turned = rotate_about_centre(texture, 5.0)  # content turned: measured only when asked
+    assert core.measure(False) == {"rotation": False}
+    assert core.process(frame(turned, 1)).rotation_deg == 0.0
+    assert core.measure(None) == {"rotation": True}  # back to the configuration
+    assert core.process(frame(turned, 2)).rotation_deg == pytest.approx(5.0, abs=0.3)
+
+
+def test_rotation_cannot_be_asked_of_an_estimator_configured_without_it():
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    with pytest.raises(TeachError, match="rotation is off"):
+        core.measure(True)
+    assert core.measure(False) == {"rotation": False}
