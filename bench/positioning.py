@@ -212,8 +212,11 @@ def throughput(out: Path, seconds: float = 6.0, rates: tuple[float, ...] = (50.0
     try:
         stack.settle(5)
         stack.estimator.request("teach")
-        stack.controller.request("start", tolerance_px=0.001, hold=True, max_iterations=1_000_000, max_move_um=0.05,
-                                 min_confidence=0.0)
+        # Holding (a held run never ends by converging); the replayed frames do not
+        # follow the stage (they loop through a recorded approach), so divergence is
+        # not judged here.
+        stack.controller.request("start", tolerance_px=0.05, hold=True, max_iterations=100_000, max_move_um=0.05,
+                                 min_confidence=0.0, diverge_iterations=100_000)
         for fps in rates:
             imageserver.request("set_fps", fps=fps)
             time.sleep(1.0)  # the new rate settles
@@ -238,7 +241,7 @@ def throughput(out: Path, seconds: float = 6.0, rates: tuple[float, ...] = (50.0
             "latency_p50_ms": float(np.percentile(latencies, 50)) if latencies else None,
             "latency_p99_ms": float(np.percentile(latencies, 99)) if latencies else None,
         })
-    return {"rates": results}
+    return {"rates": results, "outcome": record.get("outcome")}
 
 
 def summarize(result: dict) -> dict:
@@ -330,7 +333,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{rate['moves_per_s']:8.1f} {rate['latency_p50_ms'] or float('nan'):7.2f} "
                 f"{rate['latency_p99_ms'] or float('nan'):7.2f}")
     (args.out / "positioning.json").write_text(json.dumps({"results": results, "throughput": loop}, indent=1))
-    plot(results, args.out / "positioning.png")
+    if results:
+        plot(results, args.out / "positioning.png")
     say(f"wrote {args.out / 'positioning.json'} and {args.out / 'positioning.png'}")
     return 0
 
