@@ -331,3 +331,26 @@ def apodize_halve_into(image: np.ndarray, mean: float, window: np.ndarray, row_s
         target = out[y]
         for x in range(cols):
             target[x] = (upper[x] + lower[x]) * 0.25
+
+
+@_jit
+def normalized_angular_cross_into(current: np.ndarray, reference_conjugates: np.ndarray, ramps: np.ndarray,
+                                  accumulator: np.ndarray, out: np.ndarray) -> None:
+    """``out[j] = sum_k ramps[k, j] * n(sum_i current[i, j] * reference_conjugates[k, i, j])``
+    with ``n(z) = z / |z|``: the normalized angular cross spectra against K references,
+    summed over radii, each moved by its ramp, added into one spectrum. Rows are walked
+    contiguously (``accumulator``: one row of scratch); numpy's einsum would first make
+    the K x radii x frequencies product."""
+    radii, frequencies = current.shape
+    for j in range(frequencies):
+        out[j] = 0.0
+    for k in range(reference_conjugates.shape[0]):
+        for j in range(frequencies):
+            accumulator[j] = 0.0
+        for i in range(radii):
+            for j in range(frequencies):
+                accumulator[j] += current[i, j] * reference_conjugates[k, i, j]
+        for j in range(frequencies):
+            value = accumulator[j]
+            magnitude = max(abs(value), 1e-30)
+            out[j] += value / magnitude * ramps[k, j]

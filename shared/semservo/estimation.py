@@ -433,8 +433,10 @@ def angular_shift(current: np.ndarray, reference_conjugate: np.ndarray, refiner:
     (eq. 12; ``reference_conjugate`` is its conjugated angular spectrum), from the
     normalized cross spectrum summed over radii; sub-sample by :class:`AngularRefiner`.
     Returns (shift, peak height)."""
-    cross = np.einsum("ij,ij->j", current, reference_conjugate)
-    cross /= np.maximum(np.abs(cross), 1e-30)
+    frequencies = current.shape[1]
+    cross = np.empty(frequencies, np.complex64)
+    _kernels.normalized_angular_cross_into(current, reference_conjugate[np.newaxis], np.ones((1, frequencies), np.complex64),
+                                           np.empty(frequencies, np.complex64), cross)
     return refiner.peak(cross)
 
 
@@ -658,7 +660,7 @@ class MotionEstimator:
             self.emphasis = highpass_emphasis(self.shape)
             self.reference_angular_conjugate = np.conj(angular_spectrum(
                 log_polar_magnitude(np.conj(self.reference_conjugate), self.emphasis, self.grid)
-            ))
+            )).astype(np.complex64)
             # Copies of the reference turned by a known angle, for small turns (see
             # estimate_rotation); Lanczos, since it is done once.
             turned_conjugates = []
@@ -666,7 +668,7 @@ class MotionEstimator:
                 turned = rotate_about_centre(reference, turn, interpolation=cv2.INTER_LANCZOS4)
                 spectrum = self._spectrum(turned, float(turned.mean()))
                 turned_conjugates.append(np.conj(angular_spectrum(log_polar_magnitude(spectrum, self.emphasis, self.grid))))
-            self.turned_reference_angular_conjugates = np.stack(turned_conjugates)
+            self.turned_reference_angular_conjugates = np.stack(turned_conjugates).astype(np.complex64)
             # Each turned comparison peaks at (turn - 0) samples off; these ramps move
             # every peak back onto the true turn, so the four add into one surface.
             frequencies = np.arange(angles // 2 + 1)
@@ -679,6 +681,9 @@ class MotionEstimator:
                 pyfftw.empty_aligned((self.grid.map_cols.shape[0], angles // 2 + 1), "complex64"),
                 axes=(1,), flags=(fft_effort,),
             )
+            self._unit_ramp = np.ones((1, angles // 2 + 1), np.complex64)
+            self._angular_accumulator = np.empty(angles // 2 + 1, np.complex64)
+            self._angular_cross = np.empty(angles // 2 + 1, np.complex64)
             self._log_magnitude = np.empty(self.reference_conjugate.shape, np.float32)
             self._log_polar = np.empty(self.grid.map_cols.shape, np.float32)
             self._derotated = np.empty(self.shape, np.float32)
@@ -757,14 +762,17 @@ class MotionEstimator:
         # Angles run from -90 (column 0 of the log-polar grid) to +90 degrees with v
         # along rows (down), so a counter-clockwise turn as displayed moves the profile back.
         degrees_per_sample = -180.0 / self.grid.angles
-        samples, _ = angular_shift(current, self.reference_angular_conjugate, self.refiner)
+        _kernels.normalized_angular_cross_into(current, self.reference_angular_conjugate[np.newaxis],
+                                               self._unit_ramp, self._angular_accumulator, self._angular_cross)
+        samples, _ = self.refiner.peak(self._angular_cross)
         angle = samples * degrees_per_sample
         if abs(angle) < self.turned_reference_below_deg:
             # Against each turned copy, normalized (eq. 12), moved back by its known
             # turn and summed: one surface whose peak is the mean of the four estimates.
-            crosses = np.einsum("ij,kij->kj", current, self.turned_reference_angular_conjugates)
-            crosses /= np.maximum(np.abs(crosses), 1e-30)
-            samples, _ = self.refiner.peak(np.einsum("kj,kj->j", crosses, self.turned_reference_ramps))
+            _kernels.normalized_angular_cross_into(current, self.turned_reference_angular_conjugates,
+                                                   self.turned_reference_ramps, self._angular_accumulator,
+                                                   self._angular_cross)
+            samples, _ = self.refiner.peak(self._angular_cross)
             angle = samples * degrees_per_sample
         return float(angle)
 

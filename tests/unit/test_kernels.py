@@ -64,3 +64,19 @@ def test_normalized_cross_power_kernel_matches_eq_18():
     _kernels.normalized_cross_power_into(current, np.conj(reference), weight, True, out)
     expected, _ = normalized_cross_power(current, np.conj(reference))
     np.testing.assert_allclose(out, expected * weight, rtol=1e-5, atol=1e-6)
+
+
+def test_normalized_angular_cross_matches_the_numpy_einsum():
+    def complex_random(*shape):
+        return (rng.normal(size=shape) + 1j * rng.normal(size=shape)).astype(np.complex64)
+
+    current, references, ramps = complex_random(96, 361), complex_random(4, 96, 361), complex_random(4, 361)
+    crosses = np.einsum("ij,kij->kj", current, references)
+    expected = np.einsum("kj,kj->j", crosses / np.abs(crosses), ramps)
+    out = np.empty(361, np.complex64)
+    _kernels.normalized_angular_cross_into(current, references, ramps, np.empty(361, np.complex64), out)
+    np.testing.assert_allclose(out, expected, rtol=1e-4, atol=1e-4)
+    # A zero cross spectrum stays zero instead of dividing by zero.
+    _kernels.normalized_angular_cross_into(np.zeros_like(current), references[:1], ramps[:1],
+                                           np.empty(361, np.complex64), out)
+    assert np.all(out == 0)
