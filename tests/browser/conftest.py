@@ -52,7 +52,7 @@ def system(tmp_path_factory):
         launcher = Launcher(settings, out=(folder / "services.log").open("w"))
         launcher.start(timeout_s=90)
         try:
-            yield {"url": f"http://127.0.0.1:{settings.gateway.http_port}", "launcher": launcher}
+            yield {"url": f"http://127.0.0.1:{settings.gateway.http_port}", "launcher": launcher, "settings": settings}
         finally:
             launcher.stop()
 

@@ -138,6 +138,37 @@ def test_click_to_move_and_an_api_error_in_words(page):
     expect(page.locator("#message-text")).to_contain_text("tolerance_px")
 
 
+def test_teach_from_an_uploaded_image(page, system, tmp_path):
+    import httpx
+
+    frame = httpx.get(system["url"] + "/frames/latest.png").content
+    path = tmp_path / "target.png"
+    path.write_bytes(frame)
+    page.set_input_files("#teach-file", str(path))
+    expect(page.locator("#reference-id")).to_have_text(re.compile("^image "))
+    # A file that is no image is refused, in words, and the reference stays.
+    bad = tmp_path / "notes.png"
+    bad.write_bytes(b"these are not pixels")
+    page.set_input_files("#teach-file", str(bad))
+    expect(page.locator("#message-text")).to_contain_text("not a readable PNG/TIFF")
+    expect(page.locator("#reference-id")).to_have_text(re.compile("^image "))
+
+
+def test_a_pulled_serial_cable_shows_a_banner(page, system):
+    from semservo.config import connect
+    from semservo.transport import ControlClient
+
+    fakelab = ControlClient(connect("127.0.0.1", system["settings"].fakelab.control_port), timeout_s=5, retries=1)
+    try:
+        fakelab.request("serial_link", plugged=False)
+        expect(page.locator("#banner")).to_contain_text("serial link", timeout=20_000)
+        fakelab.request("serial_link", plugged=True)
+        expect(page.locator("#banner")).to_be_hidden(timeout=20_000)
+    finally:
+        fakelab.request("serial_link", plugged=True)
+        fakelab.close()
+
+
 def test_a_dead_service_shows_a_banner(page, system):
     launcher = system["launcher"]
     os.kill(launcher.health("estimator").pid, signal.SIGKILL)
