@@ -27,27 +27,38 @@ def recorded_run() -> Path:
     return folder
 
 
+#: Every port a service binds, by the name tests use, and the setting that holds it.
+PORT_SETTINGS = {
+    "frames": "SEMSERVO_IMAGESERVER__FRAMES_PORT", "control": "SEMSERVO_IMAGESERVER__CONTROL_PORT",
+    "motion": "SEMSERVO_ESTIMATOR__MOTION_PORT", "estimator_control": "SEMSERVO_ESTIMATOR__CONTROL_PORT",
+    "fakelab_control": "SEMSERVO_FAKELAB__CONTROL_PORT", "scan": "SEMSERVO_FAKELAB__SCAN_PORT",
+    "serial_tcp": "SEMSERVO_FAKELAB__SERIAL_TCP_PORT", "stage_control": "SEMSERVO_STAGE__CONTROL_PORT",
+    "controller_control": "SEMSERVO_CONTROLLER__CONTROL_PORT", "controller_status": "SEMSERVO_CONTROLLER__STATUS_PORT",
+    "gateway_http": "SEMSERVO_GATEWAY__HTTP_PORT", "gateway_control": "SEMSERVO_GATEWAY__CONTROL_PORT",
+}
+
+
+def choose_ports(env: pytest.MonkeyPatch) -> dict[str, int]:
+    """Fresh loopback ports for every service, set in the environment children inherit
+    (the stage service finds the emulated NV 40/3 on the chosen TCP port)."""
+    chosen = {name: free_port() for name in PORT_SETTINGS}
+    for name, variable in PORT_SETTINGS.items():
+        env.setenv(variable, str(chosen[name]))
+    env.setenv("SEMSERVO_STAGE__SERIAL_URL", f"socket://127.0.0.1:{chosen['serial_tcp']}")
+    return chosen
+
+
+def run_lab_faster(env: pytest.MonkeyPatch, speedup: float, fps: float = 100.0) -> None:
+    """The simulated lab's clock ``speedup`` times faster, the stage's rate limit scaled
+    with it (as ``semservo up --speedup`` does), the image server as fast as ``fps``."""
+    env.setenv("SEMSERVO_FAKELAB__SPEEDUP", str(speedup))
+    env.setenv("SEMSERVO_STAGE__MAX_RATE_V_PER_S", str(200 * speedup))
+    env.setenv("SEMSERVO_IMAGESERVER__FPS", str(fps))
+
+
 @pytest.fixture
 def ports(monkeypatch) -> dict[str, int]:
-    """Fresh loopback ports for every service, set in the environment children inherit."""
-    chosen = {name: free_port() for name in ("frames", "control", "motion", "estimator_control",
-                                             "fakelab_control", "scan", "serial_tcp", "stage_control",
-                                             "controller_control", "controller_status",
-                                             "gateway_http", "gateway_control")}
-    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FRAMES_PORT", str(chosen["frames"]))
-    monkeypatch.setenv("SEMSERVO_IMAGESERVER__CONTROL_PORT", str(chosen["control"]))
-    monkeypatch.setenv("SEMSERVO_ESTIMATOR__MOTION_PORT", str(chosen["motion"]))
-    monkeypatch.setenv("SEMSERVO_ESTIMATOR__CONTROL_PORT", str(chosen["estimator_control"]))
-    monkeypatch.setenv("SEMSERVO_FAKELAB__CONTROL_PORT", str(chosen["fakelab_control"]))
-    monkeypatch.setenv("SEMSERVO_FAKELAB__SCAN_PORT", str(chosen["scan"]))
-    monkeypatch.setenv("SEMSERVO_FAKELAB__SERIAL_TCP_PORT", str(chosen["serial_tcp"]))
-    monkeypatch.setenv("SEMSERVO_STAGE__CONTROL_PORT", str(chosen["stage_control"]))
-    monkeypatch.setenv("SEMSERVO_STAGE__SERIAL_URL", f"socket://127.0.0.1:{chosen['serial_tcp']}")
-    monkeypatch.setenv("SEMSERVO_CONTROLLER__CONTROL_PORT", str(chosen["controller_control"]))
-    monkeypatch.setenv("SEMSERVO_CONTROLLER__STATUS_PORT", str(chosen["controller_status"]))
-    monkeypatch.setenv("SEMSERVO_GATEWAY__HTTP_PORT", str(chosen["gateway_http"]))
-    monkeypatch.setenv("SEMSERVO_GATEWAY__CONTROL_PORT", str(chosen["gateway_control"]))
-    return chosen
+    return choose_ports(monkeypatch)
 
 
 @pytest.fixture

@@ -96,7 +96,9 @@ def main(argv: list[str] | None = None) -> int:
         if core.state == "servoing":
             raise CommandError("busy", f"run {core.run['id']} is active; stop it first")
         try:
-            reference = estimator_client.request("report")["reference"]
+            # Longer than the loop's 1 s: an estimator busy planning a new reference's FFTs
+            # answers late, but answers.
+            reference = estimator_client.request("report", timeout_s=5.0)["reference"]
         except (ServiceUnavailable, CommandError) as error:
             raise CommandError("estimator_unavailable", f"cannot ask the estimator for its reference: {error}") from None
         if not reference:

@@ -131,6 +131,15 @@ class EstimatorCore:
         return self._install(np.array(self.latest.pixels), "mask", self.latest.header.pixel_size_nm,
                              mask=shape_mask, **detail)
 
+    def warm_up(self) -> None:
+        """Compile the per-frame kernels now (numba compiles on first use, seconds when
+        its on-disk cache is cold), so the first teach and estimate answer promptly."""
+        rows, cols = np.mgrid[0:64, 0:64]
+        texture = (np.sin(cols / 3.0) * np.cos(rows / 5.0) + np.sin((rows + cols) / 7.0)).astype(np.float32)
+        estimator = MotionEstimator(texture, rotation=self.rotation, precision=self.precision,
+                                    fft_effort="FFTW_ESTIMATE")
+        estimator.estimate(np.roll(texture, 2, axis=1))
+
     def measure(self, rotation: bool | None) -> dict:
         """Measure rotation per frame or not (None: as configured)."""
         if rotation and not self.rotation:

@@ -40,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     core = EstimatorCore(rotation=config.rotation and not args.no_rotation,
                          precision=args.precision or config.precision, fft_effort=config.fft_effort,
                          counters=runtime.counters)
+    core.warm_up()
     runtime.state = "idle"  # until a reference is taught
     frames_endpoint = connect(settings.imageserver.host, settings.imageserver.frames_port)
     frames = FrameSubscriber(frames_endpoint, max_message_bytes=settings.max_message_bytes,

@@ -60,6 +60,9 @@ def command_up(args: argparse.Namespace) -> int:
     _replay_environment(args)
     settings = Settings()
     launcher = Launcher(settings, restart=args.restart)
+    # Ctrl-C stops everything even when started from a shell that ignores SIGINT for
+    # its background jobs (Python keeps an inherited "ignore").
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, _raise_interrupt)
     code = 0
     try:

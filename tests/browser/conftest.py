@@ -11,8 +11,7 @@ import pytest
 
 from semservo.config import Settings
 from semservo.launcher import Launcher
-from tests.conftest import free_port
-from tests.integration.test_gateway import PORT_SETTINGS
+from tests.conftest import choose_ports, run_lab_faster
 
 ARTIFACTS = Path(__file__).parents[2] / "test-artifacts"
 SPEEDUP = 20
@@ -38,14 +37,8 @@ def pytest_runtest_makereport(item, call):
 def system(tmp_path_factory):
     folder = tmp_path_factory.mktemp("dashboard")
     with pytest.MonkeyPatch.context() as env:
-        for name in PORT_SETTINGS:
-            env.setenv(name, str(free_port()))
-        serial = free_port()
-        env.setenv("SEMSERVO_FAKELAB__SERIAL_TCP_PORT", str(serial))
-        env.setenv("SEMSERVO_STAGE__SERIAL_URL", f"socket://127.0.0.1:{serial}")
-        env.setenv("SEMSERVO_FAKELAB__SPEEDUP", str(SPEEDUP))
-        env.setenv("SEMSERVO_STAGE__MAX_RATE_V_PER_S", str(200 * SPEEDUP))
-        env.setenv("SEMSERVO_IMAGESERVER__FPS", "30")
+        choose_ports(env)
+        run_lab_faster(env, SPEEDUP, fps=30)
         env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(folder / "runs"))
         env.setenv("SEMSERVO_GATEWAY__DATABASE", str(folder / "runs" / "semservo.sqlite"))
         settings = Settings()

@@ -47,3 +47,14 @@ def stop(process: subprocess.Popen, sig: int = signal.SIGTERM, timeout_s: float 
         process.wait()
         raise AssertionError("process did not stop in time") from None
     return code, process.stdout.read()
+
+
+def wait_for(predicate, timeout_s: float, what: str):
+    """Poll ``predicate`` every 0.1 s until it returns something true; that value."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")

@@ -15,6 +15,7 @@ from semservo.config import Settings
 from semservo.launcher import Launcher, spec
 from semservo.simulation.piezo import Hysteresis
 from semservo.stage_model import BranchModel, load_model
+from tests.conftest import run_lab_faster
 
 pytestmark = pytest.mark.integration
 
@@ -23,9 +24,7 @@ SPEEDUP = 20
 
 @pytest.fixture
 def stage_lab(ports, monkeypatch, tmp_path):
-    monkeypatch.setenv("SEMSERVO_FAKELAB__SPEEDUP", str(SPEEDUP))
-    monkeypatch.setenv("SEMSERVO_STAGE__MAX_RATE_V_PER_S", str(200 * SPEEDUP))
-    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FPS", "100")
+    run_lab_faster(monkeypatch, SPEEDUP)
     launcher = Launcher(Settings(), tuple(spec(name) for name in ("fakelab", "imageserver", "stage")),
                         out=(tmp_path / "launcher.log").open("w"))
     launcher.start(timeout_s=90)

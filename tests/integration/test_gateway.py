@@ -11,7 +11,6 @@ from __future__ import annotations
 import io
 import os
 import signal
-import time
 
 import numpy as np
 import pytest
@@ -20,31 +19,18 @@ from PIL import Image
 from semservo.client import Client, RunActive, SemservoError
 from semservo.config import Settings
 from semservo.launcher import Launcher
-from tests.conftest import free_port
+from tests.conftest import choose_ports, run_lab_faster
+from tests.integration.helpers import wait_for
 
 pytestmark = pytest.mark.integration
 
 SPEEDUP = 20
-PORT_SETTINGS = {
-    "SEMSERVO_IMAGESERVER__FRAMES_PORT", "SEMSERVO_IMAGESERVER__CONTROL_PORT", "SEMSERVO_ESTIMATOR__MOTION_PORT",
-    "SEMSERVO_ESTIMATOR__CONTROL_PORT", "SEMSERVO_FAKELAB__CONTROL_PORT", "SEMSERVO_FAKELAB__SCAN_PORT",
-    "SEMSERVO_STAGE__CONTROL_PORT", "SEMSERVO_CONTROLLER__CONTROL_PORT", "SEMSERVO_CONTROLLER__STATUS_PORT",
-    "SEMSERVO_GATEWAY__HTTP_PORT", "SEMSERVO_GATEWAY__CONTROL_PORT",
-}
-
-
 @pytest.fixture(scope="module")
 def system(tmp_path_factory):
     folder = tmp_path_factory.mktemp("gateway")
     with pytest.MonkeyPatch.context() as env:
-        for name in PORT_SETTINGS:
-            env.setenv(name, str(free_port()))
-        serial = free_port()
-        env.setenv("SEMSERVO_FAKELAB__SERIAL_TCP_PORT", str(serial))
-        env.setenv("SEMSERVO_STAGE__SERIAL_URL", f"socket://127.0.0.1:{serial}")
-        env.setenv("SEMSERVO_FAKELAB__SPEEDUP", str(SPEEDUP))
-        env.setenv("SEMSERVO_STAGE__MAX_RATE_V_PER_S", str(200 * SPEEDUP))
-        env.setenv("SEMSERVO_IMAGESERVER__FPS", "100")
+        choose_ports(env)
+        run_lab_faster(env, SPEEDUP)
         env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(folder / "runs"))
         env.setenv("SEMSERVO_GATEWAY__DATABASE", str(folder / "runs" / "semservo.sqlite"))
         env.setenv("SEMSERVO_GATEWAY__MAX_UPLOAD_BYTES", str(2 * 2**20))
@@ -58,16 +44,6 @@ def system(tmp_path_factory):
         finally:
             client.close()
             launcher.stop()
-
-
-def wait_for(predicate, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
 
 
 def frames_flowing(lab: Client) -> None:

@@ -16,6 +16,8 @@ import pytest
 from semservo.config import Settings, connect
 from semservo.launcher import Launcher
 from semservo.transport import CommandError, ControlClient
+from tests.conftest import run_lab_faster
+from tests.integration.helpers import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -24,9 +26,7 @@ SPEEDUP = 20
 
 @pytest.fixture
 def lab(ports, tmp_path, monkeypatch):
-    monkeypatch.setenv("SEMSERVO_FAKELAB__SPEEDUP", str(SPEEDUP))
-    monkeypatch.setenv("SEMSERVO_STAGE__MAX_RATE_V_PER_S", str(200 * SPEEDUP))
-    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FPS", "100")
+    run_lab_faster(monkeypatch, SPEEDUP)
     monkeypatch.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(tmp_path / "runs"))
     settings = Settings()
     launcher = Launcher(settings)
@@ -52,16 +52,6 @@ def true_pose(fakelab: ControlClient, span_s: float = 0.5) -> tuple[float, float
     now = fakelab.request("pose")["t_s"]
     pose = fakelab.request("pose", interval_s=[now - span_s, now])
     return pose["x_um"], pose["y_um"]
-
-
-def wait_for(predicate, timeout_s: float, what: str):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
 
 
 def teach_after_frames(lab) -> dict:
