@@ -296,7 +296,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
                 message = await queue.get()
                 await socket.send_text(message)
         except WebSocketDisconnect:
-            pass
+            log.debug("an events listener went away")
         finally:
             app.state.listeners.discard(queue)
 

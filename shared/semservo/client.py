@@ -46,7 +46,7 @@ class RunActive(SemservoError):
 
 
 class WaitTimeout(SemservoError):
-    pass
+    """:meth:`Client.wait` gave up: the run had not ended within its timeout."""
 
 
 def _raise_for(response: httpx.Response) -> None:
