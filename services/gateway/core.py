@@ -406,6 +406,13 @@ class GatewayCore:
         stage = services.get("stage", {}).get("details", {})
         latencies = np.array(self.latencies_ms) if self.latencies_ms else None
         estimator = services.get("estimator", {}).get("details", {})
+        run_id = run.get("run_id")
+        if run_id and run.get("state") in FINISHED and not self.store.is_finished(run_id):
+            # The run's last event was missed (PUB/SUB drops, or the gateway was down
+            # when it ended): complete its record from the controller now.
+            if not self.store.exists(run_id):
+                self._record_start(run_id)
+            self.finish(run_id)
         return {
             "state": run.get("state", "unknown" if not controller.get("up") else "idle"),
             "reason": run.get("reason", ""),

@@ -286,19 +286,53 @@ def test_a_killed_service_is_named_down(system):
     assert wait_for(lambda: not lab.status()["down"], 15, "the estimator back")
 
 
-def test_runs_survive_a_gateway_restart(system):
-    lab, launcher = system["client"], system["launcher"]
+def test_runs_survive_a_gateway_restart_and_a_run_it_missed_is_recorded(system):
+    from semservo.config import connect
+    from semservo.transport import ControlClient
+
+    lab, launcher, settings = system["client"], system["launcher"], system["settings"]
     before = lab.runs()
     assert before, "earlier tests recorded runs"
+    # The estimator was restarted by the test before: teach once it has a frame.
+    wait_for(lambda: _taught_or_none(lab), 30, "a teach after the estimator's restart")
+    # The gateway goes down; a run starts and ends without it (a script on the
+    # controller's own socket).
+    gateway = launcher.children["gateway"].process
+    gateway.terminate()
+    gateway.wait(timeout=15)
+    stage = ControlClient(connect("127.0.0.1", settings.stage.control_port), timeout_s=5, retries=1)
+    controller = ControlClient(connect("127.0.0.1", settings.controller.control_port), timeout_s=5, retries=1)
+    try:
+        stage.request("resume")
+        stage.request("move", targets={"x": 2.0}, relative=True)
+        missed = controller.request("start", tolerance_px=0.2)["run_id"]
+        wait_for(lambda: controller.request("status")["state"] != "servoing", 90, "the missed run to end")
+    finally:
+        stage.close()
+        controller.close()
     launcher.restart_service("gateway")
-    after = wait_for(lambda: _runs_or_none(lab), 15, "the gateway back")
-    assert [run["id"] for run in after] == [run["id"] for run in before]
+    # The first status completes the record of the run the gateway did not see.
+    status = wait_for(lambda: _status_or_none(lab), 15, "the gateway back")
+    assert status["run_id"] == missed
+    after = lab.runs()
+    assert after[0]["id"] == missed
+    assert [run["id"] for run in after[1:]] == [run["id"] for run in before]
     record = lab.run(before[0]["id"])
     assert record["trajectory"] and record["state"] == before[0]["state"]
+    recorded = lab.run(missed)
+    assert recorded["state"] == "converged" and recorded["trajectory"] and recorded["stage_commands"]
 
 
-def _runs_or_none(lab: Client):
+def _taught_or_none(lab: Client):
     try:
-        return lab.runs()
+        return lab.teach()
+    except SemservoError as error:
+        assert "no frame" in error.message, error
+        return None
+
+
+def _status_or_none(lab: Client):
+    try:
+        return lab.status()
     except SemservoError:
         return None
