@@ -133,6 +133,20 @@ def test_rotation_then_translation_in_current_image_axes(frame):
     assert motion.dy == pytest.approx(5, abs=0.1)
 
 
+@pytest.mark.parametrize("angle", [0.12, -0.4, 0.9, -6.0])
+@pytest.mark.parametrize("precision", ["fast", "full"])
+def test_turned_and_shifted_frames_give_the_shift_to_hundredths(frame, angle, precision):
+    # The fast path turns back the halved image, "full" the whole one; both must hold
+    # the translation accuracy under small and moderate turns.
+    reference = frame[40:472, 40:472]
+    turned = rotated(frame, angle)
+    current = turned[40 - 4:472 - 4, 40 - 6:472 - 6]  # content moved right 6, down 4
+    motion = MotionEstimator(reference, precision=precision).estimate(current)
+    assert motion.rotation_deg == pytest.approx(angle, abs=0.05)
+    assert motion.dx == pytest.approx(6, abs=0.05)
+    assert motion.dy == pytest.approx(4, abs=0.05)
+
+
 @pytest.mark.parametrize("angle", [0.01, -0.015])
 def test_tiny_turns_are_reported_and_skipping_their_derotation_changes_nothing(frame, angle, monkeypatch):
     reference = frame[40:472, 40:472]
