@@ -187,12 +187,9 @@ class GatewayCore:
             return
         for iteration in record.get("records", []):
             self.store.add_iteration(run_id, iteration)
-        # The final error as the controller judged it: the mean over the last fresh
-        # frames (those scanned after the last move), as many as convergence asks for.
-        fresh = [r for r in record.get("records", []) if "error_px" in r and not r.get("action", "").startswith("held")]
-        last = fresh[-int(record.get("settings", {}).get("converge_frames", 3)):]
-        final_error_px = float(np.hypot(np.mean([r["dx_px"] for r in last]), np.mean([r["dy_px"] for r in last]))) \
-            if last else None
+        # The final error as the controller judged it: the mean over its last fresh frames.
+        judged = [r["mean_error_px"] for r in record.get("records", []) if r.get("mean_error_px") is not None]
+        final_error_px = judged[-1] if judged else None
         self.store.finish_run(run_id, outcome=record["outcome"], final_error_px=final_error_px,
                               stage_log=record.get("stage_log", []), truth=self._true_final_error(record))
         log.info("run %s %s after %s iterations", run_id, record["outcome"]["state"], record["outcome"]["iterations"])

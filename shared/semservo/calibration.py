@@ -131,7 +131,6 @@ class CalibrationResult:
     stroke_um: float
     true_loop_width: float | None = None
     true_error_um: dict | None = None  # mean and max |measured - true| when simulated
-    extra: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         summary = {
@@ -150,7 +149,7 @@ class CalibrationResult:
         path = Path(path)
         document = {**self.model.to_dict(), "calibration": {
             **self.summary(), "created_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "sweep": [dataclasses.asdict(point) for point in self.points], **self.extra}}
+            "sweep": [dataclasses.asdict(point) for point in self.points]}}
         path.write_text(json.dumps(document, indent=2))
         return path
 

@@ -457,6 +457,18 @@ def rotate_about_centre(image: np.ndarray, angle_deg: float, out: np.ndarray | N
 # Mask references (paper case 6)
 
 
+def _motion(shift: tuple[float, float], angle: float, derotated: bool, height: float, psr: float, snr_db: float,
+            filtered: bool) -> Motion:
+    """The estimate, its shift (dy, dx) turned back into the current image's axes when
+    it was measured on the de-rotated image (counter-clockwise as displayed, rows down)."""
+    dy, dx = shift
+    if derotated:
+        theta = np.deg2rad(angle)
+        dx, dy = dx * np.cos(theta) + dy * np.sin(theta), -dx * np.sin(theta) + dy * np.cos(theta)
+    return Motion(dx=float(dx), dy=float(dy), rotation_deg=float(angle), confidence=confidence_from_psr(psr),
+                  snr_db=float(snr_db), peak=height, psr=float(psr), filtered=bool(filtered))
+
+
 def polygon_mask(shape: tuple[int, int], corners: Sequence[Sequence[float]]) -> np.ndarray:
     """Boolean mask of ``shape`` that is True inside the polygon of (x, y) corners."""
     if len(corners) < 3:
@@ -827,15 +839,7 @@ class MotionEstimator:
         band = self.search_filtered_fit_band if filtered else self.search_fit_band
         search_dy, search_dx = refine_on_band(self.search_plans.forward(), self.fit_search_reference_conjugate, band,
                                               (dy / 2, dx / 2), workspace=self._search_band_workspace)
-        dy, dx = search_dy * 2, search_dx * 2
-        # Back into the current image's axes (counter-clockwise as displayed, rows down).
-        theta = np.deg2rad(angle)
-        dx, dy = dx * np.cos(theta) + dy * np.sin(theta), -dx * np.sin(theta) + dy * np.cos(theta)
-        return Motion(
-            dx=float(dx), dy=float(dy), rotation_deg=float(angle),
-            confidence=confidence_from_psr(psr), snr_db=float(snr_db),
-            peak=height, psr=float(psr), filtered=bool(filtered),
-        )
+        return _motion((search_dy * 2, search_dx * 2), angle, True, height, psr, snr_db, filtered)
 
     def _search(self, search_spectrum: np.ndarray) -> tuple[float, float, float, float]:
         """Step 1 of the translation: (dy, dx) in full-resolution pixels, peak height and
@@ -926,14 +930,4 @@ class MotionEstimator:
                 dy, dx, height, psr = self._search(self._search_spectrum_of(image, mean))
         else:
             dy, dx, height, psr = self._search(self._search_spectrum_of(image, mean))
-        dy, dx = self._fit(image, mean, (dy, dx), filtered)
-        if derotated:
-            # The shift was measured on the de-rotated image; turn it back into the
-            # current image's axes (counter-clockwise as displayed, rows down).
-            theta = np.deg2rad(angle)
-            dx, dy = dx * np.cos(theta) + dy * np.sin(theta), -dx * np.sin(theta) + dy * np.cos(theta)
-        return Motion(
-            dx=float(dx), dy=float(dy), rotation_deg=float(angle),
-            confidence=confidence_from_psr(psr), snr_db=float(snr_db),
-            peak=height, psr=float(psr), filtered=bool(filtered),
-        )
+        return _motion(self._fit(image, mean, (dy, dx), filtered), angle, derotated, height, psr, snr_db, filtered)
