@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 import socket
 from pathlib import Path
 
@@ -11,10 +12,42 @@ import zmq
 from semservo.config import find_recorded_run
 
 
+def _ephemeral_range() -> tuple[int, int]:
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
+#: Ports already handed out in this session, never handed out twice (a service of an
+#: earlier test may still be letting go of its port).
+_handed_out: set[int] = set()
+_port_picker = random.Random()
+
+
 def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    """A loopback port free now, chosen *below* the kernel's ephemeral range.
+
+    A port the kernel picked for us (bind to 0) lies inside the ephemeral range, so in
+    the moment between choosing it and the service binding it, any outgoing connection
+    (every ZeroMQ connect, every HTTP client) may be given it as its local port: CI once
+    lost a test to exactly that. Ports below the range are never given out that way.
+    """
+    ephemeral_low, _ = _ephemeral_range()
+    low, high = 15000, max(15000 + 2000, ephemeral_low - 1)
+    for _ in range(500):
+        port = _port_picker.randint(low, high)
+        if port in _handed_out:
+            continue
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _handed_out.add(port)
+        return port
+    raise RuntimeError(f"no free loopback port in {low}..{high}")
 
 
 @pytest.fixture(scope="session")

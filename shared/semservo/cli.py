@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zmq
 
 from semservo import __version__
 from semservo.config import Settings, connect
@@ -263,7 +264,15 @@ def command_motion(args: argparse.Namespace) -> int:
 
 def command_service(args: argparse.Namespace) -> int:
     module = importlib.import_module(spec(args.name).module)
-    return module.main(args.service_args)
+    try:
+        return module.main(args.service_args)
+    except zmq.ZMQError as error:
+        if error.errno != zmq.EADDRINUSE:
+            raise
+        # The usual cause is a second semservo on the same machine; say which setting moves it.
+        print(f"{args.name}: cannot bind its port: {error} (is another semservo running? "
+              f"each port is a SEMSERVO_{args.name.upper()}__*_PORT setting)", file=sys.stderr)
+        return 1
 
 
 def command_fakelab(args: argparse.Namespace) -> int:

@@ -125,3 +125,19 @@ def test_a_service_that_cannot_start_is_reported(ports, tmp_path):
     assert result.returncode == 1
     assert "failed to start: imageserver exited with code" in result.stdout
     assert "no folder of frames" in result.stdout
+
+
+def test_a_service_whose_port_is_taken_says_so_and_exits(ports):
+    """A second semservo on the same machine: the service names the port and the setting
+    instead of dying in a ZeroMQ traceback."""
+    import socket
+
+    with socket.socket() as squatter:
+        squatter.bind(("127.0.0.1", ports["stage_control"]))
+        squatter.listen()
+        result = subprocess.run([sys.executable, "-m", "semservo", "service", "stage"],
+                                capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert f"127.0.0.1:{ports['stage_control']}" in result.stderr
+    assert "SEMSERVO_STAGE__*_PORT" in result.stderr
+    assert "Traceback" not in result.stderr
