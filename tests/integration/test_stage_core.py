@@ -166,3 +166,22 @@ def test_controller_converges_and_stop_stops_the_stage(stage, tmp_path):
     core.start(RunSettings(), "ref")
     core.stop("operator pressed stop")
     assert core.state == "stopped" and stage.state == "stopped"
+
+
+def test_converging_on_each_frame_asks_every_one_to_be_within(stage, tmp_path):
+    import time
+
+    def feed(core, errors):
+        for seq, dx in enumerate(errors, 1):
+            core.on_estimate(estimate(seq, dx, 0.0, scan_started_at_ns=time.time_ns()))
+        return core.state
+
+    # Mean of (0.15, -0.04) is 0.055 px: under 0.1 px on the mean, not on each frame.
+    on_mean = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    on_mean.start(RunSettings(converge_frames=2), "ref")
+    assert feed(on_mean, [0.15, -0.04]) == "converged"
+    on_each = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    on_each.start(RunSettings(converge_frames=2, converge_on="each"), "ref")
+    assert feed(on_each, [0.15, -0.04]) == "servoing"
+    assert on_each.on_estimate(estimate(3, -0.03, 0.0, scan_started_at_ns=time.time_ns()))["action"] == "within tolerance"
+    assert on_each.state == "converged"
