@@ -9,8 +9,7 @@ mean of the last 8 live frames (frame integration; case 5: one scan at the prese
 slow reference dwell, uploaded; case 6: an Otsu mask of the live frame). Then ``--trials`` times: jog the stage by a random offset of up to a
 quarter of the field of view per axis, start a run, wait for its end, and compare the
 true pose over the scans of the run's last three frames (from the simulator) with the
-taught one (over the reference frames' scans; over 0.5 s after teaching for an upload
-or a mask).
+taught one (over the scans the reference was made from, uploads and masks included).
 
 Latency: frame published -> voltage command written on the serial line, over every
 move of every run. Throughput: a replayed recording at 50, 100, 150 and 200 frames/s
@@ -108,12 +107,13 @@ def png_b64(pixels: np.ndarray) -> str:
     return base64.b64encode(buffer.getvalue()).decode()
 
 
-def scan(stack: Stack, request: ScanRequest) -> np.ndarray:
-    """One frame straight from the fake lab's SEM, with these scan settings."""
+def scan(stack: Stack, request: ScanRequest):
+    """One frame straight from the fake lab's SEM, with these scan settings (its header
+    carries the simulated interval it was scanned over)."""
     client = ControlClient(connect("127.0.0.1", stack.settings.fakelab.scan_port), timeout_s=30, retries=1)
     try:
         return decode_frame(client.request_parts(request.model_dump_json().encode()),
-                            max_bytes=stack.settings.max_message_bytes).pixels
+                            max_bytes=stack.settings.max_message_bytes)
     finally:
         client.close()
 
@@ -122,25 +122,30 @@ TEACH_FRAMES = 8
 
 
 def teach(stack: Stack, preset) -> dict:
+    """Teach the preset's kind of reference; the answer's ``source_interval_s`` is the
+    simulated time span the reference was scanned over (the taught pose is read there)."""
     stack.settle(2)
     if preset.reference_dwell_ns:
         # Case 5: a slow, high-quality scan as the reference, runs at the fast dwell.
-        pixels = scan(stack, ScanRequest(dwell_ns=preset.reference_dwell_ns))
-        return stack.estimator.request("teach", image_b64=png_b64(pixels), label="high-quality reference")
+        frame = scan(stack, ScanRequest(dwell_ns=preset.reference_dwell_ns))
+        taught = stack.estimator.request("teach", image_b64=png_b64(frame.pixels), label="high-quality reference")
+        return {**taught, "source_interval_s": frame.header.source_interval_s}
     if preset.mask_reference:
         # Case 6: a binary mask of the part, thresholded from a live frame (Otsu).
         import cv2
 
-        blurred = cv2.GaussianBlur(scan(stack, ScanRequest()), (0, 0), 3)
+        frame = scan(stack, ScanRequest())
+        blurred = cv2.GaussianBlur(frame.pixels, (0, 0), 3)
         _, mask = cv2.threshold(blurred, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-        return stack.estimator.request("teach", mask_b64=png_b64(mask.astype(np.uint8)))
+        taught = stack.estimator.request("teach", mask_b64=png_b64(mask.astype(np.uint8)))
+        return {**taught, "source_interval_s": frame.header.source_interval_s}
     # Frame integration: the mean of the last TEACH_FRAMES frames (the stage stands
     # still), which averages out the vibration a single scan samples (~0.2 px at x5000).
     stack.settle(TEACH_FRAMES)
     return stack.estimator.request("teach", frames=TEACH_FRAMES)
 
 
-def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path) -> dict:
+def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path, run_settings: dict) -> dict:
     preset = PRESETS[name]
     env = {"SEMSERVO_FAKELAB__PRESET": name, "SEMSERVO_FAKELAB__SPEEDUP": str(SPEEDUP),
            "SEMSERVO_STAGE__MAX_RATE_V_PER_S": str(200 * SPEEDUP), "SEMSERVO_IMAGESERVER__FPS": "100",
@@ -160,7 +165,7 @@ def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path) -> d
             offset = rng.uniform(-field_um / 4, field_um / 4, 2)
             stack.jog(offset)
             stack.settle(3)
-            started = stack.controller.request("start", tolerance_px=0.1, max_iterations=150)
+            started = stack.controller.request("start", **run_settings)
             deadline = time.monotonic() + 240
             while (status := stack.controller.request("status"))["state"] == "servoing":
                 if time.monotonic() > deadline:
@@ -296,15 +301,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=10, help="trials per condition")
     parser.add_argument("--presets", nargs="*", default=list(PRESETS), help="conditions to run")
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--tolerance-px", type=float, default=0.1, help="the runs' tolerance (default: 0.1 px)")
+    parser.add_argument("--converge-frames", type=int, default=None,
+                        help="fresh frames whose error is judged (default: the controller's, 3)")
+    parser.add_argument("--converge-on", choices=["mean", "each"], default="mean",
+                        help="converged when their mean error is under tolerance (default), or each one's")
     parser.add_argument("--no-throughput", action="store_true", help="skip the replay runs at 50-200 frames/s")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
+    run_settings = {"tolerance_px": args.tolerance_px, "max_iterations": 150, "converge_on": args.converge_on}
+    if args.converge_frames:
+        run_settings["converge_frames"] = args.converge_frames
     results = []
     for name in args.presets:
         say(f"{name}: {PRESETS[name].description}")
-        results.append(run_preset(name, args.trials, rng, args.out))
+        results.append(run_preset(name, args.trials, rng, args.out, run_settings))
     loop = None if args.no_throughput else throughput(args.out)
 
     say("\nPositioning from random starts up to 1/4 of the field (true final error from the simulator)")
@@ -332,7 +345,8 @@ def main(argv: list[str] | None = None) -> int:
             say(f"{rate['offered_fps']:11.0f} {rate['published_per_s']:11.1f} {rate['estimates_handled_per_s']:11.1f} "
                 f"{rate['moves_per_s']:8.1f} {rate['latency_p50_ms'] or float('nan'):7.2f} "
                 f"{rate['latency_p99_ms'] or float('nan'):7.2f}")
-    (args.out / "positioning.json").write_text(json.dumps({"results": results, "throughput": loop}, indent=1))
+    (args.out / "positioning.json").write_text(json.dumps({"run_settings": run_settings, "results": results,
+                                                           "throughput": loop}, indent=1))
     if results:
         plot(results, args.out / "positioning.png")
     say(f"wrote {args.out / 'positioning.json'} and {args.out / 'positioning.png'}")
