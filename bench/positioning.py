@@ -41,7 +41,7 @@ from semservo.launcher import Launcher
 from semservo.messages import ScanRequest
 from semservo.simulation.world import PRESETS
 from semservo.transport import ControlClient
-from semservo.wire import decode_frame
+from semservo.wire import Frame, decode_frame
 
 SPEEDUP = 20
 #: Table III of the paper: accuracy x, y (um) for cases 1-6.
@@ -107,7 +107,7 @@ def png_b64(pixels: np.ndarray) -> str:
     return base64.b64encode(buffer.getvalue()).decode()
 
 
-def scan(stack: Stack, request: ScanRequest):
+def scan(stack: Stack, request: ScanRequest) -> Frame:
     """One frame straight from the fake lab's SEM, with these scan settings (its header
     carries the simulated interval it was scanned over)."""
     client = ControlClient(connect("127.0.0.1", stack.settings.fakelab.scan_port), timeout_s=30, retries=1)
