@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import random
 import socket
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -73,11 +74,14 @@ PORT_SETTINGS = {
 
 def choose_ports(env: pytest.MonkeyPatch) -> dict[str, int]:
     """Fresh loopback ports for every service, set in the environment children inherit
-    (the stage service finds the emulated NV 40/3 on the chosen TCP port)."""
+    (the stage service finds the emulated NV 40/3 on the chosen TCP port), and a fresh
+    folder for what the stage service keeps across restarts (no test inherits another's
+    armed or stopped stage)."""
     chosen = {name: free_port() for name in PORT_SETTINGS}
     for name, variable in PORT_SETTINGS.items():
         env.setenv(variable, str(chosen[name]))
     env.setenv("SEMSERVO_STAGE__SERIAL_URL", f"socket://127.0.0.1:{chosen['serial_tcp']}")
+    env.setenv("SEMSERVO_STAGE__STATE_DIR", tempfile.mkdtemp(prefix="semservo-stage-"))
     return chosen
 
 

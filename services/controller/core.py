@@ -8,8 +8,15 @@ in-process in tests. The law itself is :class:`semservo.control.ControlLaw` (eq.
 A run is a small state machine::
 
     idle --start--> servoing --(mean error of the last N fresh frames under tolerance)--> converged
-                       |  \\--(diverging, iteration limit, scene lost, stage refused)--> failed
+                       |  \\--(diverging, iteration limit, scene lost, stage refused or
+                       |      held, reference changed, no estimate for estimate_timeout_s)--> failed
                        \\--stop--> stopped
+
+A run that can no longer make progress ends as ``failed`` with the reason within a few
+seconds; it never waits in ``servoing`` for estimates that will not come. A controller
+killed mid-run leaves its journal (``runs/<id>.jsonl``, a header line then one line per
+iteration); the next controller to start finishes that run as ``failed`` from it, with
+the stage's command log (:meth:`ControllerCore.recover`).
 
 Only a fresh, confident estimate moves the stage. Fresh: the frame's scan began after
 the last move was written (a frame scanned during a move shows a mix of both
@@ -23,6 +30,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import time
 import uuid
 from pathlib import Path
@@ -47,7 +55,7 @@ class Port(Protocol):
 class RunSettings(BaseModel):
     """What a positioning run may be told; every field has a sane default."""
 
-    model_config = {"extra": "forbid"}
+    model_config = {"extra": "forbid", "allow_inf_nan": False}
 
     dofs: list[Literal["x", "y", "rotation"]] = Field(["x", "y"], min_length=1, description="degrees of freedom")
     tolerance_px: PositiveFloat = Field(0.1, le=50, description="converged when the translation error is below")
@@ -68,8 +76,13 @@ class RunSettings(BaseModel):
         10.0, gt=0, le=1000,
         description="integral action T_i in seconds, against drift (null: the paper's proportional law)")
     hold: bool = Field(False, description="keep servoing after convergence (hold against drift)")
-    diverge_factor: float = Field(4.0, gt=1, description="cost above this x its minimum ...")
-    diverge_iterations: PositiveInt = Field(5, description="... for this many moves in a row: diverging")
+    diverge_factor: float = Field(4.0, gt=1, le=1e6, description="cost above this x its minimum ...")
+    diverge_iterations: PositiveInt = Field(5, le=1000, description="... for this many moves in a row: diverging")
+    diverge_floor_px: PositiveFloat = Field(
+        1.0, le=100, description="... never judged on errors under this (estimation noise and vibration near the "
+                                 "target are not divergence, however small the tolerance)")
+    estimate_timeout_s: PositiveFloat = Field(
+        5.0, le=600, description="no estimate against the run's reference for this long (wall clock): the run fails")
 
 
 class ControllerCore:
@@ -92,6 +105,8 @@ class ControllerCore:
         self.settings = RunSettings()
         self.law = ControlLaw()
         self.last_heartbeat = 0.0
+        self.last_estimate_at = 0.0  # clock time of the last estimate against the run's reference
+        self.foreign_estimates = 0  # estimates in a row against another reference
         self._journal = None
 
     # -- run lifecycle -----------------------------------------------------------------
@@ -115,7 +130,8 @@ class ControllerCore:
         }
         self.state, self.reason = "servoing", ""
         self._estimator_measures(rotation="rotation" in settings.dofs)
-        self.last_heartbeat = self.clock()
+        self.last_heartbeat = self.last_estimate_at = self.clock()
+        self.foreign_estimates = 0
         self._open_journal()
         self._status()
         log.info("run %s started (reference %s, dofs %s)", self.run["id"], reference_id, settings.dofs)
@@ -143,22 +159,40 @@ class ControllerCore:
         except (CommandError, ServiceUnavailable) as error:
             log.warning("could not set the estimator's rotation measurement: %s", error)
 
+    def _estimator_account(self) -> str:
+        """Why estimates stopped, in words, from what the estimator says of itself."""
+        if self.estimator is None:
+            return "no estimator port to ask"
+        try:
+            report = self.estimator.request("report", {})
+        except ServiceUnavailable as error:
+            return f"the estimator does not answer ({error})"
+        except CommandError as error:
+            return f"the estimator refused a report ({error.message})"
+        reference = report.get("reference")
+        if not reference:
+            return "the estimator has no reference (restarted, or cleared)"
+        if reference.get("id") != self.run["reference_id"]:
+            return f"the estimator now has reference {reference.get('id')} (taught again, or restarted)"
+        return "the estimator has the reference but publishes nothing (are frames arriving?)"
+
     def _within(self, dx_px: float, dy_px: float, rotation_deg: float) -> bool:
         """The translation error, and the turn when rotation is servoed, under tolerance."""
         return math.hypot(dx_px, dy_px) <= self.settings.tolerance_px and (
             "rotation" not in self.settings.dofs or abs(rotation_deg) <= self.settings.tolerance_deg)
 
-    def _finish(self, state: ControllerState, reason: str) -> None:
+    def _finish(self, state: ControllerState, reason: str, *, recovered: bool = False) -> None:
         self.state, self.reason = state, reason
-        self._estimator_measures(rotation=None)
-        try:
-            if state != "stopped":  # a finished run releases the watchdog; stop already did
-                self.stage.request("disarm", {"owner": self.owner})
-        except (CommandError, ServiceUnavailable) as error:
-            log.warning("disarming the stage watchdog failed: %s", error)
         run = self.run
+        if not recovered:  # a recovered run's owner is dead: its watchdog has held the stage
+            self._estimator_measures(rotation=None)
+            try:
+                if state != "stopped":  # a finished run releases the watchdog; stop already did
+                    self.stage.request("disarm", {"owner": self.owner})
+            except (CommandError, ServiceUnavailable) as error:
+                log.warning("disarming the stage watchdog failed: %s", error)
         run["outcome"] = {"state": state, "reason": reason, "finished_at_ns": time.time_ns(),
-                          "iterations": run["iterations"]}
+                          "iterations": run["iterations"], **({"recovered": True} if recovered else {})}
         try:
             run["stage_log"] = self.stage.request("log", {"since_ns": run["started_at_ns"]}).get("entries", [])
         except (CommandError, ServiceUnavailable) as error:
@@ -172,8 +206,18 @@ class ControllerCore:
     def on_estimate(self, estimate: MotionEstimate) -> dict | None:
         """One estimate in; the iteration record out (None when no run is active)."""
         run = self.run
-        if self.state not in ("servoing",) or run is None or estimate.reference_id != run["reference_id"]:
+        if self.state != "servoing" or run is None:
             return None
+        if estimate.reference_id != run["reference_id"]:
+            # One or two may be in flight from before the run's reference was taught;
+            # a third in a row means the estimator now measures against another one.
+            self.foreign_estimates += 1
+            if self.foreign_estimates >= FOREIGN_ESTIMATES_TO_FAIL:
+                self._finish("failed", f"the reference changed during the run: the estimator now measures against "
+                                       f"{estimate.reference_id}, not the run's {run['reference_id']} (taught again?)")
+            return None
+        self.foreign_estimates = 0
+        self.last_estimate_at = self.clock()
         scan_started = estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
         record = {
             "seq": estimate.seq, "dx_px": estimate.dx_px, "dy_px": estimate.dy_px,
@@ -227,8 +271,9 @@ class ControllerCore:
         cost = step["cost"]
         run["min_cost"] = min(run["min_cost"], cost)
         # Divergence is judged against the best cost so far, but never against less than
-        # (5 x tolerance)^2: near the target the cost is mostly estimation noise.
-        floor = (5 * self.settings.tolerance_px) ** 2
+        # the square of diverge_floor_px (or of 5 x tolerance): near the target the cost
+        # is estimation noise and vibration, whatever tolerance the run asks for.
+        floor = max(5 * self.settings.tolerance_px, self.settings.diverge_floor_px) ** 2
         run["rising"] = run["rising"] + 1 if cost > self.settings.diverge_factor * max(run["min_cost"], floor) else 0
         move = dict(step["move"])
         planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
@@ -292,12 +337,18 @@ class ControllerCore:
         if self.state != "servoing":
             return 0.5
         now = self.clock()
+        silent = now - self.last_estimate_at
+        if silent > self.settings.estimate_timeout_s:
+            self._finish("failed", f"no estimate against the run's reference for {silent:.1f} s: "
+                                   f"{self._estimator_account()}")
+            return 0.5
         if now - self.last_heartbeat >= self.watchdog_s / 3:
             try:
                 reply = self.stage.request("heartbeat", {"owner": self.owner})
                 self.last_heartbeat = now
                 if reply.get("state") != "ready":
-                    self._finish("failed", f"the stage is {reply.get('state')}")
+                    reason = f": {reply['reason']}" if reply.get("reason") else ""
+                    self._finish("failed", f"the stage is {reply.get('state')}{reason}")
             except ServiceUnavailable as error:
                 self._finish("failed", f"the stage service is unreachable: {error}")
             except CommandError as error:
@@ -322,6 +373,10 @@ class ControllerCore:
             return
         self.runs_dir.mkdir(parents=True, exist_ok=True)
         self._journal = open(self.runs_dir / f"{self.run['id']}.jsonl", "w", encoding="utf-8")  # noqa: SIM115
+        # The header: what a controller started after this one dies needs to finish the run.
+        header = {key: self.run[key] for key in ("id", "reference_id", "settings", "started_at_ns", "stage_at_start")}
+        self._journal.write(json.dumps({"header": header, "owner": self.owner}, default=_jsonable) + "\n")
+        self._journal.flush()
 
     def _close_journal(self) -> None:
         if self._journal is not None:
@@ -335,6 +390,35 @@ class ControllerCore:
         path = self.runs_dir / f"{self.run['id']}.json"
         path.write_text(json.dumps(self.record(), default=_jsonable, indent=1))
         self.run["path"] = str(path)
+
+    def recover(self) -> list[str]:
+        """Finish the runs a dead controller left (a journal without its summary) as
+        ``failed``, with their iterations and the stage's command log since they began.
+        Returns their ids; the last one becomes this controller's last run."""
+        if self.runs_dir is None or not self.runs_dir.is_dir():
+            return []
+        recovered = []
+        for journal in sorted(self.runs_dir.glob("*.jsonl")):
+            if journal.with_suffix(".json").exists():
+                continue
+            run = _read_journal(journal)
+            if run is None:
+                log.error("cannot read the journal %s: left as it is", journal)
+                continue
+            self.run = run
+            self._finish("failed", "the controller stopped mid-run (killed or crashed); finished from its journal "
+                                   "when the controller started again", recovered=True)
+            recovered.append(run["id"])
+        return recovered
+
+    def stored(self, run_id: str) -> dict | None:
+        """A finished run's record by id (the active or last one, or its summary file)."""
+        if self.run is not None and self.run["id"] == run_id:
+            return self.record()
+        if self.runs_dir is None or not _RUN_ID.fullmatch(run_id):
+            return None
+        path = self.runs_dir / f"{run_id}.json"
+        return json.loads(path.read_text()) if path.is_file() else None
 
     def record(self) -> dict:
         """The active or last run's full record."""
@@ -363,6 +447,31 @@ class ControllerCore:
 
     def _status(self) -> None:
         self.publish("status", self.status())
+
+
+#: Estimates in a row against another reference before the run fails (one or two may be
+#: in flight from before the run's reference was taught).
+FOREIGN_ESTIMATES_TO_FAIL = 3
+
+_RUN_ID = re.compile(r"[0-9]{8}-[0-9]{6}-[0-9a-f]{6}")
+
+
+def _read_journal(path: Path) -> dict | None:
+    """A run as its journal left it: the header, then every iteration written."""
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+        header = json.loads(lines[0])["header"]
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return None
+    records = []
+    for line in lines[1:]:
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            break  # the line being written when the process died
+    moved = [record for record in records if record.get("action") == "moved"]
+    return {**header, "iterations": len(moved), "records": records, "outcome": None,
+            "min_cost": min((r["cost"] for r in records if r.get("cost") is not None), default=math.inf)}
 
 
 def _jsonable(value):

@@ -1,8 +1,9 @@
 """Controller process: motion (SUB, from the estimator) -> core -> stage service (REQ).
 
 Commands: ``start`` {settings...} (teaches nothing: the estimator's current reference is
-the target), ``stop`` {reason}, ``status``, ``run`` (the active or last run's record),
-``health``. Events on the status PUB socket (topic ``controller``): ``status`` and
+the target), ``stop`` {reason}, ``status``, ``run`` {id?} (the active or last run's record,
+or a finished one's by id), ``health``. At start it finishes the runs a killed
+controller left (``ControllerCore.recover``). Events on the status PUB socket (topic ``controller``): ``status`` and
 ``iteration``.
 
 Run it with ``semservo service controller``; settings ``SEMSERVO_CONTROLLER__*``.
@@ -115,8 +116,21 @@ def main(argv: list[str] | None = None) -> int:
     runtime.control.register("start", start)
     runtime.control.register("stop", lambda args: core.stop(str(args.get("reason", "stop requested"))))
     runtime.control.register("status", lambda _args: core.status())
-    runtime.control.register("run", lambda _args: core.record())
+    def run(args: dict) -> dict:
+        run_id = args.get("id")
+        if run_id is None:
+            return core.record()
+        if not isinstance(run_id, str):
+            raise BadRequest("id must be a run id (text)")
+        record = core.stored(run_id)
+        if record is None:
+            raise CommandError("no_such_run", f"no finished run {run_id!r} in {config.runs_dir}")
+        return record
+
+    runtime.control.register("run", run)
     runtime.details = core.status
+    for run_id in core.recover():
+        log.warning("run %s was left by a controller that died; finished as failed from its journal", run_id)
 
     def on_motion() -> None:
         estimate = motion.receive(timeout_s=0)
@@ -136,6 +150,10 @@ def main(argv: list[str] | None = None) -> int:
         return runtime.run(step)
     finally:
         if core.state == "servoing":
+            # Bounded: a launcher stopping everything gives each service a few seconds,
+            # and a peer that is already gone must not use them all up.
+            for client in (stage_client, estimator_client):
+                client.timeout_s, client.retries = 0.3, 1
             core.stop("controller shutting down")
         events.close()
         motion.close()

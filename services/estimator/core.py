@@ -21,6 +21,10 @@ class TeachError(ValueError):
     """A teach request that cannot be honoured; the previous reference is kept."""
 
 
+class NotEnoughFrames(TeachError):
+    """Fewer frames have arrived than the teach asks to average: ask again shortly."""
+
+
 @dataclass
 class Reference:
     id: str
@@ -94,7 +98,7 @@ class EstimatorCore:
             raise TeachError(f"frames must be a whole number from 1 to {self.recent.maxlen}, got {frames!r}")
         chosen = list(self.recent)[-frames:]
         if len(chosen) < frames:
-            raise TeachError(f"only {len(chosen)} frames received so far; {frames} asked for averaging")
+            raise NotEnoughFrames(f"only {len(chosen)} frames received so far; {frames} asked for averaging")
         shapes = {frame.pixels.shape for frame in chosen}
         if len(shapes) > 1 or len({frame.header.pixel_size_nm for frame in chosen}) > 1:
             raise TeachError("the scan changed during the frames to average; teach again")
@@ -127,6 +131,14 @@ class EstimatorCore:
             shape_mask = [tuple(map(float, point)) for point in polygon] if polygon is not None else mask > 0
         except (TypeError, ValueError):
             raise TeachError("polygon must be a list of [x, y] corner points") from None
+        if polygon is not None:
+            rows, cols = self.latest.pixels.shape
+            # Corners are clicked on the live image; a little outside it is fine (a mask
+            # cut by the edge), far outside is a mistake (and overflows the rasterizer).
+            if not all(len(point) == 2 and -cols <= point[0] <= 2 * cols and -rows <= point[1] <= 2 * rows
+                       for point in shape_mask):
+                raise TeachError(f"polygon corner points must be [x, y] pairs of finite numbers on or near the "
+                                 f"{cols} x {rows} image")
         detail = {"polygon": [list(point) for point in shape_mask]} if polygon is not None else {}
         return self._install(np.array(self.latest.pixels), "mask", self.latest.header.pixel_size_nm,
                              mask=shape_mask, **detail)

@@ -15,8 +15,8 @@ from semservo.imagefiles import ImageFileError, read_image
 from semservo.logs import configure
 from semservo.messages import MOTION_TOPIC
 from semservo.service import ServiceRuntime
-from semservo.transport import BadRequest, FrameSubscriber, MessagePublisher
-from services.estimator.core import EstimatorCore, TeachError, decode_upload
+from semservo.transport import BadRequest, CommandError, FrameSubscriber, MessagePublisher
+from services.estimator.core import EstimatorCore, NotEnoughFrames, TeachError, decode_upload
 
 log = logging.getLogger("estimator")
 
@@ -59,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
             if "image_b64" in args:
                 return taught(core.teach_image(decode_upload(args["image_b64"]), label=str(args.get("label", "upload"))))
             if "path" in args:
+                if not isinstance(args["path"], str):
+                    raise TeachError("path must be a file path (text)")
                 try:
                     pixels, _ = read_image(Path(args["path"]))
                 except ImageFileError as error:
@@ -69,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
             if "mask_b64" in args:
                 return taught(core.teach_mask(mask=decode_upload(args["mask_b64"])))
             return taught(core.teach_latest(frames=args.get("frames", 1)))
+        except NotEnoughFrames as error:  # its own code: a caller may wait and ask again
+            raise CommandError("not_enough_frames", str(error)) from None
         except TeachError as error:
             raise BadRequest(str(error)) from None
 

@@ -44,8 +44,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The magnifications the simulated SEM renders in reasonable time (its scenes are a few
+#: hundred micrometres across; at 100x one frame takes seconds, at 1x minutes).
+SIMULATED_MAGNIFICATION = (200.0, 200_000.0)
+
+
 def scan_settings(world: World, request: ScanRequest) -> ScanSettings:
     preset = world.preset
+    low, high = SIMULATED_MAGNIFICATION
+    if request.magnification is not None and not low <= request.magnification <= high:
+        raise ValueError(f"the simulated SEM images magnifications {low:g}..{high:g}x, "
+                         f"not {request.magnification:g}x")
     return ScanSettings(
         dwell_ns=request.dwell_ns or preset.dwell_ns,
         magnification=request.magnification or preset.magnification,
@@ -68,6 +77,7 @@ class ScanServer:
         self.counters = counters
         self.sequence = 0
         self.last_error: str | None = None
+        self.failed_in_a_row = 0
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._serve, name="scan", daemon=True)
 
@@ -85,14 +95,23 @@ class ScanServer:
                 if request is None:
                     raise ValueError(f"a scan request is one JSON part, got {len(parts)}")
                 settings = scan_settings(self.world, request)
-                scan_started_at_ns = time.time_ns()
-                pixels, start, end = self.world.scan(settings)
-                acquired_at_ns = time.time_ns()
             except (pydantic.ValidationError, ValueError) as error:
                 self.counters["scans_refused"] += 1
                 self.last_error = f"scan refused: {error}"
                 self.socket.send(Reply.failure("bad_request", str(error)).model_dump_json().encode())
                 continue
+            try:
+                scan_started_at_ns = time.time_ns()
+                pixels, start, end = self.world.scan(settings)
+                acquired_at_ns = time.time_ns()
+            except Exception as error:  # noqa: BLE001 - the SEM must keep scanning, and say why one failed
+                log.exception("a scan failed")
+                self.counters["scans_failed"] += 1
+                self.failed_in_a_row += 1
+                self.last_error = f"scan failed: {type(error).__name__}: {error}"
+                self.socket.send(Reply.failure("scan_failed", self.last_error).model_dump_json().encode())
+                continue
+            self.failed_in_a_row = 0
             header = frame_header(
                 pixels, seq=self.sequence, acquired_at_ns=acquired_at_ns, pixel_size_nm=settings.pixel_um * 1000,
                 magnification=settings.magnification, dwell_ns=settings.dwell_ns, source="fakelab",
@@ -102,6 +121,11 @@ class ScanServer:
             self.sequence += 1
             self.counters["frames_scanned"] += 1
             self.socket.send_multipart(encode_frame(header, pixels), copy=False)
+
+    @property
+    def healthy(self) -> bool:
+        """Scanning: the thread lives and the last scan did not fail."""
+        return self.thread.is_alive() and self.failed_in_a_row == 0
 
     def stop(self) -> None:
         self._stop.set()
@@ -149,36 +173,43 @@ def main(argv: list[str] | None = None) -> int:
         scanned: frame labels carry it), or averaged over a scan ``interval_s`` (t0, t1):
         what a frame shows, with the vibration averaged out as the scan averages it."""
         if "interval_s" in args:
-            try:
-                start, end = (float(value) for value in args["interval_s"])
-            except (TypeError, ValueError):
-                raise BadRequest("interval_s must be two numbers (simulated seconds)") from None
-            if not start <= end <= world.now():
-                raise BadRequest(f"interval_s must be ordered and past (now {world.now():.3f})")
+            interval = args["interval_s"]
+            if not isinstance(interval, list) or len(interval) != 2:
+                raise BadRequest("interval_s must be two numbers (simulated seconds)")
+            start, end = (simulated_time(value, "interval_s") for value in interval)
+            if start > end:
+                raise BadRequest(f"interval_s must be ordered, got {start:g} > {end:g}")
             samples = [asdict(world.pose(t)) for t in np.linspace(start, end, 64)]
-            return {"interval_s": [start, end],
+            return {"interval_s": [start, end], "world_id": world.id,
                     **{key: float(np.mean([sample[key] for sample in samples])) for key in samples[0]}}
-        now = world.now()
-        when = args.get("t_s", now)
-        try:
-            when = float(when)
-        except (TypeError, ValueError):
-            raise BadRequest("t_s must be a number (simulated seconds)") from None
-        if when > now:
-            raise BadRequest(f"t_s {when:.3f} is in the future (now {now:.3f})")
-        return {"t_s": when, **asdict(world.pose(when)),
+        when = simulated_time(args["t_s"], "t_s") if "t_s" in args else world.now()
+        return {"t_s": when, "world_id": world.id, **asdict(world.pose(when)),
                 "voltages": [world.voltage(channel) for channel in (0, 1, 2)]}
 
+    def simulated_time(value, name: str) -> float:
+        """A past simulated time: a finite number of seconds from 0 to now."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise BadRequest(f"{name} must be a number of simulated seconds, got {value!r}")
+        now = world.now()
+        if value > now:
+            raise BadRequest(f"{name} {value!r} is in the future (now {now:.3f} s)")
+        if not 0 <= value <= now:  # NaN and -infinity fail this too
+            raise BadRequest(f"{name} must be a past simulated time, 0..{now:.3f} s, got {value!r}")
+        return float(value)
+
     def set_rotation_stage(args: dict) -> dict:
+        for key, value in args.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise BadRequest(f"{key} must be a number of degrees, got {value!r}")
         try:
-            world.set_rotation_stage(**{key: float(value) for key, value in args.items()})
+            world.set_rotation_stage(**args)
         except (TypeError, ValueError) as error:
             raise BadRequest(str(error)) from None
         return dict(world.rotation_stage)
 
     def set_preset(args: dict) -> dict:
         name = args.get("preset")
-        if name not in PRESETS:
+        if not isinstance(name, str) or name not in PRESETS:
             raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
         with world.lock, world.render_lock:  # not while a frame renders with the old SEM
             world.preset = PRESETS[name]
@@ -199,10 +230,17 @@ def main(argv: list[str] | None = None) -> int:
     runtime.control.register("pose", pose)
     runtime.control.register("set_rotation_stage", set_rotation_stage)
     runtime.control.register("set_preset", set_preset)
-    runtime.details = lambda: {"preset": world.preset.name, "serial_pty": pty.path if pty else None,
-                               "serial_tcp": tcp.url, "frames": world.frames}
+    runtime.details = lambda: {"preset": world.preset.name, "world_id": world.id,
+                               "serial_pty": pty.path if pty else None, "serial_tcp": tcp.url, "frames": world.frames,
+                               "scanning": scanner.healthy}
+
+    def step() -> float:
+        # Health says so when the SEM cannot scan (a dead scan thread, failing scans).
+        runtime.state = "running" if scanner.healthy else "degraded"
+        return 0.5
+
     try:
-        return runtime.run()
+        return runtime.run(step)
     finally:
         scanner.stop()
         tcp.stop()

@@ -38,10 +38,14 @@ class ErrorResponse(BaseModel):
     error: ErrorBody
 
 
+#: Every request model: unknown fields are an error, and so is NaN or infinity.
+STRICT = {"extra": "forbid", "allow_inf_nan": False}
+
+
 class PolygonTeach(BaseModel):
     """Teach from a mask given by its corner points on the live image (paper case 6)."""
 
-    model_config = {"extra": "forbid"}
+    model_config = STRICT
     polygon: list[tuple[float, float]] = Field(min_length=3, max_length=1000, description="[[x, y], ...] in pixels")
 
 
@@ -55,7 +59,10 @@ class TeachResult(BaseModel):
 
 
 class MoveRequest(BaseModel):
-    model_config = {"extra": "forbid"}
+    """A jog (relative) or a move to a target (absolute), on x, y or both."""
+
+    # The schema says what the endpoint checks: at least one axis must be given.
+    model_config = {**STRICT, "json_schema_extra": {"anyOf": [{"required": ["x_um"]}, {"required": ["y_um"]}]}}
     x_um: float | None = Field(None, ge=-100, le=100, description="micrometres (target, or step if relative)")
     y_um: float | None = Field(None, ge=-100, le=100)
     relative: bool = Field(True, description="a step from here (jog), or an absolute target")
@@ -64,9 +71,9 @@ class MoveRequest(BaseModel):
 class CenterRequest(BaseModel):
     """A point of the live image (pixels, x right, y down) to bring to the centre."""
 
-    model_config = {"extra": "forbid"}
-    x_px: float
-    y_px: float
+    model_config = STRICT
+    x_px: float = Field(ge=0, le=100_000, description="column, from the left edge (must lie inside the current image)")
+    y_px: float = Field(ge=0, le=100_000, description="row, from the top edge")
 
 
 class StartResult(BaseModel):
@@ -75,7 +82,7 @@ class StartResult(BaseModel):
 
 
 class StopRequest(BaseModel):
-    model_config = {"extra": "forbid"}
+    model_config = STRICT
     reason: str = Field("stop requested", max_length=200)
 
 
@@ -105,6 +112,8 @@ class Status(BaseModel):
     stage: dict
     services: dict[str, ServiceHealth]
     down: list[str]
+    degraded: list[str] = Field(default_factory=list, description="up, but not doing their job (e.g. a frozen "
+                                                                   "frame source); last_error says why")
 
 
 class RunSummary(BaseModel):
@@ -180,6 +189,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
     @app.post("/teach", response_model=TeachResult, dependencies=[Auth], tags=["teach"],
               summary="Teach the reference: the live frame(s), an uploaded image, or a mask")
     async def teach(
+        request: Request,
         frames: Annotated[int, Query(ge=1, le=16, description="average this many live frames")] = 1,
         dwell_ns: Annotated[float | None, Query(gt=0, le=100_000, description="scan the reference once at this "
                                                 "dwell (ns/px): a slow, high-quality reference")] = None,
@@ -187,6 +197,10 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         mask: Annotated[UploadFile | None, File(description="PNG/TIFF binary mask (paper case 6)")] = None,
         label: Annotated[str | None, Form(max_length=200)] = None,
     ) -> TeachResult:
+        if request.headers.get("content-type", "").split(";")[0].strip() == "application/json":
+            # Said, not ignored: a script posting {"frames": 4} would otherwise get one frame.
+            raise GatewayError(415, "json_body", "POST /teach takes query parameters (?frames=4, ?dwell_ns=...) "
+                                                 "or a multipart upload (image or mask), not a JSON body")
         if sum(given is not None for given in (image, mask, dwell_ns)) > 1:
             raise GatewayError(422, "invalid", "give one of image, mask, dwell_ns", field="image")
         image_bytes = await read_upload(image, "image") if image is not None else None
@@ -224,9 +238,12 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
 
     # -- runs -----------------------------------------------------------------------
     @app.post("/start", response_model=StartResult, dependencies=[Auth], tags=["runs"],
-              summary="Start a positioning run (409 with the active run's id if one is running)")
-    def start(settings: RunSettings | None = None) -> StartResult:
-        started = core.start((settings or RunSettings()).model_dump())
+              summary="Start a positioning run (409 with the active run's id if one is running; 409 "
+                      "stage_stopped if an operator stopped the stage, unless resume=true)")
+    def start(settings: RunSettings | None = None,
+              resume: Annotated[bool, Query(description="let a stopped stage move again (the operator's word, as "
+                                                        "POST /stage/resume)")] = False) -> StartResult:
+        started = core.start((settings or RunSettings()).model_dump(), resume=resume)
         return StartResult(run_id=started["run_id"], state=started["state"])
 
     @app.post("/stop", dependencies=[Auth], tags=["runs"], summary="Stop at once, any time")
@@ -239,7 +256,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
 
     @app.get("/runs", response_model=list[RunSummary], tags=["runs"], summary="Run history, newest first")
     def runs(limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-             offset: Annotated[int, Query(ge=0)] = 0) -> list[RunSummary]:
+             offset: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0) -> list[RunSummary]:
         return [RunSummary.model_validate(run) for run in core.store.list_runs(limit, offset)]
 
     def run_or_404(run_id: str) -> dict:
@@ -286,7 +303,15 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
 
     @app.websocket("/events")
     async def events(socket: WebSocket) -> None:
-        """Status and per-iteration records as they happen (JSON text messages)."""
+        """Status and per-iteration records as they happen (JSON text messages). With a
+        token configured, it must come as ``?token=`` (browsers cannot set headers on a
+        WebSocket) or as a bearer header."""
+        if api_token is not None:
+            header = socket.headers.get("authorization", "")
+            given = socket.query_params.get("token") or (header[7:] if header.lower().startswith("bearer ") else "")
+            if not hmac.compare_digest(given.encode(), api_token.encode()):
+                await socket.close(code=1008, reason="a valid token is required (?token=...)")
+                return
         await socket.accept()
         queue: asyncio.Queue = asyncio.Queue(maxsize=1000)
         app.state.listeners.add(queue)

@@ -35,6 +35,21 @@ HEALTH_TTL_S = 0.25
 #: The services the gateway reports on, in the order a user reads them.
 SERVICE_NAMES = ("fakelab", "imageserver", "estimator", "stage", "controller")
 
+#: How long a teach waits for the frames it asks to average (a system just started has
+#: sent fewer); then it is refused with the count.
+TEACH_FRAMES_WAIT_S = 30.0
+
+#: How many times a run's truth is asked of a simulated lab that does not answer.
+TRUTH_ATTEMPTS = 30
+
+#: How often unfinished records are looked at (``GatewayCore.reconcile``), seconds.
+RECONCILE_EVERY_S = 1.0
+
+#: A controller silent this long with a run in ``servoing``: the run is recorded as failed
+#: (provisionally: the controller's own record replaces it when it answers again). Its
+#: stage's watchdog has held the stage by then.
+CONTROLLER_LOST_AFTER_S = 5.0
+
 
 class Port(Protocol):
     def request(self, command: str, args: dict | None = None) -> dict: ...
@@ -126,6 +141,13 @@ class GatewayCore:
         self.latencies_ms: deque = deque(maxlen=1000)
         self.health_lock = threading.Lock()
         self._health_cache: tuple[float, dict] = (-1e9, {})
+        self.reconcile_lock = threading.Lock()
+        self._reconciled_at = -1e9
+        self._controller_silent_since: float | None = None
+        self._truth_attempts: dict[str, int] = {}
+        saved = store.reference()
+        if saved is not None:  # a restarted gateway knows the last reference and its truth
+            self.reference, self.taught_truth = saved
 
     # -- streams (called by main's threads) -------------------------------------
     def on_frame(self, frame: Frame) -> None:
@@ -159,7 +181,7 @@ class GatewayCore:
         elif event.kind == "status":
             self.last_status = data
             self.store.add_event(run_id, now_ns, "status", data)
-            if run_id is not None and data.get("state") in FINISHED and not self.store.is_finished(run_id):
+            if run_id is not None and data.get("state") in FINISHED and not self.store.is_complete(run_id):
                 self.finish(run_id)
         self.broadcast({"kind": event.kind, "run_id": run_id, "data": data})
 
@@ -175,46 +197,128 @@ class GatewayCore:
                              self.reference.get("id") == record.get("reference_id") else
                              {"id": record.get("reference_id")})
 
-    def finish(self, run_id: str) -> None:
+    def finish(self, run_id: str) -> bool:
         """A run ended: complete its rows from the controller's own record (events can be
-        missed on PUB/SUB), its stage command log, and the truth when simulated."""
+        missed on PUB/SUB, and the gateway may have been down), with the stage command
+        log and, on simulated hardware, the truth. True when the record is complete."""
         try:
-            record = call(self.ports.get("controller"), "controller", "run")
+            record = call(self.ports.get("controller"), "controller", "run", {"id": run_id})
         except GatewayError as error:
-            log.error("cannot complete run %s: %s", run_id, error.message)
-            return
+            log.warning("cannot complete run %s yet: %s", run_id, error.message)
+            return False
         if record.get("id") != run_id or not record.get("outcome"):
-            return
+            return False
+        outcome = dict(record["outcome"])
+        stage_log = record.get("stage_log", [])
+        if outcome.get("stage_log_error"):
+            # The controller could not reach the stage when the run ended (the stage was
+            # down): the stage keeps its log across restarts, so ask it directly.
+            stage_log = self._stage_log(record["started_at_ns"], outcome["finished_at_ns"])
+            if stage_log is not None:
+                outcome.pop("stage_log_error")
         for iteration in record.get("records", []):
             self.store.add_iteration(run_id, iteration)
         # The final error as the controller judged it: the mean over its last fresh frames.
         judged = [r["mean_error_px"] for r in record.get("records", []) if r.get("mean_error_px") is not None]
         final_error_px = judged[-1] if judged else None
-        self.store.finish_run(run_id, outcome=record["outcome"], final_error_px=final_error_px,
-                              stage_log=record.get("stage_log", []), truth=self._true_final_error(record))
-        log.info("run %s %s after %s iterations", run_id, record["outcome"]["state"], record["outcome"]["iterations"])
+        truth, truth_note, retry = self._true_final_error(record)
+        outcome.pop("truth_pending", None)
+        if truth_note:
+            outcome["truth_unavailable"] = truth_note
+            # The lab did not answer (frozen, restarting): asked again by reconcile for
+            # a while, then the reason stays.
+            attempts = self._truth_attempts.get(run_id, 0) + 1
+            self._truth_attempts[run_id] = attempts
+            if retry and attempts < TRUTH_ATTEMPTS:
+                outcome["truth_pending"] = True
+        else:
+            outcome.pop("truth_unavailable", None)
+        self.store.finish_run(run_id, outcome=outcome, final_error_px=final_error_px,
+                              stage_log=stage_log or [], truth=truth)
+        log.info("run %s %s after %s iterations", run_id, outcome["state"], outcome["iterations"])
+        return True
 
-    def _true_final_error(self, record: dict) -> dict | None:
+    def _stage_log(self, since_ns: int, until_ns: int | None = None) -> list[dict] | None:
+        try:
+            entries = call(self.ports.get("stage"), "stage", "log", {"since_ns": int(since_ns)})["entries"]
+        except GatewayError:
+            return None
+        return [entry for entry in entries if until_ns is None or entry["time_ns"] <= until_ns]
+
+    def reconcile(self, active_run_id: str | None, controller_up: bool) -> None:
+        """Complete every record that is not: runs still ``servoing`` here that the
+        controller is no longer running (it finished them while we were down, or died
+        and recovered them), provisional ones, and ones missing the stage's log. A run
+        whose controller stays silent is recorded as failed, provisionally."""
+        with self.reconcile_lock:
+            now = self.clock()
+            if now - self._reconciled_at < RECONCILE_EVERY_S:
+                return
+            self._reconciled_at = now
+            if controller_up:
+                self._controller_silent_since = None
+            elif self._controller_silent_since is None:
+                self._controller_silent_since = now
+            for run in self.store.incomplete_runs():
+                if run["id"] == active_run_id:
+                    continue
+                if controller_up:
+                    if self.finish(run["id"]):
+                        continue
+                    if run["state"] == "servoing" and self._controller_disowns(run["id"]):
+                        self._finish_provisionally(run, "the controller has no record of this run (its records were "
+                                                        "lost?)", provisional=False)
+                elif run["state"] == "servoing" and now - self._controller_silent_since >= CONTROLLER_LOST_AFTER_S:
+                    self._finish_provisionally(run, f"the controller went down mid-run (no answer for "
+                                                    f"{now - self._controller_silent_since:.0f} s); the stage's "
+                                                    f"watchdog holds the stage")
+
+    def _controller_disowns(self, run_id: str) -> bool:
+        try:
+            call(self.ports.get("controller"), "controller", "run", {"id": run_id})
+        except GatewayError as error:
+            return error.code == "no_such_run"
+        return False
+
+    def _finish_provisionally(self, run: dict, reason: str, *, provisional: bool = True) -> None:
+        stage_log = self._stage_log(run["started_at_ns"])
+        outcome = {"state": "failed", "reason": reason, "finished_at_ns": time.time_ns(),
+                   "iterations": self.store.get_run(run["id"])["iterations"], "provisional": provisional}
+        if stage_log is None:
+            outcome["stage_log_error"] = "the stage service did not answer"
+        self.store.finish_run(run["id"], outcome=outcome, final_error_px=None, stage_log=stage_log or [], truth=None)
+        log.error("run %s: %s", run["id"], reason)
+        self.broadcast({"kind": "status", "run_id": run["id"], "data": {"state": "failed", "reason": reason,
+                                                                         "run_id": run["id"]}})
+
+    def _true_final_error(self, record: dict) -> tuple[dict | None, str | None, bool]:
         """On simulated hardware: the true pose over the scans of the run's last three
         fresh frames (what it judged convergence on) against the true pose over the
-        reference's scans, in um and px."""
+        reference's scans, in um and px; or (None, why not, worth asking again)."""
         fakelab = self.ports.get("fakelab")
         fresh = [r for r in record.get("records", []) if r.get("frame_source_interval_s")
                  and not r.get("action", "").startswith("held")]
         scans = [r["frame_source_interval_s"] for r in fresh[-3:]]
-        if fakelab is None or self.taught_truth is None or not scans:
-            return None
-        if self.taught_truth.get("reference_id") != record.get("reference_id"):
-            return None
+        if fakelab is None or not scans:
+            return None, None, False
+        saved = self.store.reference(record.get("reference_id"))
+        taught = saved[1] if saved is not None else None
+        if taught is None:
+            return None, "no true pose was recorded when the reference was taught", False
         try:
             pose = fakelab.request("pose", {"interval_s": [scans[0][0], scans[-1][1]]})
-        except (ServiceUnavailable, CommandError) as error:
-            log.warning("no truth from the fake lab: %s", error)
-            return None
+        except ServiceUnavailable as error:
+            log.warning("no truth from the fake lab yet: %s", error)
+            return None, f"the simulated lab did not answer for the final pose: {error}", True
+        except CommandError as error:
+            return None, f"the simulated lab refused the final pose: {error.message}", False
+        if pose.get("world_id") != taught.get("world_id"):
+            return None, ("the simulated lab restarted since the reference was taught: the run's end and its "
+                          "reference are in two different simulated worlds"), False
         pixel_um = record["records"][-1]["pixel_size_nm"] / 1000
-        error_um = [pose["x_um"] - self.taught_truth["x_um"], pose["y_um"] - self.taught_truth["y_um"]]
-        return {"error_um": error_um, "error_px": [value / pixel_um for value in error_um],
-                "error_norm_px": float(np.hypot(*error_um) / pixel_um), "pixel_size_um": pixel_um}
+        error_um = [pose["x_um"] - taught["x_um"], pose["y_um"] - taught["y_um"]]
+        return ({"error_um": error_um, "error_px": [value / pixel_um for value in error_um],
+                 "error_norm_px": float(np.hypot(*error_um) / pixel_um), "pixel_size_um": pixel_um}, None, False)
 
     # -- teaching -------------------------------------------------------------
     def teach(self, *, frames: int = 1, image: bytes | None = None, mask: bytes | None = None,
@@ -222,6 +326,7 @@ class GatewayCore:
         """Teach the estimator; a refusal keeps the previous reference (the estimator
         installs a new one only when it is built). ``dwell_ns``: scan the reference once
         at that dwell (a slow, high-quality reference, paper case 5)."""
+        self._refuse_during_run("teaching a new reference")
         estimator = self.ports.get("estimator")
         call(estimator, "estimator", "health")  # a dead estimator is named in a second, not after the teach timeout
         latest = self.latest
@@ -249,16 +354,44 @@ class GatewayCore:
             result = call(estimator, "estimator", "teach", {"polygon": polygon})
             reference_pixels = latest.pixels if latest is not None else None
         else:
-            result = call(estimator, "estimator", "teach", {"frames": frames})
-            reference_pixels = latest.pixels if latest is not None else None
+            result = self._teach_live(frames)
+            reference_pixels = self.latest.pixels if self.latest is not None else None
         with self.lock:
             self.reference = result
             self.reference_pixels = None if reference_pixels is None else np.array(reference_pixels)
         self.taught_truth = self._taught_truth({**result, "source_interval_s": scanned_interval} if scanned_interval
                                                else result)
+        self.store.save_reference(result, self.taught_truth, time.time_ns())
         self.counters["references_taught"] += 1
         self.broadcast({"kind": "reference", "run_id": None, "data": result})
         return result
+
+    def _teach_live(self, frames: int) -> dict:
+        """Teach from the live frames, waiting (up to ``TEACH_FRAMES_WAIT_S``) for as many
+        as asked to average: a system that has just started has sent fewer."""
+        deadline = self.clock() + TEACH_FRAMES_WAIT_S
+        while True:
+            try:
+                return call(self.ports.get("estimator"), "estimator", "teach", {"frames": frames})
+            except GatewayError as error:
+                if error.code != "not_enough_frames" or self.clock() > deadline:
+                    raise
+            time.sleep(0.1)
+
+    def _active_run(self) -> str | None:
+        """The run the controller is servoing, if any (None also when it does not answer:
+        then no run can move the stage, whose watchdog holds it)."""
+        try:
+            status = call(self.ports.get("controller"), "controller", "status")
+        except GatewayError:
+            return None
+        return status.get("run_id") if status.get("state") == "servoing" else None
+
+    def _refuse_during_run(self, what: str) -> None:
+        run_id = self._active_run()
+        if run_id is not None:
+            raise GatewayError(409, "run_active", f"{what} is refused while run {run_id} is servoing; "
+                                                  f"POST /stop first", run_id=run_id)
 
     def _taught_truth(self, reference: dict) -> dict | None:
         fakelab = self.ports.get("fakelab")
@@ -273,7 +406,8 @@ class GatewayCore:
                 pose = fakelab.request("pose", {"interval_s": [max(now - 0.5, 0.0), now]})
         except (ServiceUnavailable, CommandError):
             return None
-        return {"reference_id": reference["id"], "x_um": pose["x_um"], "y_um": pose["y_um"]}
+        return {"reference_id": reference["id"], "x_um": pose["x_um"], "y_um": pose["y_um"],
+                "world_id": pose.get("world_id")}
 
     # -- images ---------------------------------------------------------------
     def latest_png(self) -> bytes:
@@ -304,6 +438,9 @@ class GatewayCore:
 
     # -- stage and runs -------------------------------------------------------
     def move(self, targets: dict[str, float], relative: bool) -> dict:
+        """A jog or move. Refused during a run (it would fight the controller); the stage
+        refuses it too while a run's controller has it armed."""
+        self._refuse_during_run("moving the stage")
         return call(self.ports.get("stage"), "stage", "move", {"targets": targets, "relative": relative,
                                                                 "owner": "gateway"})
 
@@ -315,8 +452,9 @@ class GatewayCore:
             raise GatewayError(409, "no_frame", "no live frame to click on yet")
         rows, cols = frame.pixels.shape
         if not (0 <= x_px < cols and 0 <= y_px < rows):
-            raise GatewayError(422, "invalid", f"({x_px:.1f}, {y_px:.1f}) is outside the {cols} x {rows} image",
-                               field="x_px")
+            # 409, not 422: the point is well formed; the current scan is what it misses.
+            raise GatewayError(409, "outside_image", f"({x_px:.1f}, {y_px:.1f}) is outside the current "
+                                                     f"{cols} x {rows} image", field="x_px")
         x_um, y_um = self.camera.stage_move_um(cols / 2 - x_px, rows / 2 - y_px, frame.header.pixel_size_nm)
         return self.move({"x": x_um, "y": y_um}, relative=True)
 
@@ -330,16 +468,21 @@ class GatewayCore:
     def stage_state(self) -> dict:
         return call(self.ports.get("stage"), "stage", "state")
 
-    def start(self, settings: dict) -> dict:
+    def start(self, settings: dict, *, resume: bool = False) -> dict:
+        """Start a run. A stage an operator stopped stays stopped: the start is refused
+        (409 ``stage_stopped``) unless ``resume`` says the operator lets it move again. A
+        stage held by its watchdog (a controller died, or the stage service restarted
+        mid-run) is claimed by the new run's controller."""
         controller = self.ports.get("controller")
         status = call(controller, "controller", "status")
         if status.get("state") == "servoing":
             raise GatewayError(409, "run_active", f"run {status['run_id']} is active; stop it first",
                                run_id=status["run_id"])
         stage = call(self.ports.get("stage"), "stage", "state")
-        if stage.get("state") in ("stopped", "held"):
-            # A stop ends the previous run and leaves the stage stopped: a new start is the
-            # operator's word that it may move again.
+        if stage.get("state") == "stopped":
+            if not resume:
+                raise GatewayError(409, "stage_stopped", f"the stage is stopped ({stage.get('reason')}); "
+                                                         f"POST /stage/resume first, or start with ?resume=true")
             call(self.ports.get("stage"), "stage", "resume")
         try:
             started = call(controller, "controller", "start", settings)
@@ -404,12 +547,13 @@ class GatewayCore:
         latencies = np.array(self.latencies_ms) if self.latencies_ms else None
         estimator = services.get("estimator", {}).get("details", {})
         run_id = run.get("run_id")
-        if run_id and run.get("state") in FINISHED and not self.store.is_finished(run_id):
+        if run_id and run.get("state") in FINISHED and not self.store.is_complete(run_id):
             # The run's last event was missed (PUB/SUB drops, or the gateway was down
             # when it ended): complete its record from the controller now.
             if not self.store.exists(run_id):
                 self._record_start(run_id)
             self.finish(run_id)
+        self.reconcile(run_id if run.get("state") == "servoing" else None, bool(controller.get("up")))
         return {
             "state": run.get("state", "unknown" if not controller.get("up") else "idle"),
             "reason": run.get("reason", ""),
@@ -432,4 +576,5 @@ class GatewayCore:
             "services": {name: {"up": value["up"], "state": value["state"], "last_error": value["last_error"]}
                          for name, value in services.items()},
             "down": [name for name, value in services.items() if not value["up"]],
+            "degraded": [name for name, value in services.items() if value["up"] and value["state"] == "degraded"],
         }

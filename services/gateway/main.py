@@ -13,7 +13,6 @@ Bound to loopback by default; on any other address it refuses to start without
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import logging
 import threading
 import time
@@ -24,6 +23,7 @@ import uvicorn
 from semservo.config import Settings, connect
 from semservo.control import CameraToStage
 from semservo.logs import configure
+from semservo.security import is_loopback
 from semservo.messages import CONTROLLER_TOPIC, ControllerEvent
 from semservo.service import ServiceRuntime
 from semservo.transport import ControlClient, FrameSubscriber, MessageSubscriber
@@ -56,15 +56,6 @@ class LockedPort:
     def close(self) -> None:
         with self.lock:
             self.client.close()
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -147,12 +138,20 @@ def main(argv: list[str] | None = None) -> int:
                                "http_running": http.is_alive()}
 
     http_failed = threading.Event()
+    housekeeping = {"due": 0.0}
 
     def step() -> float:
         if not http.is_alive() and not http_failed.is_set():
             http_failed.set()
             log.error("the HTTP server stopped: is %s taken?", url)
             runtime.request_stop()
+        if time.monotonic() >= housekeeping["due"]:
+            # Records are completed even when nobody polls /status (core.reconcile).
+            housekeeping["due"] = time.monotonic() + 1.0
+            try:
+                core.status()
+            except Exception:  # noqa: BLE001 - the next round tries again; the reason is logged
+                log.exception("housekeeping failed")
         return 0.2
 
     try:

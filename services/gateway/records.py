@@ -52,6 +52,12 @@ CREATE TABLE IF NOT EXISTS events (
     kind TEXT NOT NULL,
     data TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS refs (
+    id TEXT PRIMARY KEY,
+    taught_at_ns INTEGER NOT NULL,
+    reference TEXT NOT NULL,
+    truth TEXT
+);
 CREATE INDEX IF NOT EXISTS iterations_by_run ON iterations(run_id, iteration);
 """
 
@@ -103,6 +109,45 @@ class RunStore:
             self.db.execute("INSERT INTO events (run_id, t_ns, kind, data) VALUES (?, ?, ?, ?)",
                             (run_id, t_ns, kind, json.dumps(data)))
 
+    def save_reference(self, reference: dict, truth: dict | None, taught_at_ns: int) -> None:
+        """A taught reference and, on simulated hardware, the true pose it was taught at:
+        kept so a gateway restarted mid-run can still give that run its truth."""
+        with self.lock:
+            self.db.execute("INSERT OR REPLACE INTO refs (id, taught_at_ns, reference, truth) VALUES (?, ?, ?, ?)",
+                            (reference["id"], taught_at_ns, json.dumps(reference), json.dumps(truth)))
+
+    def reference(self, reference_id: str | None = None) -> tuple[dict, dict | None] | None:
+        """(reference, truth) by id, or the last taught."""
+        with self.lock:
+            row = (self.db.execute("SELECT reference, truth FROM refs WHERE id = ?", (reference_id,)).fetchone()
+                   if reference_id is not None else
+                   self.db.execute("SELECT reference, truth FROM refs ORDER BY taught_at_ns DESC LIMIT 1").fetchone())
+        if row is None:
+            return None
+        return json.loads(row["reference"]), json.loads(row["truth"]) if row["truth"] else None
+
+    def incomplete_runs(self) -> list[dict]:
+        """Runs whose record is not complete yet: still servoing, finished only
+        provisionally by the gateway, missing their stage command log, or waiting for
+        the simulator's truth."""
+        with self.lock:
+            rows = self.db.execute(
+                "SELECT id, state, started_at_ns, finished_at_ns, outcome FROM runs WHERE state = 'servoing' "
+                "OR json_extract(outcome, '$.provisional') OR json_extract(outcome, '$.stage_log_error') IS NOT NULL "
+                "OR json_extract(outcome, '$.truth_pending')"
+            ).fetchall()
+        return [{**{key: row[key] for key in row.keys()}, "outcome": json.loads(row["outcome"]) if row["outcome"]
+                 else None} for row in rows]
+
+    def set_stage_log(self, run_id: str, stage_log: list[dict], outcome: dict) -> None:
+        with self.lock:
+            self.db.execute("BEGIN")
+            self.db.execute("DELETE FROM stage_commands WHERE run_id = ?", (run_id,))
+            self.db.executemany("INSERT INTO stage_commands (run_id, position, entry) VALUES (?, ?, ?)",
+                                [(run_id, index, json.dumps(entry)) for index, entry in enumerate(stage_log)])
+            self.db.execute("UPDATE runs SET outcome = ? WHERE id = ?", (json.dumps(outcome), run_id))
+            self.db.execute("COMMIT")
+
     def finish_run(self, run_id: str, *, outcome: dict, final_error_px: float | None, stage_log: list[dict],
                    truth: dict | None) -> None:
         with self.lock:
@@ -112,8 +157,10 @@ class RunStore:
                 "final_error_px = ?, outcome = ?, truth = ? WHERE id = ?",
                 (outcome["state"], outcome.get("reason", ""), outcome.get("finished_at_ns"),
                  int(outcome.get("iterations", 0)), final_error_px, json.dumps(outcome), json.dumps(truth), run_id))
-            self.db.executemany("INSERT OR IGNORE INTO stage_commands (run_id, position, entry) VALUES (?, ?, ?)",
-                                [(run_id, index, json.dumps(entry)) for index, entry in enumerate(stage_log)])
+            if stage_log:
+                self.db.execute("DELETE FROM stage_commands WHERE run_id = ?", (run_id,))
+                self.db.executemany("INSERT INTO stage_commands (run_id, position, entry) VALUES (?, ?, ?)",
+                                    [(run_id, index, json.dumps(entry)) for index, entry in enumerate(stage_log)])
             self.db.execute("COMMIT")
 
     # -- reading --------------------------------------------------------------
@@ -121,6 +168,15 @@ class RunStore:
         with self.lock:
             row = self.db.execute("SELECT state FROM runs WHERE id = ?", (run_id,)).fetchone()
         return row is not None and row["state"] in FINISHED
+
+    def is_complete(self, run_id: str) -> bool:
+        """Finished, and not only provisionally (a complete record came from the controller)."""
+        with self.lock:
+            row = self.db.execute("SELECT state, outcome FROM runs WHERE id = ?", (run_id,)).fetchone()
+        if row is None or row["state"] not in FINISHED:
+            return False
+        outcome = json.loads(row["outcome"]) if row["outcome"] else {}
+        return not (outcome.get("provisional") or outcome.get("stage_log_error") or outcome.get("truth_pending"))
 
     def exists(self, run_id: str) -> bool:
         with self.lock:

@@ -36,6 +36,31 @@ class Pacer:
             self.next_due += period
 
 
+@dataclass
+class FreezeWatch:
+    """Tells when a source that should be producing frames has gone silent: longer than
+    ``min_silence_s`` and than ``factor`` times the typical interval between its frames
+    (a slow scan is not a frozen one)."""
+
+    min_silence_s: float = 5.0
+    factor: float = 5.0
+    last_at: float | None = None
+    typical_s: float | None = None
+
+    def frame(self, now: float) -> None:
+        if self.last_at is not None:
+            interval = now - self.last_at
+            self.typical_s = interval if self.typical_s is None else 0.8 * self.typical_s + 0.2 * interval
+        self.last_at = now
+
+    def silent_for(self, now: float, started: float) -> float | None:
+        """Seconds without a frame when that is too long (from ``started`` before the
+        first frame), else None."""
+        since = now - (self.last_at if self.last_at is not None else started)
+        limit = max(self.min_silence_s, self.factor * (self.typical_s or 0.0))
+        return since if since > limit else None
+
+
 class ImageServerCore:
     def __init__(self, source: FrameSource, *, fps: float):
         if fps <= 0:

@@ -11,9 +11,8 @@ import argparse
 import base64
 import io
 import logging
-from pathlib import Path
-
 import time
+from pathlib import Path
 
 from PIL import Image
 
@@ -22,7 +21,7 @@ from semservo.logs import configure
 from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
 from semservo.transport import BadRequest, FramePublisher
-from services.imageserver.core import ImageServerCore
+from services.imageserver.core import FreezeWatch, ImageServerCore
 from services.imageserver.sources import BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable
 
 log = logging.getLogger("imageserver")
@@ -97,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         }
 
     def set_fps(args: dict) -> dict:
+        if isinstance(args.get("fps"), bool):
+            raise BadRequest("fps must be a number of frames per second")
         try:
             core.set_fps(float(args.get("fps")))
         except (TypeError, ValueError) as error:
@@ -109,6 +110,9 @@ def main(argv: list[str] | None = None) -> int:
         the stream goes on with the usual settings. Only the scanning (sim) source can."""
         if not isinstance(source, BackgroundAcquisition) or not isinstance(source.source, SimSource):
             raise BadRequest("scan_once needs a scanning source (sim); a replay cannot scan")
+        for key in ("dwell_ns", "magnification"):
+            if args.get(key) is not None and (isinstance(args[key], bool) or not isinstance(args[key], (int, float))):
+                raise BadRequest(f"{key} must be a number, got {args[key]!r}")
         try:
             request = source.source.request.model_copy(update={
                 key: float(args[key]) for key in ("dwell_ns", "magnification") if args.get(key) is not None})
@@ -135,11 +139,21 @@ def main(argv: list[str] | None = None) -> int:
     runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq}
 
     retry_at = 0.0
+    freeze = FreezeWatch()
+    started = time.monotonic()
+
+    def frozen() -> bool:
+        """A source that stopped delivering (a hung SEM, a dead simulator) is degraded."""
+        silent = None if core.exhausted else freeze.silent_for(time.monotonic(), started)
+        if silent is not None and runtime.state != "degraded":
+            runtime.error(f"the frame source is frozen: no frame for {silent:.1f} s ({source.name})")
+        return silent is not None
 
     def step() -> float | None:
         nonlocal retry_at
         if time.monotonic() < retry_at:
-            return retry_at - time.monotonic()
+            runtime.state = "degraded"
+            return min(retry_at - time.monotonic(), 0.5)
         try:
             due = core.next_frame()
         except SourceUnavailable as error:
@@ -148,8 +162,10 @@ def main(argv: list[str] | None = None) -> int:
             runtime.state = "degraded"
             retry_at = time.monotonic() + 1.0
             return 1.0
-        if runtime.state == "degraded":
-            runtime.state = "running"
+        if due is not None:
+            freeze.frame(time.monotonic())
+        if runtime.state in ("running", "degraded"):
+            runtime.state = "degraded" if frozen() else "running"
         if due is not None:
             seq, image = due
             publisher.publish(
@@ -168,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         if core.exhausted and runtime.state == "running":
             runtime.state = "finished"
             log.info("replay finished after %d frames", core.seq)
-        return core.seconds_until_due()
+        wait = core.seconds_until_due()
+        return None if wait is None else min(wait, 0.5)
 
     try:
         return runtime.run(step)

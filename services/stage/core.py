@@ -14,27 +14,47 @@ Safety, in the order a move is checked:
 A move that breaks any rule is refused as a whole with the reason (:class:`Refused`),
 never clipped. The watchdog: a run's controller arms it; if the controller then goes
 silent for ``timeout_s`` (no move, no heartbeat) the stage holds where it is and
-refuses moves until it is armed again or resumed.
+refuses moves until it is armed again or resumed. While armed, the stage moves for its
+owner only: a jog from anyone else is refused (``owned``).
+
+What must outlive the process is kept on disk in ``state_dir``: whether a run had the
+stage armed or an operator had stopped it (``stage-state.json``: a stage service killed
+mid-run comes back **held** until a controller claims it or an operator resumes it,
+never ``ready`` under a run that may still be going), and every line exchanged with the
+amplifier (``stage-commands.jsonl``, so a run's command log survives a restart).
+
+The amplifier is read back every ``READBACK_S``; outputs that differ from what this
+service last commanded (a front-panel knob, a second serial client) **stop** the stage
+with the reason, and the model follows the measured voltages.
 """
 
 from __future__ import annotations
 
 import copy
+import json
 import logging
+import os
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Callable
 
 from semservo import nv40
-from semservo.nv40_driver import LinkError, NV403Driver
+from semservo.nv40_driver import LinkError, LogEntry, NV403Driver
 from semservo.stage_model import BranchModel, load_model
 
 log = logging.getLogger("stage")
 
 #: Back-off between reconnection attempts after the link is lost (seconds).
 RECONNECT_BACKOFF_S = (0.25, 0.5, 1.0, 2.0, 4.0)
-#: How often an idle link is checked (a pulled cable is seen even when nothing moves).
-LINK_CHECK_S = 1.0
+#: How often the amplifier's outputs are read back and compared with what was commanded
+#: (also how a pulled cable is seen when nothing moves): while a run has it armed, idle.
+READBACK_S = {True: 0.25, False: 1.0}
+#: Read-back further than this from the commanded voltage is a change nobody commanded
+#: (the emulator and the NV 40/3 read back to 1 mV; knob noise stays far below this).
+UNCOMMANDED_V = 0.05
+#: The command log kept in memory and reloaded from disk at start.
+COMMAND_LOG_KEPT = 20_000
 
 
 class Refused(ValueError):
@@ -74,6 +94,7 @@ class StageCore:
     models: dict = field(default_factory=dict)  # axis -> BranchModel | LinearModel
     clock: Callable[[], float] = time.monotonic
     open_driver: Callable[[str], NV403Driver] = NV403Driver.open
+    state_dir: Path | None = None  # None: nothing survives the process (tests of the core)
 
     def __post_init__(self):
         for axis in self.channels:
@@ -91,8 +112,69 @@ class StageCore:
         self.attempts = 0
         self.next_attempt = 0.0
         self.last_io = 0.0
-        self.counters = {"moves": 0, "refused": 0, "link_lost": 0, "reconnects": 0}
-        self.log_archive: list = []  # entries of drivers closed after a link loss
+        self.counters = {"moves": 0, "refused": 0, "link_lost": 0, "reconnects": 0, "uncommanded_changes": 0}
+        self.log_archive: list = []  # entries of drivers closed after a link loss, and of earlier processes
+        self._log_file = None
+        self._restore()
+
+    # -- what survives a restart ---------------------------------------------------------
+    @property
+    def _state_path(self) -> Path | None:
+        return None if self.state_dir is None else self.state_dir / "stage-state.json"
+
+    def _restore(self) -> None:
+        """Come back as the last process left things: held if a run had the stage armed,
+        stopped if an operator had stopped it; and with the command log so far."""
+        if self.state_dir is None:
+            return
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        log_path = self.state_dir / "stage-commands.jsonl"
+        if log_path.is_file():
+            with open(log_path, encoding="utf-8") as lines:
+                kept = [line for line in lines][-COMMAND_LOG_KEPT:]
+            for line in kept:
+                try:
+                    self.log_archive.append(LogEntry(**json.loads(line)))
+                except (ValueError, TypeError):
+                    continue  # the line being written when the process died
+            if len(kept) == COMMAND_LOG_KEPT:  # keep the file from growing without end
+                log_path.write_text("".join(kept), encoding="utf-8")
+        self._log_file = open(log_path, "a", encoding="utf-8")  # noqa: SIM115 - open for the process's life
+        try:
+            saved = json.loads(self._state_path.read_text())
+        except (OSError, ValueError):
+            return
+        if saved.get("armed_by"):
+            self.state = "held"
+            self.state_reason = (f"the stage service restarted while run owner {saved['armed_by']} had it armed: "
+                                 f"held until a controller claims it (a new run) or an operator resumes")
+            log.warning("%s", self.state_reason)
+        elif saved.get("state") == "stopped":
+            self.state, self.state_reason = "stopped", f"{saved.get('reason', 'stopped')} (before a restart)"
+
+    def _persist(self) -> None:
+        if self._state_path is None:
+            return
+        state = {"state": self.state, "reason": self.state_reason,
+                 "armed_by": self.watchdog.owner if self.watchdog.armed else None}
+        temporary = self._state_path.with_suffix(f".{os.getpid()}.tmp")
+        temporary.write_text(json.dumps(state))
+        temporary.replace(self._state_path)
+
+    def _journal_entry(self, entry: LogEntry) -> None:
+        if self._log_file is not None:
+            self._log_file.write(json.dumps(asdict(entry)) + "\n")
+            self._log_file.flush()  # in the OS's hands: survives a killed process
+
+    def shutdown(self) -> None:
+        """An orderly end: nothing is left armed by a run (its controller stopped first),
+        so the next process starts ready; the link and the log file are closed."""
+        if not self.watchdog.armed and self._state_path is not None:
+            self._state_path.unlink(missing_ok=True)
+        self.close()
+        if self._log_file is not None:
+            self._log_file.close()
+            self._log_file = None
 
     # -- the link ----------------------------------------------------------------------
     def connect(self) -> bool:
@@ -102,6 +184,7 @@ class StageCore:
         self.close()
         try:
             self.driver = self.open_driver(self.url)
+            self.driver.on_entry = self._journal_entry
             self.device = self.driver.identify()
             for channel in self.channels.values():
                 self.driver.set_remote(channel, True)
@@ -166,17 +249,38 @@ class StageCore:
             self.state_reason = (f"watchdog: {self.watchdog.owner or 'the controller'} silent for "
                                  f"{now - self.watchdog.last_contact:.2f} s; holding at {self._voltages_text()}")
             self.watchdog = Watchdog()
+            self._persist()
             log.warning("%s", self.state_reason)
-        if now - self.last_io > LINK_CHECK_S:
+        if now - self.last_io > READBACK_S[self.watchdog.armed]:
             try:
-                self._io(lambda driver: driver.read_voltages())
+                measured = self._io(lambda driver: driver.read_voltages())
             except Refused:
                 return 0.05
+            self._compare(measured)
         return 0.05 if self.watchdog.armed else 0.2
+
+    def _compare(self, measured) -> None:
+        """Outputs this service did not command: stop, say what changed, follow them."""
+        changed = {axis: (self.voltages[axis], measured[channel]) for axis, channel in self.channels.items()
+                   if abs(measured[channel] - self.voltages[axis]) > UNCOMMANDED_V}
+        if not changed:
+            return
+        for axis, (before, after) in changed.items():
+            self.models[axis].follow_voltage(after, before)
+            self.voltages[axis] = after
+        self.counters["uncommanded_changes"] += 1
+        what = ", ".join(f"{axis} {before:.3f} -> {after:.3f} V" for axis, (before, after) in changed.items())
+        self.stop(f"the amplifier's outputs changed without a command from semservo ({what}): a front-panel knob "
+                  f"or another serial client? Check the stage, then resume")
 
     # -- commands ----------------------------------------------------------------------
     def _voltages_text(self) -> str:
         return ", ".join(f"{axis} {volts:.3f} V" for axis, volts in self.voltages.items())
+
+    def _check_owner(self, owner: str | None) -> None:
+        if self.watchdog.armed and owner != self.watchdog.owner:
+            raise Refused("owned", f"a run ({self.watchdog.owner}) is moving the stage; stop it first "
+                                   f"(this request came from {owner or 'an unnamed client'})")
 
     def _check_ready(self) -> None:
         if self.state == "stopped":
@@ -227,6 +331,7 @@ class StageCore:
         by them (``relative``), through the displacement-voltage model."""
         try:
             self._check_ready()
+            self._check_owner(owner)
             goal = {}
             for axis, value in targets.items():
                 if axis not in self.models:
@@ -252,6 +357,7 @@ class StageCore:
         model's position follows the model's inverse on the branch of the move."""
         try:
             self._check_ready()
+            self._check_owner(owner)
             self._check_voltages(volts, self.clock())
         except Refused:
             self.counters["refused"] += 1
@@ -266,7 +372,8 @@ class StageCore:
     def heartbeat(self, owner: str | None = None) -> dict:
         if owner is not None and owner == self.watchdog.owner:
             self.watchdog.last_contact = self.clock()
-        return {"state": self.state, "watchdog": self.watchdog.armed}
+        return {"state": self.state, "reason": self.state_reason, "watchdog": self.watchdog.armed,
+                "owner": self.watchdog.owner}
 
     def arm(self, timeout_s: float, owner: str) -> dict:
         """A run starts: hold if ``owner`` is silent for ``timeout_s``. Clears a hold."""
@@ -274,13 +381,17 @@ class StageCore:
             raise Refused("bad_request", f"watchdog timeout must be 0.05..600 s, got {timeout_s}")
         if self.state == "stopped":
             raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first")
+        if self.watchdog.armed and owner != self.watchdog.owner:
+            raise Refused("owned", f"run owner {self.watchdog.owner} has the stage armed; it must stop first")
         self.watchdog = Watchdog(timeout_s, owner, self.clock())
         self.state, self.state_reason = "ready", ""
+        self._persist()
         return self.describe()
 
     def disarm(self, owner: str | None = None) -> dict:
         if owner is None or owner == self.watchdog.owner:
             self.watchdog = Watchdog()
+            self._persist()
         return self.describe()
 
     def stop(self, reason: str = "stop requested") -> dict:
@@ -288,11 +399,13 @@ class StageCore:
         up or not (nothing is sent: the amplifier keeps its outputs)."""
         self.state, self.state_reason = "stopped", reason
         self.watchdog = Watchdog()
+        self._persist()
         log.warning("stage stopped: %s", reason)
         return self.describe()
 
     def resume(self) -> dict:
         self.state, self.state_reason = "ready", ""
+        self._persist()
         return self.describe()
 
     def release(self) -> dict:

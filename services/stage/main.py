@@ -5,7 +5,7 @@ um}, relative, owner}, ``set_voltages`` {voltages: {axis: V}, owner}, ``arm`` {h
 owner}, ``disarm``, ``heartbeat`` {owner}, ``stop`` {reason}, ``resume``, ``release``,
 ``log`` {since_ns}, and ``health``. A refused command answers an error whose code names
 the rule (``travel_limit``, ``voltage_limit``, ``step_limit``, ``rate_limit``, ``held``,
-``stopped``, ``link_lost``, ...).
+``stopped``, ``link_lost``, ``owned``, ...).
 
 Run it with ``semservo service stage``; settings ``SEMSERVO_STAGE__*``.
 """
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     limits = StageLimits(config.voltage_min, config.voltage_max, config.travel_min_um, config.travel_max_um,
                          config.max_step_v, config.max_rate_v_per_s)
     core = StageCore(args.url or config.serial_url, limits=limits, channels=dict(config.axes),
-                     models=models_from(config.model_files, config.axes))
+                     models=models_from(config.model_files, config.axes), state_dir=config.state_dir)
     core.connect()
 
     def guarded(action):
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return runtime.run(step)
     finally:
-        core.close()
+        core.shutdown()
         runtime.context.term()
 
 

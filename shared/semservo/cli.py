@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import signal
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import zmq
 
-from semservo import __version__
+from semservo import __version__, security
 from semservo.config import Settings, connect
 from semservo.launcher import SERVICES, LaunchError, Launcher, spec
 from semservo.monitor import FrameStats
@@ -262,24 +263,32 @@ def command_motion(args: argparse.Namespace) -> int:
     return 0 if received else 1
 
 
+def _run_binding(name: str, main, argv: list[str]) -> int:
+    """Run a service's main; a port already taken is one line naming the setting that
+    moves it (the usual cause is a second semservo on the same machine), not a traceback."""
+    try:
+        return main(argv)
+    except security.SecurityError as error:
+        print(f"{name}: refusing to start: {error}", file=sys.stderr)
+        return 2
+    except (zmq.ZMQError, OSError) as error:
+        if error.errno not in (zmq.EADDRINUSE, errno.EADDRINUSE):
+            raise
+        print(f"{name}: cannot bind its port: {error} (is another semservo running? "
+              f"each port is a SEMSERVO_{name.upper()}__*_PORT setting)", file=sys.stderr)
+        return 1
+
+
 def command_service(args: argparse.Namespace) -> int:
     module = importlib.import_module(spec(args.name).module)
-    try:
-        return module.main(args.service_args)
-    except zmq.ZMQError as error:
-        if error.errno != zmq.EADDRINUSE:
-            raise
-        # The usual cause is a second semservo on the same machine; say which setting moves it.
-        print(f"{args.name}: cannot bind its port: {error} (is another semservo running? "
-              f"each port is a SEMSERVO_{args.name.upper()}__*_PORT setting)", file=sys.stderr)
-        return 1
+    return _run_binding(args.name, module.main, args.service_args)
 
 
 def command_fakelab(args: argparse.Namespace) -> int:
     """The simulated lab alone, for a real stage service or a developer's experiments."""
     from services.fakelab.main import main as fakelab_main
 
-    return fakelab_main(args.fakelab_args)
+    return _run_binding("fakelab", fakelab_main, args.fakelab_args)
 
 
 #: Commands whose own parser takes every argument after the command's name.
@@ -613,7 +622,24 @@ def build_parser() -> argparse.ArgumentParser:
     health = commands.add_parser("health", help="ask services for their health")
     health.add_argument("names", nargs="*", help="services (default: all)")
     health.set_defaults(handler=command_health)
+
+    keys = commands.add_parser(
+        "keys", help="make CURVE keys: every ZeroMQ socket authenticated and encrypted (two-PC deployments)",
+        description="Make the CURVE keys of a deployment in DIR (kept if they exist): server.key(_secret) for "
+                    "every binding socket, client.key(_secret) for every connecting one, and authorized/ with "
+                    "the client keys servers accept. Then set SEMSERVO_CURVE_KEYS_DIR=DIR on every PC; a PC "
+                    "that only runs lab scripts needs client.key, client.key_secret and server.key.")
+    keys.add_argument("dir", type=Path, help="folder for the keys (e.g. ~/.config/semservo/keys)")
+    keys.set_defaults(handler=command_keys)
     return parser
+
+
+def command_keys(args: argparse.Namespace) -> int:
+    made = security.make_keys(args.dir)
+    for name, path in made.items():
+        print(f"{name:>10}: {path}")
+    print(f"set SEMSERVO_CURVE_KEYS_DIR={args.dir.resolve()} on every PC of this deployment")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -131,9 +131,11 @@ class Client:
     def stage(self) -> dict:
         return self._call("GET", "/stage")
 
-    def start(self, **settings) -> dict:
-        """Start a run; settings as the API's RunSettings (tolerance_px, dofs, gain, ...)."""
-        return self._call("POST", "/start", json=settings)
+    def start(self, *, resume: bool = False, **settings) -> dict:
+        """Start a run; settings as the API's RunSettings (tolerance_px, dofs, gain, ...).
+        A stage an operator stopped stays stopped (409 ``stage_stopped``) unless
+        ``resume=True`` lets it move again."""
+        return self._call("POST", "/start", json=settings, params={"resume": "true"} if resume else None)
 
     def stop(self, reason: str = "stop requested") -> dict:
         return self._call("POST", "/stop", json={"reason": reason})
@@ -212,8 +214,8 @@ class AsyncClient:
     async def stage(self) -> dict:
         return await self._call("GET", "/stage")
 
-    async def start(self, **settings) -> dict:
-        return await self._call("POST", "/start", json=settings)
+    async def start(self, *, resume: bool = False, **settings) -> dict:
+        return await self._call("POST", "/start", json=settings, params={"resume": "true"} if resume else None)
 
     async def stop(self, reason: str = "stop requested") -> dict:
         return await self._call("POST", "/stop", json={"reason": reason})

@@ -115,6 +115,8 @@ class StageSettings(BaseModel):
     travel_max_um: float = Field(100.0, description="soft travel limit, model displacement")
     max_step_v: PositiveFloat = Field(25.0, le=150, description="largest voltage change one command may ask")
     max_rate_v_per_s: PositiveFloat = Field(200.0, description="fastest voltage change between commands")
+    state_dir: Path = Field(Path("runs"), description="what outlives the process: whether a run had the stage "
+                                                      "armed (stage-state.json) and the command log (stage-commands.jsonl)")
 
 
 class ControllerSettings(BaseModel):
@@ -154,6 +156,9 @@ class Settings(BaseSettings):
     max_message_bytes: int = Field(64 * 2**20, ge=1024, description="larger messages are dropped and counted")
     request_timeout_s: PositiveFloat = Field(1.0, description="lazy-pirate timeout per try")
     request_retries: int = Field(3, ge=1, description="lazy-pirate tries before a service counts as down")
+    curve_keys_dir: Path | None = Field(
+        None, description="CURVE keys (semservo keys DIR): every ZeroMQ socket authenticated and encrypted; "
+                          "required when any socket leaves loopback")
     log_level: str = "INFO"
     fakelab: FakelabSettings = Field(default_factory=FakelabSettings)
     imageserver: ImageServerSettings = Field(default_factory=ImageServerSettings)

@@ -514,23 +514,22 @@ def wisdom_path() -> Path:
 
 
 _wisdom_lock = threading.Lock()
-_wisdom_loaded = False
+#: The wisdom files already read into this process (the setting may name another later).
+_wisdom_loaded: set[Path] = set()
 
 
-def _load_wisdom() -> None:
-    global _wisdom_loaded
+def _load_wisdom(path: Path) -> None:
     with _wisdom_lock:
-        if _wisdom_loaded:
+        if path in _wisdom_loaded:
             return
-        _wisdom_loaded = True
+        _wisdom_loaded.add(path)
         try:
-            pyfftw.import_wisdom(pickle.loads(wisdom_path().read_bytes()))
+            pyfftw.import_wisdom(pickle.loads(path.read_bytes()))
         except (OSError, pickle.UnpicklingError, EOFError, ValueError, TypeError):
-            pass  # no wisdom yet: plans are measured once and saved
+            log.debug("no FFTW wisdom at %s yet: plans are measured once and saved", path)
 
 
-def _save_wisdom() -> None:
-    path = wisdom_path()
+def _save_wisdom(path: Path) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         temporary = path.with_suffix(f".{os.getpid()}.tmp")
@@ -549,7 +548,8 @@ class FFTPlans:
 
     @classmethod
     def for_shape(cls, shape: tuple[int, int], effort: str = "FFTW_MEASURE", threads: int = 1) -> "FFTPlans":
-        _load_wisdom()
+        path = wisdom_path()
+        _load_wisdom(path)
         before = pyfftw.export_wisdom()
         real = pyfftw.empty_aligned(shape, dtype="float32")
         spectrum = pyfftw.empty_aligned((shape[0], shape[1] // 2 + 1), dtype="complex64")
@@ -558,8 +558,10 @@ class FFTPlans:
             inverse=pyfftw.FFTW(spectrum.copy(), real.copy(), axes=(0, 1), direction="FFTW_BACKWARD",
                                 flags=(effort, "FFTW_DESTROY_INPUT"), threads=threads),
         )
-        if pyfftw.export_wisdom() != before:
-            _save_wisdom()
+        # Saved when planning learned something, and also when this file lacks what the
+        # process already knew (plans made earlier, under another wisdom path).
+        if pyfftw.export_wisdom() != before or not path.is_file():
+            _save_wisdom(path)
         return plans
 
 

@@ -204,6 +204,12 @@ class Launcher:
                 raise LaunchError(f"{child.spec.name} exited with code {code} while starting (its log is above)")
             with contextlib.suppress(ServiceUnavailable):  # not answering yet: ask again
                 health = self.health(child.spec.name, timeout_s=0.3)
+                if health.pid != child.process.pid:
+                    # Another semservo holds the port: its answer says nothing of ours.
+                    raise LaunchError(
+                        f"another process (pid {health.pid}, another semservo?) answers as {child.spec.name} on "
+                        f"{child.spec.control(self.settings)}: stop it, or give this one other ports "
+                        f"(SEMSERVO_{child.spec.name.upper()}__*_PORT)")
                 if health.healthy:
                     return health
             if time.monotonic() > deadline:
@@ -270,14 +276,14 @@ class Launcher:
         return down
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """SIGTERM every child in reverse start order; SIGKILL what is left."""
-        for child in reversed(list(self.children.values())):
+        """Stop children one by one in reverse start order (SIGTERM, then SIGKILL after
+        ``timeout_s``): the gateway and the controller end their runs while the stage
+        and the estimator they talk to are still there."""
+        for name, child in reversed(list(self.children.items())):
             if child.process.poll() is None:
                 child.process.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + timeout_s
-        for name, child in reversed(list(self.children.items())):
             try:
-                code = child.process.wait(max(0.0, deadline - time.monotonic()))
+                code = child.process.wait(timeout_s)
                 self.say(f"{name} stopped (exit code {code})")
             except subprocess.TimeoutExpired:
                 child.process.kill()

@@ -32,7 +32,9 @@ MOTION_TOPIC = b"motion"
 
 
 class _Message(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # No NaN or infinity anywhere on the wire: a number that is not finite is a
+    # malformed message, dropped and counted like any other.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     v: Literal[1] = WIRE_VERSION
 
@@ -141,9 +143,9 @@ class ScanRequest(_Message):
     """What the image server's ``sim`` source asks the simulated SEM for, as it would
     command a real scan generator. ``None`` keeps the fake lab's preset value."""
 
-    dwell_ns: PositiveFloat | None = None
-    magnification: PositiveFloat | None = None
-    working_distance_um: float | None = None
+    dwell_ns: PositiveFloat | None = Field(None, le=1e6, description="ns per pixel (1 ms at most)")
+    magnification: PositiveFloat | None = Field(None, le=1e7)
+    working_distance_um: float | None = Field(None, ge=-1e5, le=1e5)
     brightness: float = Field(0.0, ge=-1, le=1)
     contrast: float = Field(1.0, gt=0, le=10)
     rows: int = Field(512, ge=64, le=4096)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import serial
 
@@ -40,6 +41,8 @@ class NV403Driver:
         self.reply_timeout_s = reply_timeout_s
         self.log: list[LogEntry] = []
         self.log_limit = log_limit
+        #: Called with every entry as it is logged (the stage service keeps them on disk).
+        self.on_entry: Callable[[LogEntry], None] | None = None
         self._lock = threading.Lock()
 
     @classmethod
@@ -59,7 +62,10 @@ class NV403Driver:
 
     # -- transactions ---------------------------------------------------------------
     def _record(self, direction: str, text: str) -> None:
-        self.log.append(LogEntry(time.time_ns(), direction, text))
+        entry = LogEntry(time.time_ns(), direction, text)
+        self.log.append(entry)
+        if self.on_entry is not None:
+            self.on_entry(entry)
         if len(self.log) > self.log_limit:
             del self.log[: len(self.log) - self.log_limit]
 

@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 import zmq
 
+from semservo import security
 from semservo.config import Settings
 from semservo.messages import Health, ServiceState
 from semservo.transport import ControlServer
@@ -32,7 +33,8 @@ class ServiceRuntime:
     def __init__(self, name: str, settings: Settings, control_endpoint: str, *, context: zmq.Context | None = None):
         self.name = name
         self.settings = settings
-        self.context = context or zmq.Context()
+        security.require_keys_off_loopback(settings)  # SecurityError: said in one line by the CLI
+        self.context = context or security.context(settings.curve_keys_dir)
         self.counters: Counter = Counter()
         self.state: ServiceState = "starting"
         self.started = time.monotonic()

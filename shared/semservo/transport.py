@@ -26,6 +26,7 @@ import pydantic
 import zmq
 
 from semservo.messages import FRAME_TOPIC, Reply, Request
+from semservo.security import default_context
 from semservo.wire import Frame, WireError, decode_frame, encode_frame, frame_header
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ class FramePublisher:
     """PUB socket that sends frames. Slow subscribers lose frames, never stall us."""
 
     def __init__(self, endpoint: str, *, context: zmq.Context | None = None, send_hwm: int = 8):
-        self.context = context or zmq.Context.instance()
+        self.context = context or default_context()
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.SNDHWM, send_hwm)
         self.socket.setsockopt(zmq.LINGER, 0)
@@ -82,7 +83,7 @@ class FrameSubscriber:
         counters: Counter | None = None,
         receive_hwm: int | None = None,
     ):
-        self.context = context or zmq.Context.instance()
+        self.context = context or default_context()
         self.max_message_bytes = max_message_bytes
         self.latest_only = latest_only
         self.counters = counters if counters is not None else Counter()
@@ -139,7 +140,7 @@ class MessagePublisher:
     """PUB socket for small typed JSON messages on one topic: ``[topic, json]``."""
 
     def __init__(self, endpoint: str, topic: bytes, *, context: zmq.Context | None = None):
-        self.context = context or zmq.Context.instance()
+        self.context = context or default_context()
         self.topic = topic
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
@@ -162,7 +163,7 @@ class MessageSubscriber:
     def __init__(self, endpoint: str, topic: bytes, model: type[pydantic.BaseModel], *,
                  max_message_bytes: int = 2**20, context: zmq.Context | None = None,
                  counters: Counter | None = None):
-        self.context = context or zmq.Context.instance()
+        self.context = context or default_context()
         self.topic = topic
         self.model = model
         self.max_message_bytes = max_message_bytes
@@ -235,7 +236,7 @@ class ControlClient:
         self.timeout_s = timeout_s
         self.retries = retries
         self.max_message_bytes = max_message_bytes
-        self.context = context or zmq.Context.instance()
+        self.context = context or default_context()
         self.socket: zmq.Socket | None = None
 
     def _open(self) -> zmq.Socket:
@@ -313,7 +314,7 @@ class ControlServer:
         context: zmq.Context | None = None,
         counters: Counter | None = None,
     ):
-        self.context = context or zmq.Context.instance()
+        self.context = context or default_context()
         self.max_message_bytes = max_message_bytes
         self.counters = counters if counters is not None else Counter()
         self.handlers: dict[str, Handler] = {}

@@ -62,3 +62,14 @@ def test_published_ports_match_the_settings_model(compose, monkeypatch):
         assert settings.bind_host == "0.0.0.0"
     imageserver = container_settings(compose["services"]["imageserver"], monkeypatch).imageserver
     assert str(imageserver.replay_dir) == "/data/sem-run-2013"
+
+
+def test_every_container_uses_curve_keys(compose, monkeypatch):
+    """Containers bind 0.0.0.0: each one must carry the CURVE keys, or it refuses to start."""
+    from semservo.security import require_keys_off_loopback
+
+    for name, service in compose["services"].items():
+        settings = container_settings(service, monkeypatch)
+        assert settings.curve_keys_dir == Path("/keys"), name
+        assert any(str(volume).endswith(":/keys:ro") for volume in service["volumes"]), name
+        require_keys_off_loopback(settings)

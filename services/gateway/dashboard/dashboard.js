@@ -146,6 +146,9 @@ function showStatus(status) {
     return item;
   }));
   const problems = status.down.map((name) => `${name} is down`);
+  for (const name of status.degraded || []) {
+    problems.push(`${name} is degraded${status.services[name].last_error ? `: ${status.services[name].last_error}` : ""}`);
+  }
   if (stage.link && stage.link !== "connected") problems.push(`the stage's serial link is ${stage.link}`);
   $("banner").hidden = problems.length === 0;
   $("banner").textContent = problems.length ? `⚠ ${problems.join("; ")}` : "";
@@ -175,7 +178,10 @@ async function pollStatus() {
 
 // -- live events ----------------------------------------------------------------------
 function connectEvents() {
-  const socket = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/events`);
+  // Browsers cannot set headers on a WebSocket: the token (when one is set) rides in the query.
+  const token = $("token").value.trim();
+  const query = token ? `?token=${encodeURIComponent(token)}` : "";
+  const socket = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/events${query}`);
   socket.onmessage = (message) => {
     const event = JSON.parse(message.data);
     if (event.kind === "iteration") {

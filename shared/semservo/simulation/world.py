@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import uuid
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -72,6 +73,10 @@ class Disturbances:
         return x, y
 
 
+#: The simulated rotation-and-tilt stage's travel (degrees).
+ROTATION_STAGE_LIMITS_DEG = {"rotation_deg": (-360.0, 360.0), "tilt_x_deg": (-45.0, 45.0), "tilt_y_deg": (-45.0, 45.0)}
+
+
 @dataclass
 class World:
     preset: Preset = PRESETS["optimal"]
@@ -90,6 +95,9 @@ class World:
             axis.command(HOME_VOLTAGE, -1e6)
         self.home_um = {channel: axis.position(0.0) for channel, axis in self.axes.items()}
         self.rotation_stage = {"rotation_deg": 0.0, "tilt_x_deg": 0.0, "tilt_y_deg": 0.0}  # simulated
+        # Which world this is: truths measured across a restart of the simulator compare
+        # two different worlds, and must be refused rather than computed.
+        self.id = uuid.uuid4().hex[:12]
         self.sem = SEM(self.preset.scene, self.seed)
         self.rng = np.random.default_rng(self.seed)
         self.frames = 0
@@ -112,12 +120,19 @@ class World:
             return self.axes[channel].voltage
 
     def set_rotation_stage(self, **angles: float) -> None:
-        """The simulated rotation stage (rotation about the beam, two tilts), degrees."""
+        """The simulated rotation stage (rotation about the beam, two tilts), degrees,
+        within :data:`ROTATION_STAGE_LIMITS_DEG`; anything else is refused whole."""
+        checked = {}
+        for key, value in angles.items():
+            if key not in ROTATION_STAGE_LIMITS_DEG:
+                raise ValueError(f"unknown rotation stage axis {key!r}; axes: {', '.join(ROTATION_STAGE_LIMITS_DEG)}")
+            low, high = ROTATION_STAGE_LIMITS_DEG[key]
+            value = float(value)
+            if not low <= value <= high:  # NaN fails this too
+                raise ValueError(f"{key} must be a number of degrees within {low:g}..{high:g}, got {value!r}")
+            checked[key] = value
         with self.lock:
-            for key, value in angles.items():
-                if key not in self.rotation_stage:
-                    raise ValueError(f"unknown rotation stage axis {key!r}")
-                self.rotation_stage[key] = float(value)
+            self.rotation_stage.update(checked)
 
     def pose(self, t: float | None = None) -> Pose:
         """The true pose at simulated time ``t``: stage displacement from home, drift and
@@ -165,17 +180,19 @@ class World:
             # 20 ms of arithmetic into a long pause between frames.
             with self.lock:
                 self._frozen_at = self.now()
-        # The stage stays free while the SEM renders (its own lock), so serial commands
-        # are not delayed by the simulator's arithmetic.
-        with self.render_lock:
-            pixels = self.sem.render(self.levels(start, settings), line_start, line_end, self.rng)
-            self.frames += 1
-        if self.speedup > 1:
-            with self.lock:
-                self.started += self.clock() - rendering_since
-                self._frozen_at = None
+        try:
+            # The stage stays free while the SEM renders (its own lock), so serial
+            # commands are not delayed by the simulator's arithmetic.
+            with self.render_lock:
+                pixels = self.sem.render(self.levels(start, settings), line_start, line_end, self.rng)
+                self.frames += 1
+        finally:  # a failed render must not leave simulated time standing still for good
+            if self.speedup > 1:
+                with self.lock:
+                    self.started += self.clock() - rendering_since
+                    self._frozen_at = None
         return pixels, start, end
 
     def describe(self) -> dict:
-        return {"preset": asdict(self.preset), "speedup": self.speedup, "frames": self.frames,
+        return {"world_id": self.id, "preset": asdict(self.preset), "speedup": self.speedup, "frames": self.frames,
                 "rotation_stage": dict(self.rotation_stage)}

@@ -1,0 +1,162 @@
+"""Bad input and concurrency against the real stack: what the issue's reliability engineer
+tried, each answered in words, nothing hanging, the stage never moved by a refusal."""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+
+import pytest
+
+from semservo.client import SemservoError
+from semservo.transport import CommandError
+
+pytestmark = pytest.mark.integration
+
+
+def running(campaign, **settings) -> str:
+    run_id = campaign.displaced_run(hold=True, tolerance_px=0.1, **settings)
+    campaign.wait_for(lambda: campaign.iterations(run_id) >= 2, 60, "two iterations")
+    return run_id
+
+
+def test_teach_and_jog_during_a_run_are_refused_and_the_run_goes_on(campaign):
+    lab = campaign.client
+    run_id = running(campaign)
+    for attempt in (lambda: lab.teach(), lambda: lab.move(x_um=5.0),
+                    lambda: lab.http.post("/stage/center", json={"x_px": 10, "y_px": 10}).raise_for_status()):
+        with pytest.raises(Exception) as refused:
+            attempt()
+        error = refused.value
+        status = getattr(error, "status", None) or error.response.status_code
+        assert status == 409, error
+    # The stage itself refuses a move from anyone but the run's controller.
+    with pytest.raises(CommandError, match="owned"):
+        campaign.ask("stage", "move", targets={"x": 1.0}, relative=True, owner="someone-else")
+    at = campaign.iterations(run_id)
+    campaign.wait_for(lambda: campaign.iterations(run_id) > at, 30, "the run going on")
+    lab.stop("test over")
+    assert campaign.wait_finished(run_id)["state"] == "stopped"
+
+
+def test_a_start_after_a_stop_does_not_resume_the_stage_silently(campaign):
+    lab = campaign.client
+    run_id = running(campaign)
+    lab.stop("operator stop")
+    campaign.wait_finished(run_id)
+    assert lab.stage()["state"] == "stopped"
+    with pytest.raises(SemservoError) as refused:
+        lab.start()
+    assert refused.value.status == 409 and refused.value.code == "stage_stopped"
+    assert "resume" in refused.value.message
+    assert lab.stage()["state"] == "stopped"
+    started = lab.start(resume=True, tolerance_px=0.5)  # the operator's word
+    lab.wait(started["run_id"], timeout=60)
+
+
+def test_a_json_body_to_teach_is_refused_in_words(campaign):
+    response = campaign.client.http.post("/teach", json={"frames": 4})
+    assert response.status_code == 415
+    assert "query parameters" in response.json()["error"]["message"]
+
+
+def test_huge_offsets_and_non_finite_numbers_are_4xx(campaign):
+    http = campaign.client.http
+    assert http.get("/runs", params={"offset": 9223372036854775808}).status_code == 422
+    assert http.get("/runs", params={"offset": 2**63 - 1}).status_code == 422
+    for body in ('{"x_um": NaN}', '{"x_um": Infinity}', '{"x_um": 1e999}', "{}"):
+        response = http.post("/stage/move", content=body, headers={"content-type": "application/json"})
+        assert response.status_code == 422, (body, response.text)
+    for body in ('{"gain_scale": Infinity}', '{"tolerance_px": NaN}', '{"estimate_timeout_s": 1e999}'):
+        response = http.post("/start", content=body, headers={"content-type": "application/json"})
+        assert response.status_code == 422, (body, response.text)
+    response = http.post("/stage/center", json={"x_px": 90_000, "y_px": 3})
+    assert response.status_code == 409 and response.json()["error"]["code"] == "outside_image"
+
+
+def test_a_reference_taught_behind_the_runs_back_fails_it_at_once(campaign):
+    run_id = running(campaign)
+    taught = time.monotonic()
+    campaign.ask("estimator", "teach", frames=1)  # not through the gateway: nothing refused it
+    run = campaign.wait_finished(run_id, timeout_s=15)
+    assert run["state"] == "failed" and "reference changed" in run["reason"], run["reason"]
+    assert time.monotonic() - taught < 5
+
+
+def test_a_second_client_on_the_amplifier_is_noticed_and_stops_the_stage(campaign):
+    lab = campaign.client
+    before = lab.stage()["voltages"]["x"]
+    target = before + 7.0
+    with socket.create_connection((campaign.settings.fakelab.host, campaign.settings.fakelab.serial_tcp_port)) as knob:
+        knob.sendall(f"set,0,{target:.3f}\r".encode())
+        time.sleep(0.2)
+    stage = campaign.wait_for(lambda: (state := lab.stage())["state"] == "stopped" and state, 5,
+                              "the stage to notice the change")
+    assert stage["voltages"]["x"] == pytest.approx(target, abs=0.01), "GET /stage reports what the amplifier does"
+    assert "without a command" in stage["reason"]
+    assert stage["uncommanded_changes"] >= 1
+    lab.http.post("/stage/resume").raise_for_status()
+
+
+POISON = [math.nan, math.inf, -math.inf, 1e308, -1e308, 2**70, -(2**70), "x", None, [], {}, True, [math.nan] * 3]
+
+#: Every command each service answers, and the arguments it takes.
+COMMANDS = {
+    "fakelab": {"info": [], "pose": ["t_s", "interval_s"], "set_rotation_stage": ["rotation_deg", "tilt_x_deg",
+                                                                                  "tilt_y_deg"],
+                "set_preset": ["preset"], "serial_link": ["plugged"]},
+    "imageserver": {"info": [], "set_fps": ["fps"], "scan_once": ["dwell_ns", "magnification"]},
+    "estimator": {"teach": ["frames", "image_b64", "path", "polygon", "mask_b64"], "clear": [], "report": [],
+                  "measure": ["rotation"]},
+    "stage": {"state": [], "move": ["targets", "relative", "owner"], "set_voltages": ["voltages", "owner"],
+              "arm": ["hold_after_s", "owner"], "disarm": ["owner"], "heartbeat": ["owner"], "log": ["since_ns"]},
+    "controller": {"status": [], "run": ["id"], "start": ["tolerance_px", "gain_scale", "max_move_um", "dofs",
+                                                          "estimate_timeout_s"]},
+}
+
+
+def arguments(names: list[str]):
+    yield {}
+    for name in names:
+        for value in POISON:
+            yield {name: value}
+            if name in ("targets", "voltages"):
+                yield {name: {"x": value}}
+            if name == "polygon":
+                yield {name: [[value, 1], [2, 3], [4, 5]]}
+
+
+def test_garbage_and_nan_on_every_control_socket(campaign):
+    lab = campaign.client
+    voltages = lab.stage()["voltages"]
+    answered, internal = 0, []
+    for service, commands in COMMANDS.items():
+        client = campaign.control(service, timeout_s=30)
+        try:
+            for raw in (b"", b"\xff\xfe garbage", b'{"v": 1, "command": "health", "args": [1]}', b"[]", b"null",
+                        b'{"v": 99, "command": "health"}', b'{"v": 1, "command": "no_such"}', b"{" * 10_000):
+                client.request_raw(raw)
+                answered += 1
+            for command, names in commands.items():
+                for args in arguments(names):
+                    if command == "teach" and not args:
+                        continue  # a valid teach: not what this test is about
+                    try:
+                        client.request(command, **args)
+                    except CommandError as error:
+                        if error.code == "internal":
+                            internal.append((service, command, args, error.message))
+                    answered += 1
+        finally:
+            client.close()
+        assert campaign.healthy(service), f"{service} is not healthy after the barrage"
+    assert not internal, internal
+    assert answered > 500
+    # Nothing the barrage sent moved the stage (a bad set point is refused whole).
+    assert lab.stage()["voltages"] == pytest.approx(voltages, abs=0.01)
+    assert lab.status()["frame_rate"] > 0  # the simulated SEM still scans
+    campaign.ask("fakelab", "serial_link", plugged=True)
+    campaign.ask("fakelab", "set_preset", preset="optimal")
+    campaign.ask("imageserver", "set_fps", fps=30)
+    assert campaign.next_run_converges()
