@@ -55,7 +55,7 @@ class Port(Protocol):
 class RunSettings(BaseModel):
     """What a positioning run may be told; every field has a sane default."""
 
-    model_config = {"extra": "forbid", "allow_inf_nan": False}
+    model_config = {"extra": "forbid", "allow_inf_nan": False, "strict": True}
 
     dofs: list[Literal["x", "y", "rotation"]] = Field(["x", "y"], min_length=1, description="degrees of freedom")
     tolerance_px: PositiveFloat = Field(0.1, le=50, description="converged when the translation error is below")
@@ -181,23 +181,27 @@ class ControllerCore:
         return math.hypot(dx_px, dy_px) <= self.settings.tolerance_px and (
             "rotation" not in self.settings.dofs or abs(rotation_deg) <= self.settings.tolerance_deg)
 
-    def _finish(self, state: ControllerState, reason: str, *, recovered: bool = False) -> None:
+    def _finish(self, state: ControllerState, reason: str, *, recovered: bool = False,
+                stage_reachable: bool = True) -> None:
         self.state, self.reason = state, reason
         run = self.run
         if not recovered:  # a recovered run's owner is dead: its watchdog has held the stage
             self._estimator_measures(rotation=None)
             try:
-                if state != "stopped":  # a finished run releases the watchdog; stop already did
+                if state != "stopped" and stage_reachable:  # a finished run releases the watchdog
                     self.stage.request("disarm", {"owner": self.owner})
             except (CommandError, ServiceUnavailable) as error:
                 log.warning("disarming the stage watchdog failed: %s", error)
         run["outcome"] = {"state": state, "reason": reason, "finished_at_ns": time.time_ns(),
                           "iterations": run["iterations"], **({"recovered": True} if recovered else {})}
-        try:
-            run["stage_log"] = self.stage.request("log", {"since_ns": run["started_at_ns"]}).get("entries", [])
-        except (CommandError, ServiceUnavailable) as error:
-            run["stage_log"] = []
-            run["outcome"]["stage_log_error"] = str(error)
+        run["stage_log"] = []
+        if not stage_reachable:  # asking a dead stage again only delays the end (the gateway asks later)
+            run["outcome"]["stage_log_error"] = "the stage service was unreachable when the run ended"
+        else:
+            try:
+                run["stage_log"] = self.stage.request("log", {"since_ns": run["started_at_ns"]}).get("entries", [])
+            except (CommandError, ServiceUnavailable) as error:
+                run["outcome"]["stage_log_error"] = str(error)
         self._write_summary()
         log.info("run %s %s: %s after %d iterations", run["id"], state, reason, run["iterations"])
         self._status()
@@ -306,7 +310,7 @@ class ControllerCore:
             return record
         except ServiceUnavailable as error:
             self._record(record, "stage unreachable")
-            self._finish("failed", f"the stage service is unreachable: {error}")
+            self._finish("failed", f"the stage service is unreachable: {error}", stage_reachable=False)
             return record
         run["iterations"] += 1
         run["last_command_ns"] = record["command_written_at_ns"]
@@ -350,7 +354,7 @@ class ControllerCore:
                     reason = f": {reply['reason']}" if reply.get("reason") else ""
                     self._finish("failed", f"the stage is {reply.get('state')}{reason}")
             except ServiceUnavailable as error:
-                self._finish("failed", f"the stage service is unreachable: {error}")
+                self._finish("failed", f"the stage service is unreachable: {error}", stage_reachable=False)
             except CommandError as error:
                 self._finish("failed", f"the stage refused a heartbeat: {error}")
         return self.watchdog_s / 6

@@ -71,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
                                  retries=2, context=runtime.context)
     estimator_client = ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
                                      timeout_s=timeout, retries=2, context=runtime.context)
+    for client in (stage_client, estimator_client):
+        # A request waiting on a dead peer is abandoned as soon as a stop is asked for.
+        client.cancelled = lambda: runtime.stopping
     rotation = None
     if config.rotation_stage == "fakelab":
         rotation = FakelabRotationStage(ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port),
@@ -153,11 +156,11 @@ def main(argv: list[str] | None = None) -> int:
             # Bounded: a launcher stopping everything gives each service a few seconds,
             # and a peer that is already gone must not use them all up.
             for client in (stage_client, estimator_client):
-                client.timeout_s, client.retries = 0.3, 1
+                client.timeout_s, client.retries, client.cancelled = 0.3, 1, None
             core.stop("controller shutting down")
         events.close()
         motion.close()
-        runtime.context.term()
+        runtime.context.destroy(linger=0)  # closes what is still open: term() would wait on it
 
 
 if __name__ == "__main__":

@@ -51,6 +51,10 @@ def decode_upload(encoded: str) -> np.ndarray:
         raise TeachError(str(error)) from None
 
 
+#: The smallest polygon a mask reference may be drawn from (square pixels): below this
+#: the outline the mask is matched on is a few pixels of noise.
+MIN_MASK_AREA_PX = 256
+
 #: The most frames a reference may average (kept as the last received).
 MAX_FRAMES_AVERAGED = 16
 
@@ -139,6 +143,11 @@ class EstimatorCore:
                        for point in shape_mask):
                 raise TeachError(f"polygon corner points must be [x, y] pairs of finite numbers on or near the "
                                  f"{cols} x {rows} image")
+            x, y = np.array(shape_mask).T
+            area = 0.5 * abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1))))  # shoelace
+            if area < MIN_MASK_AREA_PX:
+                raise TeachError(f"the polygon encloses {area:.0f} square pixels; a mask needs at least "
+                                 f"{MIN_MASK_AREA_PX}")
         detail = {"polygon": [list(point) for point in shape_mask]} if polygon is not None else {}
         return self._install(np.array(self.latest.pixels), "mask", self.latest.header.pixel_size_nm,
                              mask=shape_mask, **detail)

@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         return runtime.run()
     finally:
         motion.close()
-        runtime.context.term()
+        runtime.context.destroy(linger=0)  # closes what is still open: term() would wait on it
 
 
 if __name__ == "__main__":

@@ -246,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         tcp.stop()
         if pty is not None:
             pty.stop()
-        runtime.context.term()
+        runtime.context.destroy(linger=0)  # closes what is still open: term() would wait on it
 
 
 if __name__ == "__main__":

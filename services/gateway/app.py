@@ -17,6 +17,7 @@ from fastapi import Depends, FastAPI, File, Form, Query, Request, UploadFile, We
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from pydantic import BaseModel, Field
 
 from services.controller.core import RunSettings
@@ -38,8 +39,9 @@ class ErrorResponse(BaseModel):
     error: ErrorBody
 
 
-#: Every request model: unknown fields are an error, and so is NaN or infinity.
-STRICT = {"extra": "forbid", "allow_inf_nan": False}
+#: Every request model: unknown fields are an error, and so are NaN, infinity and a
+#: value of another JSON type (``false`` is not the number 0).
+STRICT = {"extra": "forbid", "allow_inf_nan": False, "strict": True}
 
 
 class PolygonTeach(BaseModel):
@@ -62,7 +64,8 @@ class MoveRequest(BaseModel):
     """A jog (relative) or a move to a target (absolute), on x, y or both."""
 
     # The schema says what the endpoint checks: at least one axis must be given.
-    model_config = {**STRICT, "json_schema_extra": {"anyOf": [{"required": ["x_um"]}, {"required": ["y_um"]}]}}
+    model_config = {**STRICT, "json_schema_extra": {"anyOf": [
+        {"required": [axis], "properties": {axis: {"type": "number"}}} for axis in ("x_um", "y_um")]}}
     x_um: float | None = Field(None, ge=-100, le=100, description="micrometres (target, or step if relative)")
     y_um: float | None = Field(None, ge=-100, le=100)
     relative: bool = Field(True, description="a step from here (jog), or an absolute target")
@@ -145,8 +148,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         title="semservo",
         summary="Image-guided nanopositioning for SEM (Marturi et al.): teach, jog, position, watch, records.",
         version="0.1.0",
-        responses={400: {"model": ErrorResponse}, 401: {"model": ErrorResponse}, 409: {"model": ErrorResponse},
-                   422: {"model": ErrorResponse}, 503: {"model": ErrorResponse}},
+        responses={code: {"model": ErrorResponse} for code in (400, 401, 404, 409, 413, 415, 422, 503)},
     )
     app.state.core = core
     app.state.listeners = set()
@@ -160,11 +162,23 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         if not hmac.compare_digest(given.encode(), api_token.encode()):
             raise GatewayError(401, "unauthorized", "a valid bearer token is required for this endpoint")
 
-    Auth = Depends(authorized)
+    # The OpenAPI says what is true: bearer security on state-changing endpoints when a
+    # token is configured, none on a loopback gateway without one.
+    Auth = [Depends(authorized)] if api_token is not None else []
 
     @app.exception_handler(GatewayError)
     async def gateway_error(_request: Request, error: GatewayError) -> JSONResponse:
         return error_response(error.status, error.code, error.message, **error.extra)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_request: Request, error: StarletteHTTPException) -> JSONResponse:
+        # The framework's own refusals (a body that does not parse, an unknown path, a
+        # method a path does not take) in the same envelope as every other error.
+        codes = {400: "bad_body", 404: "not_found", 405: "method_not_allowed"}
+        response = error_response(error.status_code, codes.get(error.status_code, "http_error"), str(error.detail))
+        for name, value in (error.headers or {}).items():
+            response.headers[name] = value
+        return response
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, error: RequestValidationError) -> JSONResponse:
@@ -186,7 +200,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
             raise GatewayError(422, "empty", f"{field}: the upload is empty", field=field)
         return data
 
-    @app.post("/teach", response_model=TeachResult, dependencies=[Auth], tags=["teach"],
+    @app.post("/teach", response_model=TeachResult, dependencies=Auth, tags=["teach"],
               summary="Teach the reference: the live frame(s), an uploaded image, or a mask")
     async def teach(
         request: Request,
@@ -209,25 +223,25 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
                                          dwell_ns=dwell_ns)
         return taught(result)
 
-    @app.post("/teach/polygon", response_model=TeachResult, dependencies=[Auth], tags=["teach"],
+    @app.post("/teach/polygon", response_model=TeachResult, dependencies=Auth, tags=["teach"],
               summary="Teach a mask drawn by corner points on the live image")
     def teach_polygon(body: PolygonTeach) -> TeachResult:
         return taught(core.teach(polygon=[list(point) for point in body.polygon]))
 
     # -- stage ----------------------------------------------------------------------
-    @app.post("/stage/move", dependencies=[Auth], tags=["stage"], summary="Jog (relative) or move (absolute), um")
+    @app.post("/stage/move", dependencies=Auth, tags=["stage"], summary="Jog (relative) or move (absolute), um")
     def move(body: MoveRequest) -> dict:
         targets = {axis: value for axis, value in (("x", body.x_um), ("y", body.y_um)) if value is not None}
         if not targets:
             raise GatewayError(422, "invalid", "give x_um and/or y_um", field="x_um")
         return core.move(targets, body.relative)
 
-    @app.post("/stage/center", dependencies=[Auth], tags=["stage"],
+    @app.post("/stage/center", dependencies=Auth, tags=["stage"],
               summary="Click to move: bring this point of the live image to its centre")
     def center(body: CenterRequest) -> dict:
         return core.center(body.x_px, body.y_px)
 
-    @app.post("/stage/resume", dependencies=[Auth], tags=["stage"],
+    @app.post("/stage/resume", dependencies=Auth, tags=["stage"],
               summary="Let a stopped (or watchdog-held) stage move again")
     def resume() -> dict:
         return core.resume()
@@ -237,7 +251,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         return core.stage_state()
 
     # -- runs -----------------------------------------------------------------------
-    @app.post("/start", response_model=StartResult, dependencies=[Auth], tags=["runs"],
+    @app.post("/start", response_model=StartResult, dependencies=Auth, tags=["runs"],
               summary="Start a positioning run (409 with the active run's id if one is running; 409 "
                       "stage_stopped if an operator stopped the stage, unless resume=true)")
     def start(settings: RunSettings | None = None,
@@ -246,7 +260,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         started = core.start((settings or RunSettings()).model_dump(), resume=resume)
         return StartResult(run_id=started["run_id"], state=started["state"])
 
-    @app.post("/stop", dependencies=[Auth], tags=["runs"], summary="Stop at once, any time")
+    @app.post("/stop", dependencies=Auth, tags=["runs"], summary="Stop at once, any time")
     def stop(body: StopRequest | None = None) -> dict:
         return core.stop((body or StopRequest()).reason)
 
@@ -265,14 +279,17 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
             raise GatewayError(404, "no_such_run", f"no run {run_id!r}", field="run_id")
         return run
 
-    @app.get("/runs/{run_id}.csv", tags=["runs"], response_class=PlainTextResponse,
-             summary="A run's iterations as CSV")
+    @app.get("/runs/{run_id}.csv", tags=["runs"], response_class=Response, summary="A run's iterations as CSV",
+             responses={200: {"content": {"text/csv": {}}, "description": "one row per iteration"}})
     def run_csv(run_id: str) -> Response:
         run_or_404(run_id)
         return Response(core.store.csv(run_id), media_type="text/csv",
                         headers={"Content-Disposition": f'attachment; filename="{run_id}.csv"'})
 
-    @app.get("/runs/{run_id}/report.png", tags=["runs"], summary="Error, cost and voltages per iteration (Fig. 9)")
+    png = {200: {"content": {"image/png": {}}, "description": "a PNG image"}}
+
+    @app.get("/runs/{run_id}/report.png", tags=["runs"], response_class=Response, responses=png,
+             summary="Error, cost and voltages per iteration (Fig. 9)")
     def run_report(run_id: str) -> Response:
         return Response(report_png(run_or_404(run_id)), media_type="image/png")
 
@@ -283,15 +300,18 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
     # -- images ---------------------------------------------------------------------
     no_store = {"Cache-Control": "no-store"}
 
-    @app.get("/frames/latest.png", tags=["images"], summary="The newest frame")
+    @app.get("/frames/latest.png", tags=["images"], response_class=Response, responses=png,
+             summary="The newest frame")
     def latest_frame() -> Response:
         return Response(core.latest_png(), media_type="image/png", headers=no_store)
 
-    @app.get("/reference.png", tags=["images"], summary="The taught reference")
+    @app.get("/reference.png", tags=["images"], response_class=Response, responses=png,
+             summary="The taught reference")
     def reference() -> Response:
         return Response(core.reference_png(), media_type="image/png", headers=no_store)
 
-    @app.get("/difference.png", tags=["images"], summary="I - I* (levelled), grey is zero")
+    @app.get("/difference.png", tags=["images"], response_class=Response, responses=png,
+             summary="I - I* (levelled), grey is zero")
     def difference() -> Response:
         return Response(core.difference_png(), media_type="image/png", headers=no_store)
 
@@ -344,8 +364,15 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
     app.state.publish = publish
 
     if static_dir is not None:
+        from fastapi.responses import FileResponse
         from fastapi.staticfiles import StaticFiles
 
-        app.mount("/", StaticFiles(directory=static_dir, html=True), name="dashboard")
+        # The page at /, its files under /dashboard/: a catch-all mount at / would answer
+        # for the API's paths too (a 405 listing GET for a POST endpoint).
+        @app.get("/", include_in_schema=False)
+        def dashboard() -> FileResponse:
+            return FileResponse(static_dir / "index.html", headers={"Cache-Control": "no-cache"})
+
+        app.mount("/dashboard", StaticFiles(directory=static_dir), name="dashboard")
     return app
 

@@ -39,6 +39,9 @@ SERVICE_NAMES = ("fakelab", "imageserver", "estimator", "stage", "controller")
 #: sent fewer); then it is refused with the count.
 TEACH_FRAMES_WAIT_S = 30.0
 
+#: How long a jog waits for the stage's rate limit to allow it (seconds).
+JOG_RATE_WAIT_S = 1.0
+
 #: How many times a run's truth is asked of a simulated lab that does not answer.
 TRUTH_ATTEMPTS = 30
 
@@ -305,6 +308,8 @@ class GatewayCore:
         taught = saved[1] if saved is not None else None
         if taught is None:
             return None, "no true pose was recorded when the reference was taught", False
+        if "unknown" in taught:
+            return None, taught["unknown"], False
         try:
             pose = fakelab.request("pose", {"interval_s": [scans[0][0], scans[-1][1]]})
         except ServiceUnavailable as error:
@@ -359,8 +364,13 @@ class GatewayCore:
         with self.lock:
             self.reference = result
             self.reference_pixels = None if reference_pixels is None else np.array(reference_pixels)
-        self.taught_truth = self._taught_truth({**result, "source_interval_s": scanned_interval} if scanned_interval
-                                               else result)
+        if image is not None and scanned_interval is None:
+            # An uploaded image may have been taken anywhere: where is unknown to the simulator.
+            self.taught_truth = {"reference_id": result["id"], "unknown": "the reference is an uploaded image: where "
+                                                                          "it was imaged is unknown to the simulator"}
+        else:
+            self.taught_truth = self._taught_truth({**result, "source_interval_s": scanned_interval}
+                                                   if scanned_interval else result)
         self.store.save_reference(result, self.taught_truth, time.time_ns())
         self.counters["references_taught"] += 1
         self.broadcast({"kind": "reference", "run_id": None, "data": result})
@@ -401,7 +411,7 @@ class GatewayCore:
             scanned = reference.get("source_interval_s")
             if scanned:
                 pose = fakelab.request("pose", {"interval_s": scanned})
-            else:  # an upload or mask: the stage stands where it was taught
+            else:  # a mask drawn on the live image: the stage stands where it was taught
                 now = fakelab.request("pose", {})["t_s"]
                 pose = fakelab.request("pose", {"interval_s": [max(now - 0.5, 0.0), now]})
         except (ServiceUnavailable, CommandError):
@@ -441,8 +451,17 @@ class GatewayCore:
         """A jog or move. Refused during a run (it would fight the controller); the stage
         refuses it too while a run's controller has it armed."""
         self._refuse_during_run("moving the stage")
-        return call(self.ports.get("stage"), "stage", "move", {"targets": targets, "relative": relative,
-                                                                "owner": "gateway"})
+        # The stage's rate rule refuses a step too soon after the last write (a jog
+        # right after a run's last move): an operator's jog waits that moment out.
+        deadline = self.clock() + JOG_RATE_WAIT_S
+        while True:
+            try:
+                return call(self.ports.get("stage"), "stage", "move", {"targets": targets, "relative": relative,
+                                                                        "owner": "gateway"})
+            except GatewayError as error:
+                if error.code != "rate_limit" or self.clock() > deadline:
+                    raise
+            time.sleep(0.05)
 
     def center(self, x_px: float, y_px: float) -> dict:
         """Move the stage so the live image's point (x, y) comes to the centre (click to

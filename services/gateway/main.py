@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         for each in ports.values():
             each.close()
         store.close()
-        runtime.context.term()
+        runtime.context.destroy(linger=0)  # closes what is still open: term() would wait on it
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ class FreezeWatch:
 
     min_silence_s: float = 5.0
     factor: float = 5.0
+    first_frame_grace_s: float = 30.0  # a source's first frame may take long (a cold simulator, a slow scan)
     last_at: float | None = None
     typical_s: float | None = None
 
@@ -58,6 +59,8 @@ class FreezeWatch:
         first frame), else None."""
         since = now - (self.last_at if self.last_at is not None else started)
         limit = max(self.min_silence_s, self.factor * (self.typical_s or 0.0))
+        if self.last_at is None:
+            limit = max(limit, self.first_frame_grace_s)
         return since if since > limit else None
 
 

@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         if hasattr(source, "close"):
             source.close()
         publisher.close()
-        runtime.context.term()
+        runtime.context.destroy(linger=0)  # closes what is still open: term() would wait on it
 
 
 if __name__ == "__main__":

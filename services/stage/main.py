@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         return runtime.run(step)
     finally:
         core.shutdown()
-        runtime.context.term()
+        runtime.context.destroy(linger=0)  # closes what is still open: term() would wait on it
 
 
 if __name__ == "__main__":

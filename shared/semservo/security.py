@@ -108,6 +108,10 @@ class CurveContext(zmq.Context):
     """A context whose sockets use CURVE (see :class:`CurveSocket`)."""
 
     _socket_class = CurveSocket
+    # Declared here: pyzmq takes attributes a subclass does not declare for socket options.
+    curve_keys: Keys | None = None
+    _authenticator: ThreadAuthenticator | None = None
+    _authenticator_lock: threading.Lock | None = None
 
     def __init__(self, keys: Keys, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -143,21 +147,23 @@ def context(keys_dir: Path | None) -> zmq.Context:
     return CurveContext(Keys(keys_dir)) if keys_dir is not None else zmq.Context()
 
 
-_default: zmq.Context | None = None
+_defaults: dict[Path | None, zmq.Context] = {}
 _default_lock = threading.Lock()
 
 
 def default_context() -> zmq.Context:
-    """The process's shared context, secured as the settings say (what the transport
-    classes use when they are given none: the launcher, the CLI, lab tools)."""
-    global _default
-    with _default_lock:
-        if _default is None or _default.closed:
-            from semservo.config import Settings
+    """The process's shared context for the keys the settings name now, secured or
+    plain (what the transport classes use when given none: the launcher, the CLI, lab
+    tools)."""
+    from semservo.config import Settings
 
-            keys_dir = Settings().curve_keys_dir
-            _default = CurveContext(Keys(keys_dir)) if keys_dir is not None else zmq.Context.instance()
-        return _default
+    keys_dir = Settings().curve_keys_dir
+    with _default_lock:
+        shared = _defaults.get(keys_dir)
+        if shared is None or shared.closed:
+            shared = _defaults[keys_dir] = (CurveContext(Keys(keys_dir)) if keys_dir is not None
+                                            else zmq.Context.instance())
+        return shared
 
 
 def is_loopback(host: str) -> bool:

@@ -85,6 +85,11 @@ class ServiceRuntime:
             details=self.details(),
         )
 
+    @property
+    def stopping(self) -> bool:
+        """A stop was asked for (work in progress may end early)."""
+        return self._stop_requested
+
     def request_stop(self, signum: int | None = None, frame: Any = None) -> None:
         if signum is not None:
             log.info("received %s, stopping", signal.Signals(signum).name)

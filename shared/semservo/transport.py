@@ -207,8 +207,9 @@ class ServiceUnavailable(RuntimeError):
     """No reply from a service after every try."""
 
 
-class RequestCancelled(RuntimeError):
-    """The caller gave up waiting for a reply (e.g. the service is stopping)."""
+class RequestCancelled(ServiceUnavailable):
+    """The caller gave up waiting for a reply (e.g. the service is stopping): for the
+    caller, the service did not answer."""
 
 
 class CommandError(RuntimeError):
@@ -238,6 +239,8 @@ class ControlClient:
         self.max_message_bytes = max_message_bytes
         self.context = context or default_context()
         self.socket: zmq.Socket | None = None
+        #: Asked while waiting for any reply: True abandons it (e.g. the process is stopping).
+        self.cancelled: Callable[[], bool] | None = None
 
     def _open(self) -> zmq.Socket:
         socket = self.context.socket(zmq.REQ)
@@ -260,6 +263,7 @@ class ControlClient:
         is abandoned (the socket replaced) and :class:`RequestCancelled` raised.
         """
         timeout_s = timeout_s or self.timeout_s
+        cancelled = cancelled or self.cancelled
         for attempt in range(1, (retries or self.retries) + 1):
             if self.socket is None:
                 self.socket = self._open()

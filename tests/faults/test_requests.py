@@ -160,3 +160,10 @@ def test_garbage_and_nan_on_every_control_socket(campaign):
     campaign.ask("fakelab", "set_preset", preset="optimal")
     campaign.ask("imageserver", "set_fps", fps=30)
     assert campaign.next_run_converges()
+
+
+def test_a_teach_right_after_a_start_waits_for_the_frames_it_averages(campaign):
+    """`./dev demo` on a cold machine taught 4 averaged frames before 4 had arrived (422)."""
+    campaign.launcher.restart_service("estimator")  # its frame buffer starts empty
+    taught = campaign.client.teach(frames=16)
+    assert taught["detail"]["frames_averaged"] == 16

@@ -152,8 +152,12 @@ def test_stop_midway_and_a_second_start_is_409(system):
     with pytest.raises(SemservoError) as refused:
         lab.move(x_um=0.5)
     assert refused.value.status == 409 and refused.value.code == "stopped"
-    # A new start is the operator's word that the stage may move again.
-    again = lab.start(tolerance_px=0.2)
+    # A start does not silently resume a stopped stage: the operator says so.
+    with pytest.raises(SemservoError) as refused:
+        lab.start(tolerance_px=0.2)
+    assert refused.value.status == 409 and refused.value.code == "stage_stopped"
+    assert lab.stage()["state"] == "stopped"
+    again = lab.start(tolerance_px=0.2, resume=True)
     assert lab.wait(again["run_id"], timeout=120)["state"] == "converged"
 
 

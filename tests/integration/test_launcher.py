@@ -141,3 +141,34 @@ def test_a_service_whose_port_is_taken_says_so_and_exits(ports):
     assert f"127.0.0.1:{ports['stage_control']}" in result.stderr
     assert "SEMSERVO_STAGE__*_PORT" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_the_fake_lab_whose_serial_port_is_taken_says_so_in_one_line(ports):
+    import socket
+
+    with socket.socket() as squatter:
+        squatter.bind(("127.0.0.1", ports["serial_tcp"]))
+        squatter.listen()
+        for command in (["service", "fakelab"], ["fakelab", "--no-pty"]):
+            result = subprocess.run([sys.executable, "-m", "semservo", *command], capture_output=True, text=True,
+                                    timeout=60)
+            assert result.returncode == 1, result.stderr
+            assert "fakelab: cannot bind its port" in result.stderr and "SEMSERVO_FAKELAB__*_PORT" in result.stderr
+            assert "Traceback" not in result.stderr
+
+
+def test_up_check_beside_a_running_stack_does_not_take_its_services_for_ours(ports):
+    """Another semservo already answers on these ports: ours cannot start, and the check
+    must say so instead of reporting the other stack's services as healthy."""
+    from tests.integration.helpers import start_service, stop, wait_healthy
+
+    other = start_service("fakelab", "--no-pty")
+    try:
+        wait_healthy(connect("127.0.0.1", ports["fakelab_control"]), other)
+        result = subprocess.run([sys.executable, "-m", "semservo", "up", "--check", "--frames", "2"],
+                                capture_output=True, text=True, timeout=120)
+    finally:
+        stop(other)
+    assert result.returncode == 1, result.stdout
+    assert "fakelab healthy" not in result.stdout
+    assert re.search(r"another process \(pid \d+|fakelab exited with code 1", result.stdout), result.stdout

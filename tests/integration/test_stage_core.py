@@ -185,3 +185,124 @@ def test_converging_on_each_frame_asks_every_one_to_be_within(stage, tmp_path):
     assert feed(on_each, [0.15, -0.04]) == "servoing"
     assert on_each.on_estimate(estimate(3, -0.03, 0.0, scan_started_at_ns=time.time_ns()))["action"] == "within tolerance"
     assert on_each.state == "converged"
+
+
+def foreign(seq: int, *, scan_started_at_ns: int) -> MotionEstimate:
+    return estimate(seq, 1.0, 1.0, scan_started_at_ns=scan_started_at_ns).model_copy(update={"reference_id": "other"})
+
+
+class Estimator:
+    """The estimator's port, saying what it has (or nothing: restarted)."""
+
+    def __init__(self, reference_id: str | None):
+        self.reference_id = reference_id
+
+    def request(self, command: str, args: dict | None = None) -> dict:
+        if command == "report":
+            return {"reference": {"id": self.reference_id} if self.reference_id else None}
+        return {}
+
+
+def test_a_run_fails_at_once_when_its_reference_is_taught_again(stage, tmp_path):
+    import time
+
+    core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    core.start(RunSettings(), "ref")
+    core.on_estimate(foreign(1, scan_started_at_ns=time.time_ns()))  # in flight from before: tolerated
+    core.on_estimate(foreign(2, scan_started_at_ns=time.time_ns()))
+    assert core.state == "servoing"
+    core.on_estimate(foreign(3, scan_started_at_ns=time.time_ns()))
+    assert core.state == "failed" and "reference changed" in core.reason and "other" in core.reason
+
+
+@pytest.mark.parametrize("estimator, says", [(Estimator(None), "no reference (restarted"),
+                                             (Estimator("newer"), "now has reference newer"),
+                                             (Estimator("ref"), "publishes nothing")])
+def test_a_run_without_estimates_fails_within_the_timeout_saying_why(stage, tmp_path, estimator, says):
+    clock = FakeClock()
+    core = ControllerCore(LocalStage(stage), estimator=estimator, runs_dir=tmp_path, clock=clock)
+    core.start(RunSettings(estimate_timeout_s=5.0), "ref")
+    clock.now += 4.9
+    core.tick()
+    assert core.state == "servoing"
+    clock.now += 0.2
+    core.tick()
+    assert core.state == "failed" and "no estimate against the run's reference for 5.1 s" in core.reason
+    assert says in core.reason, core.reason
+
+
+def test_noise_near_the_target_is_not_divergence_however_small_the_tolerance(stage, tmp_path):
+    """The dashboard's stop test once ended 'diverging': with tolerance 0.01 px the old
+    floor (5 x tolerance)^2 counted estimation noise near the target as divergence."""
+    import time
+
+    core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    core.start(RunSettings(tolerance_px=0.01, max_iterations=1000), "ref")
+    for seq in range(1, 41):
+        error = 0.02 if seq % 4 else 0.4  # small errors, and now and then a noisy one
+        core.on_estimate(estimate(seq, error, -error, scan_started_at_ns=time.time_ns()))
+    assert core.state == "servoing", core.reason
+
+
+def test_a_killed_controllers_run_is_finished_from_its_journal(stage, tmp_path):
+    import time
+
+    first = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    first.start(RunSettings(), "ref")
+    for seq in (1, 2, 3):
+        first.on_estimate(estimate(seq, 20.0, -10.0, scan_started_at_ns=time.time_ns()))
+    run_id = first.run["id"]
+    first._journal.flush()  # killed here: the journal is all that is left (no summary)
+    assert not (tmp_path / f"{run_id}.json").exists()
+
+    second = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    assert second.recover() == [run_id]
+    record = second.stored(run_id)
+    assert record["outcome"]["state"] == "failed" and record["outcome"]["recovered"]
+    assert "controller stopped mid-run" in record["outcome"]["reason"]
+    assert [r["seq"] for r in record["records"]] == [1, 2, 3] and record["iterations"] == 3
+    assert any(entry["text"].startswith("set,") for entry in record["stage_log"]), "the stage's log, since the start"
+    assert second.recover() == [], "recovered once"
+
+
+def test_a_restarted_stage_comes_back_held_with_its_command_log(link, tmp_path):
+    _, pty = link
+    first = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert first.connect() and first.state == "ready"
+    first.arm(3.0, "controller-abc")
+    first.move({"x": 1.0}, relative=True, owner="controller-abc")
+    with pytest.raises(Refused) as refused:  # a jog from elsewhere during the run
+        first.move({"x": 1.0}, relative=True, owner="gateway")
+    assert refused.value.code == "owned"
+    first.close()  # killed: no orderly shutdown
+
+    second = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert second.connect()
+    assert second.state == "held" and "controller-abc" in second.state_reason
+    assert any(entry["text"].startswith("set,") for entry in second.command_log()), "the log before the restart"
+    with pytest.raises(Refused):
+        second.move({"x": 0.5}, relative=True)
+    second.arm(3.0, "controller-new")  # a new run claims it
+    assert second.state == "ready"
+    second.disarm("controller-new")
+    second.shutdown()  # orderly, nothing armed: the next start is ready
+
+    third = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert third.connect() and third.state == "ready"
+    third.shutdown()
+
+
+def test_outputs_the_stage_did_not_command_stop_it(link, tmp_path):
+    world, pty = link
+    clock = FakeClock()
+    core = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=clock)
+    assert core.connect()
+    core.move({"x": 1.0}, relative=True)
+    commanded = core.voltages["x"]
+    world.set_voltage(0, commanded + 5.0)  # the front-panel knob, or a second serial client
+    clock.now += 2.0
+    core.poll()
+    assert core.state == "stopped" and "without a command" in core.state_reason
+    assert core.voltages["x"] == pytest.approx(commanded + 5.0, abs=0.01)
+    assert core.counters["uncommanded_changes"] == 1
+    core.close()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -175,3 +177,30 @@ def test_unstable_preset_changes_levels_over_time():
     settings = ScanSettings()
     contrasts = {round(world.levels(t, settings).contrast, 3) for t in (0.0, 2.0, 4.0, 6.0)}
     assert len(contrasts) == 4
+
+
+def test_the_rotation_stage_refuses_nan_and_what_is_beyond_its_travel():
+    world = World(speedup=10.0)
+    for bad in (float("nan"), float("inf"), 1e308, 400.0):
+        with pytest.raises(ValueError, match="rotation_deg"):
+            world.set_rotation_stage(rotation_deg=bad)
+    with pytest.raises(ValueError, match="tilt_x_deg"):
+        world.set_rotation_stage(rotation_deg=10.0, tilt_x_deg=float("nan"))
+    assert world.rotation_stage["rotation_deg"] == 0.0, "refused whole: nothing changed"
+    world.set_rotation_stage(rotation_deg=12.5)
+    assert world.pose().rotation_deg == 12.5
+
+
+def test_a_failed_render_does_not_stop_simulated_time(monkeypatch):
+    """A render that raised once left a sped-up world's clock standing still for good."""
+    world = World(speedup=10.0)
+
+    def broken(*_args, **_kwargs):
+        raise FloatingPointError("a broken render")
+
+    monkeypatch.setattr(world.sem, "render", broken)
+    with pytest.raises(FloatingPointError):
+        world.scan(ScanSettings(dwell_ns=100), wait=False)
+    before = world.now()
+    time.sleep(0.05)
+    assert world.now() > before
