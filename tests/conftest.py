@@ -5,6 +5,7 @@ from __future__ import annotations
 import random
 import socket
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -103,3 +104,31 @@ def context():
     ctx = zmq.Context()
     yield ctx
     ctx.destroy(linger=0)  # closes sockets a failed test left open, then terminates
+
+
+@contextmanager
+def simulated_stack(folder: Path, *, speedup: float = 20, fps: float = 100, restart: bool = False, out=None,
+                    **settings: str):
+    """The whole system on simulated hardware (the launcher, fresh loopback ports, the lab
+    ``speedup`` x faster), its records in ``folder``; ``settings`` are more SEMSERVO_*
+    variables. Yields (launcher, settings); everything is stopped afterwards."""
+    from semservo.config import Settings
+    from semservo.launcher import Launcher
+
+    with pytest.MonkeyPatch.context() as env:
+        choose_ports(env)
+        run_lab_faster(env, speedup, fps)
+        env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(folder / "runs"))
+        env.setenv("SEMSERVO_GATEWAY__DATABASE", str(folder / "runs" / "semservo.sqlite"))
+        for name, value in settings.items():
+            env.setenv(name, value)
+        resolved = Settings()
+        log = out or (folder / "services.log").open("w")
+        launcher = Launcher(resolved, restart=restart, max_restarts=20, out=log)
+        launcher.start(timeout_s=90)
+        try:
+            yield launcher, resolved
+        finally:
+            launcher.stop()
+            if out is None:
+                log.close()

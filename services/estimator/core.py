@@ -97,7 +97,7 @@ class EstimatorCore:
         stage vibration each single scan samples, which at x5000 is ~0.2 px; the stage
         must stand still over those frames)."""
         if self.latest is None:
-            raise TeachError("no frame has been received yet; is the image server running?")
+            raise NotEnoughFrames("no frame has been received yet; is the image server running?")
         if not isinstance(frames, int) or not 1 <= frames <= self.recent.maxlen:
             raise TeachError(f"frames must be a whole number from 1 to {self.recent.maxlen}, got {frames!r}")
         chosen = list(self.recent)[-frames:]
@@ -136,6 +136,8 @@ class EstimatorCore:
         except (TypeError, ValueError):
             raise TeachError("polygon must be a list of [x, y] corner points") from None
         if polygon is not None:
+            if len(shape_mask) < 3:
+                raise TeachError(f"a polygon needs at least 3 corner points, got {len(shape_mask)}")
             rows, cols = self.latest.pixels.shape
             # Corners are clicked on the live image; a little outside it is fine (a mask
             # cut by the edge), far outside is a mistake (and overflows the rasterizer).

@@ -48,7 +48,8 @@ class PolygonTeach(BaseModel):
     """Teach from a mask given by its corner points on the live image (paper case 6)."""
 
     model_config = STRICT
-    polygon: list[tuple[float, float]] = Field(min_length=3, max_length=1000, description="[[x, y], ...] in pixels")
+    polygon: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
+        min_length=3, max_length=1000, description="[[x, y], ...] in pixels")
 
 
 class TeachResult(BaseModel):

@@ -242,13 +242,32 @@ class Campaign:
         return (max(writes) - since_ns) / 1e9 if writes else 0.0
 
     # -- the cases ----------------------------------------------------------------------
+    def moving_run(self) -> tuple[str, int]:
+        """A run holding against drift, three iterations in: (its id, its iteration)."""
+        run_id = self.displaced_run(hold=True, tolerance_px=0.1)
+        self.wait_for(lambda: self.iterations(run_id) >= 3, 60, "three iterations")
+        return run_id, self.iterations(run_id)
+
+    def conclude(self, result: CaseResult, run: dict, *, fault_ns: int | None, truth: bool = True,
+                 next_run: bool = True) -> CaseResult:
+        """What every case checks once its run ended: the outcome and how long after the
+        fault, the last voltage written after it, the record, and the next run."""
+        if fault_ns is not None:
+            result.time_to_outcome_s = ((run.get("finished_at_ns") or time.time_ns()) - fault_ns) / 1e9
+            if result.time_to_hold_s is None:
+                result.time_to_hold_s = self.last_write_after(fault_ns)
+        result.outcome = f"{run['state']}: {run['reason']}"
+        self.all_healthy()
+        result.missing = self.missing(self.settled(run["id"]), truth=truth)
+        result.records_complete = not result.missing
+        result.next_run_converged = next_run and self.next_run_converges()
+        return result
+
     def kill_mid_run(self, name: str) -> CaseResult:
         """SIGKILL one service while a run (holding against drift) is moving the stage."""
         result = CaseResult(f"kill {name}")
         with VoltageWatch(self.settings) as watch:
-            run_id = self.displaced_run(hold=True, tolerance_px=0.1)
-            self.wait_for(lambda: self.iterations(run_id) >= 3, 60, "three iterations")
-            at_kill = self.iterations(run_id)
+            run_id, at_kill = self.moving_run()
             killed_ns = time.time_ns()
             self.launcher.children[name].process.kill()
             self.say(f"  killed {name} (pid {self.launcher.children[name].process.pid}) in run {run_id}")
@@ -273,16 +292,10 @@ class Campaign:
                 killed_ns = time.time_ns()
                 self.client.stop(f"fault campaign: the run survived a killed {name}")
             run = self.wait_finished(run_id)
-            result.time_to_outcome_s = ((run.get("finished_at_ns") or time.time_ns()) - killed_ns) / 1e9
-            if result.time_to_hold_s is None:
-                result.time_to_hold_s = self.last_write_after(killed_ns)
-            result.outcome = f"{run['state']}: {run['reason']}"
-            self.all_healthy()
             if name == "stage":
+                self.wait_for(lambda: self.healthy("stage"), 60, "the stage back")
                 result.stage_after_restart = self.ask("stage", "state")["state"]
-            result.missing = self.missing(self.settled(run_id), truth=name != "fakelab")
-            result.records_complete = not result.missing
-            result.next_run_converged = self.next_run_converges()
+            self.conclude(result, run, fault_ns=killed_ns, truth=name != "fakelab")
         result.within_limits = not watch.outside
         result.notes.append(f"{watch.samples} voltage samples")
         return result
@@ -290,21 +303,14 @@ class Campaign:
     def pulled_serial_link(self) -> CaseResult:
         result = CaseResult("serial cable pulled mid-run")
         with VoltageWatch(self.settings) as watch:
-            run_id = self.displaced_run(hold=True, tolerance_px=0.1)
-            self.wait_for(lambda: self.iterations(run_id) >= 3, 60, "three iterations")
+            run_id, _ = self.moving_run()
             pulled_ns = time.time_ns()
             self.ask("fakelab", "serial_link", plugged=False)
             try:
                 run = self.wait_finished(run_id)
             finally:
                 self.ask("fakelab", "serial_link", plugged=True)
-            result.time_to_outcome_s = (run["finished_at_ns"] - pulled_ns) / 1e9
-            result.time_to_hold_s = self.last_write_after(pulled_ns)
-            result.outcome = f"{run['state']}: {run['reason']}"
-            self.all_healthy()
-            result.missing = self.missing(self.settled(run_id), truth=True)
-            result.records_complete = not result.missing
-            result.next_run_converged = self.next_run_converges()
+            self.conclude(result, run, fault_ns=pulled_ns)
         result.within_limits = not watch.outside
         return result
 
@@ -317,11 +323,7 @@ class Campaign:
             sent = _flood(self.settings.fakelab.host, self.settings.fakelab.serial_tcp_port, int(megabytes * 2**20))
             result.notes.append(f"{sent} bytes sent")
             run = self.wait_finished(run_id, timeout_s=120)
-            result.outcome = f"{run['state']}: {run['reason']}"
-            result.time_to_hold_s = None
-            result.missing = self.missing(self.settled(run_id), truth=True)
-            result.records_complete = not result.missing
-            result.next_run_converged = run["state"] == "converged" and self.next_run_converges()
+            self.conclude(result, run, fault_ns=None, next_run=run["state"] == "converged")
         result.within_limits = not watch.outside
         return result
 
@@ -335,10 +337,8 @@ class Campaign:
             with VoltageWatch(self.settings) as watch:
                 run_id = self.displaced_run(hold=False, tolerance_px=0.15)
                 run = self.wait_finished(run_id, timeout_s=120)
-            result.outcome = f"{run['state']}: {run['reason']}"
-            result.missing = self.missing(self.settled(run_id), truth=True)
-            result.records_complete = not result.missing
-            result.next_run_converged = run["state"] == "converged"
+                self.conclude(result, run, fault_ns=None, next_run=False)
+            result.next_run_converged = run["state"] == "converged"  # the run under the flood is the test
             stale = self.ask("estimator", "health")["counters"].get("frames_stale", 0)
             result.notes.append(f"estimator skipped {stale} stale frames")
         finally:
@@ -352,26 +352,18 @@ class Campaign:
         result = CaseResult("frame source frozen mid-run")
         fakelab = self.launcher.children["fakelab"].process
         with VoltageWatch(self.settings) as watch:
-            run_id = self.displaced_run(hold=True, tolerance_px=0.1)
-            self.wait_for(lambda: self.iterations(run_id) >= 3, 60, "three iterations")
+            run_id, _ = self.moving_run()
             frozen_ns = time.time_ns()
             os.kill(fakelab.pid, signal.SIGSTOP)
             try:
-                degraded = self.wait_for(lambda: "imageserver" in self.client.status()["degraded"], 20,
-                                         "the image server to report the frozen source")
-                result.notes.append(f"imageserver degraded after {(time.time_ns() - frozen_ns) / 1e9:.1f} s"
-                                    if degraded else "")
+                self.wait_for(lambda: "imageserver" in self.client.status()["degraded"], 20,
+                              "the image server to report the frozen source")
+                result.notes.append(f"imageserver degraded after {(time.time_ns() - frozen_ns) / 1e9:.1f} s")
                 run = self.wait_finished(run_id)
                 time.sleep(max(0.0, frozen_s - (time.time_ns() - frozen_ns) / 1e9))
             finally:
                 os.kill(fakelab.pid, signal.SIGCONT)
-            result.time_to_outcome_s = (run["finished_at_ns"] - frozen_ns) / 1e9
-            result.time_to_hold_s = self.last_write_after(frozen_ns)
-            result.outcome = f"{run['state']}: {run['reason']}"
-            self.all_healthy()
-            result.missing = self.missing(self.settled(run_id), truth=True)
-            result.records_complete = not result.missing
-            result.next_run_converged = self.next_run_converges()
+            self.conclude(result, run, fault_ns=frozen_ns)
         result.within_limits = not watch.outside
         return result
 

@@ -152,6 +152,9 @@ class Launcher:
         self.color = out.isatty() if color is None else color
         self.children: dict[str, Child] = {}
         self._print_lock = threading.Lock()
+        # One caller at a time changes the children: a supervising thread and a restart
+        # asked for by hand must not both replace the same dead child.
+        self._children_lock = threading.RLock()
 
     # -- output ---------------------------------------------------------------
     def say(self, text: str, *, name: str = "semservo") -> None:
@@ -230,6 +233,11 @@ class Launcher:
 
     def restart_service(self, name: str, timeout_s: float = 30.0) -> Health:
         """Stop one service (SIGTERM, then SIGKILL) and start it again; its health."""
+        with self._children_lock:
+            replacement = self._replace(name)
+        return self._wait_healthy(replacement, time.monotonic() + timeout_s)
+
+    def _replace(self, name: str) -> Child:
         child = self.children[name]
         if child.process.poll() is None:
             child.process.terminate()
@@ -241,7 +249,7 @@ class Launcher:
         child.reported_exit = True
         replacement = self._spawn(child.spec)
         self.children[name] = replacement
-        return self._wait_healthy(replacement, time.monotonic() + timeout_s)
+        return replacement
 
     def table(self) -> str:
         rows = [("service", "pid", "what", "where")]
@@ -256,6 +264,10 @@ class Launcher:
 
         Returns the names of services that are down now.
         """
+        with self._children_lock:
+            return self._supervise()
+
+    def _supervise(self) -> list[str]:
         down = []
         for name, child in self.children.items():
             code = child.process.poll()

@@ -9,9 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from semservo.config import Settings
-from semservo.launcher import Launcher
-from tests.conftest import choose_ports, run_lab_faster
+from tests.conftest import simulated_stack
 
 ARTIFACTS = Path(__file__).parents[2] / "test-artifacts"
 SPEEDUP = 20
@@ -36,18 +34,8 @@ def pytest_runtest_makereport(item, call):
 @pytest.fixture(scope="session")
 def system(tmp_path_factory):
     folder = tmp_path_factory.mktemp("dashboard")
-    with pytest.MonkeyPatch.context() as env:
-        choose_ports(env)
-        run_lab_faster(env, SPEEDUP, fps=30)
-        env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(folder / "runs"))
-        env.setenv("SEMSERVO_GATEWAY__DATABASE", str(folder / "runs" / "semservo.sqlite"))
-        settings = Settings()
-        launcher = Launcher(settings, out=(folder / "services.log").open("w"))
-        launcher.start(timeout_s=90)
-        try:
-            yield {"url": f"http://127.0.0.1:{settings.gateway.http_port}", "launcher": launcher, "settings": settings}
-        finally:
-            launcher.stop()
+    with simulated_stack(folder, speedup=SPEEDUP, fps=30) as (launcher, settings):
+        yield {"url": f"http://127.0.0.1:{settings.gateway.http_port}", "launcher": launcher, "settings": settings}
 
 
 @pytest.fixture(scope="session")

@@ -6,10 +6,8 @@ from __future__ import annotations
 import pytest
 
 from semservo.client import Client
-from semservo.config import Settings
 from semservo.faults import Campaign
-from semservo.launcher import Launcher
-from tests.conftest import choose_ports, run_lab_faster
+from tests.conftest import simulated_stack
 
 SPEEDUP = 20
 
@@ -17,23 +15,11 @@ SPEEDUP = 20
 @pytest.fixture(scope="package")
 def stack(tmp_path_factory):
     folder = tmp_path_factory.mktemp("faults")
-    with pytest.MonkeyPatch.context() as env:
-        choose_ports(env)
-        run_lab_faster(env, SPEEDUP, fps=30)
-        env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(folder / "runs"))
-        env.setenv("SEMSERVO_GATEWAY__DATABASE", str(folder / "runs" / "semservo.sqlite"))
-        settings = Settings()
-        log = (folder / "services.log").open("w")
-        launcher = Launcher(settings, restart=True, max_restarts=20, out=log)
-        launcher.start(timeout_s=90)
-        client = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=15)
-        try:
-            with Campaign(launcher, client, settings, say=lambda text: log.write(text + "\n")) as campaign:
-                yield campaign
-        finally:
-            client.close()
-            launcher.stop()
-            log.close()
+    with (folder / "services.log").open("w") as log, \
+            simulated_stack(folder, speedup=SPEEDUP, fps=30, restart=True, out=log) as (launcher, settings):
+        with Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=15) as client, \
+                Campaign(launcher, client, settings, say=lambda text: log.write(text + "\n")) as campaign:
+            yield campaign
 
 
 @pytest.fixture

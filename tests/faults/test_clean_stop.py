@@ -9,9 +9,7 @@ import io
 import pytest
 
 from semservo.client import Client
-from semservo.config import Settings
-from semservo.launcher import Launcher
-from tests.conftest import choose_ports, run_lab_faster
+from tests.conftest import simulated_stack
 from tests.integration.helpers import wait_for
 
 pytestmark = pytest.mark.integration
@@ -19,25 +17,14 @@ pytestmark = pytest.mark.integration
 
 def test_the_stack_stops_cleanly_with_a_run_whose_stage_died(tmp_path):
     output = io.StringIO()
-    with pytest.MonkeyPatch.context() as env:
-        choose_ports(env)
-        run_lab_faster(env, 20, fps=30)
-        env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(tmp_path / "runs"))
-        env.setenv("SEMSERVO_GATEWAY__DATABASE", str(tmp_path / "runs" / "semservo.sqlite"))
-        settings = Settings()
-        launcher = Launcher(settings, out=output)
-        launcher.start(timeout_s=90)
-        lab = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=15)
-        try:
-            wait_for(lambda: lab.status()["latest_frame_seq"] is not None, 30, "frames")
-            lab.teach()
-            lab.move(x_um=6.0)
-            run = lab.start(hold=True)
-            wait_for(lambda: lab.status()["iteration"] >= 2, 60, "the run moving")
-            launcher.children["stage"].process.kill()
-        finally:
-            lab.close()
-            launcher.stop()
+    with simulated_stack(tmp_path, fps=30, out=output) as (launcher, settings), \
+            Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=15) as lab:
+        wait_for(lambda: lab.status()["latest_frame_seq"] is not None, 30, "frames")
+        lab.teach()
+        lab.move(x_um=6.0)
+        run = lab.start(hold=True)
+        wait_for(lambda: lab.status()["iteration"] >= 2, 60, "the run moving")
+        launcher.children["stage"].process.kill()
     log = output.getvalue()
     assert "did not stop" not in log, log[-3000:]
     for name in ("gateway", "controller", "estimator", "imageserver", "fakelab"):

@@ -17,33 +17,24 @@ import pytest
 from PIL import Image
 
 from semservo.client import Client, RunActive, SemservoError
-from semservo.config import Settings
-from semservo.launcher import Launcher
-from tests.conftest import choose_ports, run_lab_faster
+from tests.conftest import simulated_stack
 from tests.integration.helpers import wait_for
 
 pytestmark = pytest.mark.integration
 
 SPEEDUP = 20
+
+
 @pytest.fixture(scope="module")
 def system(tmp_path_factory):
     folder = tmp_path_factory.mktemp("gateway")
-    with pytest.MonkeyPatch.context() as env:
-        choose_ports(env)
-        run_lab_faster(env, SPEEDUP)
-        env.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(folder / "runs"))
-        env.setenv("SEMSERVO_GATEWAY__DATABASE", str(folder / "runs" / "semservo.sqlite"))
-        env.setenv("SEMSERVO_GATEWAY__MAX_UPLOAD_BYTES", str(2 * 2**20))
-        env.setenv("SEMSERVO_GATEWAY__SAVE_FRAMES", "true")
-        settings = Settings()
-        launcher = Launcher(settings, out=(folder / "services.log").open("w"))
-        launcher.start(timeout_s=90)
+    with simulated_stack(folder, speedup=SPEEDUP, SEMSERVO_GATEWAY__MAX_UPLOAD_BYTES=str(2 * 2**20),
+                         SEMSERVO_GATEWAY__SAVE_FRAMES="true") as (launcher, settings):
         client = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=15)
         try:
             yield {"client": client, "launcher": launcher, "settings": settings, "folder": folder}
         finally:
             client.close()
-            launcher.stop()
 
 
 def frames_flowing(lab: Client) -> None:
