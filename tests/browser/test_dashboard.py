@@ -80,7 +80,12 @@ def test_stop_a_run_midway(page):
     page.fill("#tolerance", "0.01")
     page.fill("#max-iterations", "10000")
     page.wait_for_timeout(300)
+    before = page.inner_text("#run-id")
     page.click("#start")
+    # The new run, servoing (the last run's iteration count would satisfy a wait on the
+    # count alone, and a stop pressed before the start arrives rightly refuses the start).
+    expect(page.locator("#run-id")).not_to_have_text(before, timeout=10_000)
+    expect(page.locator("#state")).to_have_text("servoing", timeout=10_000)
     page.wait_for_function("parseInt(document.getElementById('iteration').textContent) >= 1", timeout=30_000)
     page.click("#stop")
     expect(page.locator("#state")).to_have_text("stopped", timeout=10_000)

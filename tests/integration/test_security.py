@@ -95,3 +95,18 @@ def test_ws_events_need_the_token_when_one_is_set():
             assert socket.receive_json()["kind"] == "hello"
         with http.websocket_connect("/events", headers={"Authorization": "Bearer s3cret"}) as socket:
             assert socket.receive_json()["kind"] == "hello"
+
+
+def test_the_whole_system_runs_on_curve(tmp_path, monkeypatch, ports):
+    """`semservo up --check` with keys: every service binds and connects with CURVE, the
+    launcher's health checks and the check's frame and motion streams included."""
+    security.make_keys(tmp_path / "keys")
+    monkeypatch.setenv("SEMSERVO_CURVE_KEYS_DIR", str(tmp_path / "keys"))
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(tmp_path / "runs"))
+    monkeypatch.setenv("SEMSERVO_GATEWAY__DATABASE", str(tmp_path / "runs" / "semservo.sqlite"))
+    result = subprocess.run([sys.executable, "-m", "semservo", "up", "--check", "--frames", "3"],
+                            capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
+    for name in ("fakelab", "imageserver", "estimator", "stage", "controller", "gateway"):
+        assert f"{name} healthy" in result.stdout
+    assert "check passed" in result.stdout
