@@ -201,9 +201,15 @@ class SimSource:
     real scan generator would be commanded (request-reply, one frame per request, over
     the lazy-pirate :class:`~semservo.transport.ControlClient`).
 
-    A request that gets no frame within ``timeout_s`` raises :class:`SourceUnavailable`;
-    the client then replaces its socket so the next request starts clean.
+    A request that gets no frame in time raises :class:`SourceUnavailable`; the client
+    then replaces its socket so the next request starts clean. In time: ``timeout_s``
+    until scans have been timed, then five times the typical scan (at least a second).
+    A request in flight when the fake lab died is never answered, and the restarted lab
+    must not wait the whole ``timeout_s`` for a slow scan's sake.
     """
+
+    #: A request this many times longer than the typical scan is taken as lost.
+    OVERDUE_FACTOR = 5.0
 
     name = "sim"
 
@@ -214,16 +220,27 @@ class SimSource:
         self.max_message_bytes = max_message_bytes
         self.client = ControlClient(endpoint, timeout_s=timeout_s, retries=1, context=context,
                                     max_message_bytes=max_message_bytes)
+        self.timeout_s = timeout_s
+        self.typical_scan_s: float | None = None  # wall time of a scan round trip, smoothed
         self.frames = 0
+
+    def _timeout(self) -> float:
+        if self.typical_scan_s is None:
+            return self.timeout_s
+        return min(self.timeout_s, max(1.0, self.OVERDUE_FACTOR * self.typical_scan_s))
 
     def acquire(self, cancelled=None) -> AcquiredImage:
         """One frame; ``cancelled`` (asked while waiting) abandons the request and
         raises :class:`NotReady`."""
+        started = time.monotonic()
         try:
-            parts = self.client.request_parts(self.request.model_dump_json().encode(), cancelled=cancelled)
+            parts = self.client.request_parts(self.request.model_dump_json().encode(), timeout_s=self._timeout(),
+                                              cancelled=cancelled)
         except RequestCancelled:
             raise NotReady from None
         except ServiceUnavailable as error:
+            # Lost, or scans got slower (another dwell): the next request waits the full time.
+            self.typical_scan_s = None
             raise SourceUnavailable(f"no frame from the fake lab: {error}") from None
         if len(parts) == 1:
             reply = Reply.model_validate_json(parts[0].bytes)
@@ -233,6 +250,8 @@ class SimSource:
         except WireError as error:
             raise SourceUnavailable(f"malformed frame from the fake lab: {error}") from None
         self.frames += 1
+        took = time.monotonic() - started
+        self.typical_scan_s = took if self.typical_scan_s is None else 0.8 * self.typical_scan_s + 0.2 * took
         header = frame.header
         return AcquiredImage(pixels=frame.pixels, acquired_at_ns=header.acquired_at_ns or header.published_at_ns,
                              pixel_size_nm=header.pixel_size_nm, magnification=header.magnification,

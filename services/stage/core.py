@@ -193,14 +193,24 @@ class StageCore:
         except (LinkError, nv40.ProtocolError) as error:
             self._lost(f"cannot connect to {self.url}: {error}")
             return False
+        before = dict(self.voltages)  # empty at the first connection
         self.voltages = {axis: measured[channel] for axis, channel in self.channels.items()}
         for axis, model in self.models.items():
             model.follow_voltage(self.voltages[axis], self.voltages[axis])
+        changed = {axis: (before[axis], self.voltages[axis]) for axis in before
+                   if abs(self.voltages[axis] - before[axis]) > UNCOMMANDED_V}
         if self.link != "connected" and self.counters["link_lost"]:
             self.counters["reconnects"] += 1
         self.link, self.attempts, self.last_error = "connected", 0, None
         self.last_io = self.clock()
         log.info("NV 40/3 on %s: %s, voltage range %s", self.url, self.device.get("prompt"), self.device_limits)
+        if changed:
+            # Power-cycled, or moved by hand, while the link was down: the stage is not
+            # where anything believes it is.
+            self.counters["uncommanded_changes"] += 1
+            what = ", ".join(f"{axis} {old:.3f} -> {new:.3f} V" for axis, (old, new) in changed.items())
+            self.stop(f"the amplifier's outputs changed while the serial link was down ({what}): power-cycled or "
+                      f"moved by hand? Check the stage, then resume")
         return True
 
     def close(self) -> None:

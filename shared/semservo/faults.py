@@ -157,9 +157,14 @@ class Campaign:
         return health["pid"] == child.process.pid and health["state"] in ("running", "idle")
 
     def all_healthy(self, timeout_s: float = 60) -> None:
+        """Every service back (its own process), the serial link up, none degraded, and
+        frames scanned since (a teach must not take a frame of a world that restarted)."""
         for name in self.launcher.children:
             self.wait_for(lambda name=name: self.healthy(name), timeout_s, f"{name} healthy")
         self.wait_for(lambda: self.client.status()["stage"]["link"] == "connected", timeout_s, "the serial link")
+        self.wait_for(lambda: not self.client.status()["degraded"], timeout_s, "no service degraded")
+        seq = self.wait_for(lambda: self.client.status()["latest_frame_seq"], timeout_s, "frames")
+        self.wait_for(lambda: (self.client.status()["latest_frame_seq"] or 0) >= seq + 2, timeout_s, "fresh frames")
 
     # -- runs ---------------------------------------------------------------------------
     def displaced_run(self, *, hold: bool, dx_um: float = 6.0, dy_um: float = -4.0, **settings) -> str:

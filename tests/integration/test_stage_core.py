@@ -306,3 +306,19 @@ def test_outputs_the_stage_did_not_command_stop_it(link, tmp_path):
     assert core.voltages["x"] == pytest.approx(commanded + 5.0, abs=0.01)
     assert core.counters["uncommanded_changes"] == 1
     core.close()
+
+
+def test_outputs_changed_while_the_link_was_down_stop_the_stage_on_reconnect(link):
+    """A fake lab restarted (a new world at its home voltages), or an amplifier
+    power-cycled: the reconnected stage is not where it was believed to be."""
+    world, pty = link
+    core = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6))
+    assert core.connect()
+    core.move({"x": 2.0}, relative=True)
+    core.close()  # the link drops ...
+    world.set_voltage(0, core.voltages["x"] - 6.0)  # ... and the outputs change meanwhile
+    assert core.connect()
+    assert core.state == "stopped" and "while the serial link was down" in core.state_reason
+    core.resume()
+    assert core.connect() and core.state == "ready", "an unchanged amplifier reconnects without a stop"
+    core.close()
