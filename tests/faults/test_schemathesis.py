@@ -15,7 +15,7 @@ import pytest
 pytestmark = pytest.mark.integration
 
 CONFIG = Path(__file__).with_name("schemathesis.toml")
-EXAMPLES = 50
+EXAMPLES = 30
 SEED = 2013
 
 
