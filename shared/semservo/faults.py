@@ -21,7 +21,9 @@ socket, as a reliability engineer would.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import random
 import signal
 import socket
 import threading
@@ -375,8 +377,6 @@ class Campaign:
 
 def _flood(host: str, port: int, size: int) -> int:
     """Random bytes (and NaN, inf and out-of-range commands) to the amplifier's TCP port."""
-    import random
-
     generator = random.Random(13)
     poison = [b"set,0,nan\r", b"set,1,inf\r", b"set,0,1e308\r", b"setall,-1e9,1e9,nan\r", b"cloop,0,7\r"]
     sent = 0
@@ -386,10 +386,9 @@ def _flood(host: str, port: int, size: int) -> int:
             chunk = generator.randbytes(4096) + generator.choice(poison)
             connection.sendall(chunk)
             sent += len(chunk)
-            try:
-                connection.recv(65536)  # read the error replies, so the emulator is never blocked on us
-            except (TimeoutError, socket.timeout):
-                pass
+            # Read the error replies, so the emulator is never blocked on us; none yet: send on.
+            with contextlib.suppress(TimeoutError, socket.timeout):
+                connection.recv(65536)
     return sent
 
 
