@@ -202,13 +202,17 @@ class GatewayCore:
 
     def finish(self, run_id: str) -> bool:
         """A run ended: complete its rows from the controller's own record (events can be
-        missed on PUB/SUB, and the gateway may have been down), with the stage command
-        log and, on simulated hardware, the truth. True when the record is complete."""
+        missed on PUB/SUB, and the gateway may have been down). True when recorded."""
         try:
             record = call(self.ports.get("controller"), "controller", "run", {"id": run_id})
         except GatewayError as error:
             log.warning("cannot complete run %s yet: %s", run_id, error.message)
             return False
+        return self._complete(run_id, record)
+
+    def _complete(self, run_id: str, record: dict) -> bool:
+        """Record a finished run from the controller's record, with the stage command
+        log and, on simulated hardware, the truth."""
         if record.get("id") != run_id or not record.get("outcome"):
             return False
         outcome = dict(record["outcome"])
@@ -250,9 +254,10 @@ class GatewayCore:
 
     def reconcile(self, active_run_id: str | None, controller_up: bool) -> None:
         """Complete every record that is not: runs still ``servoing`` here that the
-        controller is no longer running (it finished them while we were down, or died
-        and recovered them), provisional ones, and ones missing the stage's log. A run
-        whose controller stays silent is recorded as failed, provisionally."""
+        controller no longer runs (it finished them while we were down, or died and
+        recovered them), provisional ones, ones waiting for the truth, and ones missing
+        only the stage's log (asked of the stage). A run whose controller stays silent
+        is recorded as failed, provisionally."""
         with self.reconcile_lock:
             now = self.clock()
             if now - self._reconciled_at < RECONCILE_EVERY_S:
@@ -263,27 +268,35 @@ class GatewayCore:
             elif self._controller_silent_since is None:
                 self._controller_silent_since = now
             for run in self.store.incomplete_runs():
+                outcome = run["outcome"] or {}
                 if run["id"] == active_run_id:
                     continue
-                if controller_up:
-                    if self.finish(run["id"]):
+                if run["state"] != "servoing" and not (outcome.get("provisional") or outcome.get("truth_pending")):
+                    self._complete_stage_log(run)
+                elif not controller_up:
+                    if run["state"] == "servoing" and now - self._controller_silent_since >= CONTROLLER_LOST_AFTER_S:
+                        self._record_failed(run, f"the controller went down mid-run (no answer for "
+                                                 f"{now - self._controller_silent_since:.0f} s); the stage's "
+                                                 f"watchdog holds the stage", provisional=True)
+                else:
+                    try:
+                        record = call(self.ports.get("controller"), "controller", "run", {"id": run["id"]})
+                    except GatewayError as error:
+                        if error.code == "no_such_run" and run["state"] == "servoing":
+                            self._record_failed(run, "the controller has no record of this run (its records were "
+                                                     "lost?)", provisional=False)
                         continue
-                    if run["state"] == "servoing" and self._controller_disowns(run["id"]):
-                        self._finish_provisionally(run, "the controller has no record of this run (its records were "
-                                                        "lost?)", provisional=False)
-                elif run["state"] == "servoing" and now - self._controller_silent_since >= CONTROLLER_LOST_AFTER_S:
-                    self._finish_provisionally(run, f"the controller went down mid-run (no answer for "
-                                                    f"{now - self._controller_silent_since:.0f} s); the stage's "
-                                                    f"watchdog holds the stage")
+                    self._complete(run["id"], record)
 
-    def _controller_disowns(self, run_id: str) -> bool:
-        try:
-            call(self.ports.get("controller"), "controller", "run", {"id": run_id})
-        except GatewayError as error:
-            return error.code == "no_such_run"
-        return False
+    def _complete_stage_log(self, run: dict) -> None:
+        stage_log = self._stage_log(run["started_at_ns"], run["finished_at_ns"])
+        if stage_log is not None:
+            outcome = {key: value for key, value in run["outcome"].items() if key != "stage_log_error"}
+            self.store.set_stage_log(run["id"], stage_log, outcome)
 
-    def _finish_provisionally(self, run: dict, reason: str, *, provisional: bool = True) -> None:
+    def _record_failed(self, run: dict, reason: str, *, provisional: bool) -> None:
+        """Record a run the controller cannot finish as failed (``provisional``: the
+        controller's own record replaces this one if it comes back)."""
         stage_log = self._stage_log(run["started_at_ns"])
         outcome = {"state": "failed", "reason": reason, "finished_at_ns": time.time_ns(),
                    "iterations": self.store.get_run(run["id"])["iterations"], "provisional": provisional}
