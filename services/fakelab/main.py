@@ -24,7 +24,7 @@ from semservo.messages import Reply, ScanRequest
 from semservo.service import ServiceRuntime
 from semservo.simulation.sem import SEM, ScanSettings
 from semservo.simulation.world import PRESETS, World
-from semservo.transport import BadRequest
+from semservo.transport import BadRequest, number
 from semservo.wire import encode_frame, frame_header
 from services.fakelab.emulator import ChannelState, NV403Emulator
 from services.fakelab.serial_links import PseudoTerminalLink, TcpLink
@@ -188,21 +188,17 @@ def main(argv: list[str] | None = None) -> int:
 
     def simulated_time(value, name: str) -> float:
         """A past simulated time: a finite number of seconds from 0 to now."""
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise BadRequest(f"{name} must be a number of simulated seconds, got {value!r}")
-        now = world.now()
+        value, now = number(value, name, "simulated seconds"), world.now()
         if value > now:
             raise BadRequest(f"{name} {value!r} is in the future (now {now:.3f} s)")
-        if not 0 <= value <= now:  # NaN and -infinity fail this too
+        if value < 0:
             raise BadRequest(f"{name} must be a past simulated time, 0..{now:.3f} s, got {value!r}")
-        return float(value)
+        return value
 
     def set_rotation_stage(args: dict) -> dict:
-        for key, value in args.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise BadRequest(f"{key} must be a number of degrees, got {value!r}")
+        angles = {key: number(value, key, "degrees") for key, value in args.items()}
         try:
-            world.set_rotation_stage(**args)
+            world.set_rotation_stage(**angles)
         except (TypeError, ValueError) as error:
             raise BadRequest(str(error)) from None
         return dict(world.rotation_stage)

@@ -20,7 +20,7 @@ from semservo.config import Settings, connect
 from semservo.logs import configure
 from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
-from semservo.transport import BadRequest, FramePublisher
+from semservo.transport import BadRequest, FramePublisher, number
 from services.imageserver.core import FreezeWatch, ImageServerCore
 from services.imageserver.sources import BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable
 
@@ -96,11 +96,9 @@ def main(argv: list[str] | None = None) -> int:
         }
 
     def set_fps(args: dict) -> dict:
-        if isinstance(args.get("fps"), bool):
-            raise BadRequest("fps must be a number of frames per second")
         try:
-            core.set_fps(float(args.get("fps")))
-        except (TypeError, ValueError) as error:
+            core.set_fps(number(args.get("fps"), "fps", "frames per second"))
+        except ValueError as error:
             raise BadRequest(f"fps: {error}") from None
         return {"fps": core.pacer.fps}
 
@@ -110,14 +108,10 @@ def main(argv: list[str] | None = None) -> int:
         the stream goes on with the usual settings. Only the scanning (sim) source can."""
         if not isinstance(source, BackgroundAcquisition) or not isinstance(source.source, SimSource):
             raise BadRequest("scan_once needs a scanning source (sim); a replay cannot scan")
-        for key in ("dwell_ns", "magnification"):
-            if args.get(key) is not None and (isinstance(args[key], bool) or not isinstance(args[key], (int, float))):
-                raise BadRequest(f"{key} must be a number, got {args[key]!r}")
+        changes = {key: number(args[key], key) for key in ("dwell_ns", "magnification") if args.get(key) is not None}
         try:
-            request = source.source.request.model_copy(update={
-                key: float(args[key]) for key in ("dwell_ns", "magnification") if args.get(key) is not None})
-            request = ScanRequest.model_validate(request.model_dump())
-        except (TypeError, ValueError) as error:
+            request = ScanRequest.model_validate({**source.source.request.model_dump(), **changes})
+        except ValueError as error:
             raise BadRequest(f"scan settings: {error}") from None
         one_off = SimSource(source.source.endpoint, request, timeout_s=max(config.scan_timeout_s, 60.0),
                             max_message_bytes=settings.max_message_bytes, context=runtime.context)

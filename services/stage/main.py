@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 
 from semservo.config import Settings
 from semservo.logs import configure
 from semservo.service import ServiceRuntime
-from semservo.transport import BadRequest, CommandError
+from semservo.transport import BadRequest, CommandError, number
 from services.stage.core import Refused, StageCore, StageLimits, models_from
 
 log = logging.getLogger("stage")
@@ -40,9 +39,7 @@ def _numbers(mapping, name: str) -> dict[str, float]:
         raise BadRequest(f"{name} must be an object of axis -> number")
     out = {}
     for axis, value in mapping.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise BadRequest(f"{name}.{axis} must be a finite number, got {value!r}")
-        out[str(axis)] = float(value)
+        out[str(axis)] = number(value, f"{name}.{axis}")
     return out
 
 
@@ -77,12 +74,10 @@ def main(argv: list[str] | None = None) -> int:
         return core.move(_numbers(request_args.get("targets"), "targets"), relative=relative, owner=owner(request_args))
 
     def arm(request_args: dict) -> dict:
-        timeout = request_args.get("hold_after_s")
-        if isinstance(timeout, bool) or not isinstance(timeout, (int, float)):
-            raise BadRequest("hold_after_s must be a number of seconds")
+        timeout = number(request_args.get("hold_after_s"), "hold_after_s", "seconds")
         if owner(request_args) is None:
             raise BadRequest("owner is required: the watchdog listens to one controller")
-        return core.arm(float(timeout), owner(request_args))
+        return core.arm(timeout, owner(request_args))
 
     def since(request_args: dict) -> dict:
         value = request_args.get("since_ns", 0)

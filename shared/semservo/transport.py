@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter
 from typing import Any, Callable
@@ -301,6 +302,14 @@ Handler = Callable[[dict[str, Any]], dict[str, Any] | None]
 
 class BadRequest(ValueError):
     """Raised by a command handler for arguments it cannot accept; sent as ``bad_request``."""
+
+
+def number(value: Any, name: str, unit: str = "") -> float:
+    """A command argument that must be a finite JSON number (``true`` is not 1, NaN and
+    infinities are refused): the value as float, else :class:`BadRequest` naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise BadRequest(f"{name} must be a finite number{' of ' + unit if unit else ''}, got {value!r}")
+    return float(value)
 
 
 class ControlServer:
