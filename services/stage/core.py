@@ -30,6 +30,7 @@ with the reason, and the model follows the measured voltages.
 
 from __future__ import annotations
 
+import collections
 import copy
 import json
 import logging
@@ -131,7 +132,7 @@ class StageCore:
         log_path = self.state_dir / "stage-commands.jsonl"
         if log_path.is_file():
             with open(log_path, encoding="utf-8") as lines:
-                kept = [line for line in lines][-COMMAND_LOG_KEPT:]
+                kept = collections.deque(lines, maxlen=COMMAND_LOG_KEPT)  # the tail, not the whole file
             for line in kept:
                 try:
                     self.log_archive.append(LogEntry(**json.loads(line)))
@@ -204,13 +205,9 @@ class StageCore:
         self.link, self.attempts, self.last_error = "connected", 0, None
         self.last_io = self.clock()
         log.info("NV 40/3 on %s: %s, voltage range %s", self.url, self.device.get("prompt"), self.device_limits)
-        if changed:
-            # Power-cycled, or moved by hand, while the link was down: the stage is not
-            # where anything believes it is.
-            self.counters["uncommanded_changes"] += 1
-            what = ", ".join(f"{axis} {old:.3f} -> {new:.3f} V" for axis, (old, new) in changed.items())
-            self.stop(f"the amplifier's outputs changed while the serial link was down ({what}): power-cycled or "
-                      f"moved by hand? Check the stage, then resume")
+        # Power-cycled, or moved by hand, while the link was down: the stage is not where
+        # anything believes it is.
+        self._uncommanded(changed, "while the serial link was down", "power-cycled or moved by hand")
         return True
 
     def close(self) -> None:
@@ -273,15 +270,18 @@ class StageCore:
         """Outputs this service did not command: stop, say what changed, follow them."""
         changed = {axis: (self.voltages[axis], measured[channel]) for axis, channel in self.channels.items()
                    if abs(measured[channel] - self.voltages[axis]) > UNCOMMANDED_V}
-        if not changed:
-            return
         for axis, (before, after) in changed.items():
             self.models[axis].follow_voltage(after, before)
             self.voltages[axis] = after
+        self._uncommanded(changed, "without a command from semservo", "a front-panel knob or another serial client")
+
+    def _uncommanded(self, changed: dict[str, tuple[float, float]], when: str, suspects: str) -> None:
+        """Outputs changed that this service did not command: stop, and say what changed."""
+        if not changed:
+            return
         self.counters["uncommanded_changes"] += 1
         what = ", ".join(f"{axis} {before:.3f} -> {after:.3f} V" for axis, (before, after) in changed.items())
-        self.stop(f"the amplifier's outputs changed without a command from semservo ({what}): a front-panel knob "
-                  f"or another serial client? Check the stage, then resume")
+        self.stop(f"the amplifier's outputs changed {when} ({what}): {suspects}? Check the stage, then resume")
 
     # -- commands ----------------------------------------------------------------------
     def _voltages_text(self) -> str:

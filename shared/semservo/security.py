@@ -127,18 +127,18 @@ class CurveContext(zmq.Context):
                 self._authenticator.start()
                 self._authenticator.configure_curve(domain="*", location=str(self.curve_keys.authorized))
 
-    def term(self) -> None:
+    def _stop_authenticator(self) -> None:
         with self._authenticator_lock:
             if self._authenticator is not None:
                 self._authenticator.stop()
                 self._authenticator = None
+
+    def term(self) -> None:
+        self._stop_authenticator()
         super().term()
 
     def destroy(self, linger: int | None = None) -> None:
-        with self._authenticator_lock:
-            if self._authenticator is not None:
-                self._authenticator.stop()
-                self._authenticator = None
+        self._stop_authenticator()
         super().destroy(linger)
 
 
