@@ -401,17 +401,20 @@ class GatewayCore:
                     raise
             time.sleep(0.1)
 
-    def _active_run(self) -> str | None:
-        """The run the controller is servoing, if any (None also when it does not answer:
-        then no run can move the stage, whose watchdog holds it)."""
+    def _active_run(self, *, controller_required: bool) -> str | None:
+        """The run the controller is servoing, if any. A controller that does not answer
+        is a 503 when ``controller_required``, else no run (none can move the stage then:
+        its watchdog holds it)."""
         try:
             status = call(self.ports.get("controller"), "controller", "status")
         except GatewayError:
+            if controller_required:
+                raise
             return None
         return status.get("run_id") if status.get("state") == "servoing" else None
 
-    def _refuse_during_run(self, what: str) -> None:
-        run_id = self._active_run()
+    def _refuse_during_run(self, what: str, *, controller_required: bool = False) -> None:
+        run_id = self._active_run(controller_required=controller_required)
         if run_id is not None:
             raise GatewayError(409, "run_active", f"{what} is refused while run {run_id} is servoing; "
                                                   f"POST /stop first", run_id=run_id)
@@ -492,9 +495,7 @@ class GatewayCore:
 
     def resume(self) -> dict:
         """Let a stopped or held stage move again (a run cannot be active then)."""
-        status = call(self.ports.get("controller"), "controller", "status")
-        if status.get("state") == "servoing":
-            raise GatewayError(409, "run_active", f"run {status['run_id']} is active", run_id=status["run_id"])
+        self._refuse_during_run("resuming the stage", controller_required=True)
         return call(self.ports.get("stage"), "stage", "resume")
 
     def stage_state(self) -> dict:
@@ -506,10 +507,7 @@ class GatewayCore:
         stage held by its watchdog (a controller died, or the stage service restarted
         mid-run) is claimed by the new run's controller."""
         controller = self.ports.get("controller")
-        status = call(controller, "controller", "status")
-        if status.get("state") == "servoing":
-            raise GatewayError(409, "run_active", f"run {status['run_id']} is active; stop it first",
-                               run_id=status["run_id"])
+        self._refuse_during_run("starting a run", controller_required=True)
         stage = call(self.ports.get("stage"), "stage", "state")
         if stage.get("state") == "stopped":
             if not resume:
