@@ -33,7 +33,7 @@ def test_the_whole_api_under_schemathesis(campaign, tmp_path):
                "--phases", "examples,coverage,fuzzing", "--request-timeout", "60", "--workers", "1",
                "--generation-database", "none", "--report", "junit", "--report-dir", str(tmp_path)]
     try:
-        result = subprocess.run(command, capture_output=True, text=True, timeout=400)
+        result = subprocess.run(command, capture_output=True, text=True, timeout=400, cwd=tmp_path)  # its cache there
     finally:
         campaign.client.stop("schemathesis is done")  # it may have started a run
         campaign.client.http.post("/stage/resume")
