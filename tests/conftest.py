@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import zmq
 
-from semservo.config import find_recorded_run
+from semservo.config import find_recorded_run, find_sem_images
 
 
 def _ephemeral_range() -> tuple[int, int]:
@@ -58,6 +58,16 @@ def recorded_run() -> Path:
     folder = find_recorded_run()
     assert (folder / "reference.png").is_file(), (
         f"the recorded SEM run is missing at {folder}; it lives in shared/data beside the checkout"
+    )
+    return folder
+
+
+@pytest.fixture(scope="session")
+def sem_images() -> Path:
+    """The real SEM images of other instruments, found through the setting's default."""
+    folder = find_sem_images()
+    assert (folder / "README.md").is_file(), (
+        f"the real SEM images are missing at {folder}; they live in shared/data beside the checkout"
     )
     return folder
 

@@ -231,6 +231,12 @@ class ControllerCore:
             "estimate_published_at_ns": estimate.published_at_ns,
             "frame_source_interval_s": estimate.frame_source_interval_s,
         }
+        if estimate.pixel_size_nm is None:
+            # Pixels cannot become micrometres: never guess the scale of a real stage's move.
+            self._record(record, "held: pixel size unknown")
+            self._finish("failed", "the frames carry no pixel size (their files or source do not say): set "
+                                   "SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM (or the magnification) and start again")
+            return record
         if scan_started < run["last_command_ns"]:
             run["held_stale"] += 1
             return self._record(record, "held: stale (scanned during the last move)")
@@ -443,7 +449,7 @@ class ControllerCore:
             "state": self.state, "reason": self.reason, "run_id": run.get("id"),
             "iteration": run.get("iterations", 0), "error_px": last and last["error_px"],
             "mean_error_px": last and last.get("mean_error_px"),
-            "error_um": last and last["error_px"] * last["pixel_size_nm"] / 1000,
+            "error_um": last and last["pixel_size_nm"] and last["error_px"] * last["pixel_size_nm"] / 1000,
             "cost": last and last.get("cost"), "rotation_deg": last and last["rotation_deg"],
             "last_latency_ms": last_moved and last_moved["latency_ms"],
             "held_stale": run.get("held_stale", 0), "path": run.get("path"),

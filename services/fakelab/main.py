@@ -1,6 +1,7 @@
 """Fake lab process: one simulated world, the NV 40/3 emulator on a pseudo-terminal and
-TCP, a scan socket for the image server's ``sim`` source, and the control socket
-(health, true pose, rotation stage, presets).
+TCP, a scan socket for the image server's ``sim`` source, the control socket (health,
+true pose, rotation stage, presets) and, with ``save_frames_dir``, the SEM saving every
+frame to a folder as a vendor's software does (for the ``watch`` source).
 
 Run it with ``semservo fakelab`` (prints where the serial device is) or
 ``semservo service fakelab``; settings ``SEMSERVO_FAKELAB__*``.
@@ -22,11 +23,13 @@ from semservo.config import Settings, connect
 from semservo.logs import configure
 from semservo.messages import Reply, ScanRequest
 from semservo.service import ServiceRuntime
-from semservo.simulation.sem import SEM, ScanSettings
+from semservo.simulation.sem import SEM
 from semservo.simulation.world import PRESETS, World
 from semservo.transport import BadRequest, number
 from semservo.wire import encode_frame, frame_header
+from services.fakelab.acquisition import FolderWriter
 from services.fakelab.emulator import ChannelState, NV403Emulator
+from services.fakelab.scan import scan_settings
 from services.fakelab.serial_links import PseudoTerminalLink, TcpLink
 
 log = logging.getLogger("fakelab")
@@ -42,26 +45,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
     parser.add_argument("--no-pty", action="store_true", help="no pseudo-terminal (TCP only)")
     return parser
-
-
-#: The magnifications the simulated SEM renders in reasonable time (its scenes are a few
-#: hundred micrometres across; at 100x one frame takes seconds, at 1x minutes).
-SIMULATED_MAGNIFICATION = (200.0, 200_000.0)
-
-
-def scan_settings(world: World, request: ScanRequest) -> ScanSettings:
-    preset = world.preset
-    low, high = SIMULATED_MAGNIFICATION
-    if request.magnification is not None and not low <= request.magnification <= high:
-        raise ValueError(f"the simulated SEM images magnifications {low:g}..{high:g}x, "
-                         f"not {request.magnification:g}x")
-    return ScanSettings(
-        dwell_ns=request.dwell_ns or preset.dwell_ns,
-        magnification=request.magnification or preset.magnification,
-        rows=request.rows, cols=request.cols,
-        working_distance_um=10.0 if request.working_distance_um is None else request.working_distance_um,
-        brightness=request.brightness, contrast=request.contrast, bit_depth=request.bit_depth,
-    )
 
 
 class ScanServer:
@@ -155,7 +138,12 @@ def main(argv: list[str] | None = None) -> int:
     runtime = ServiceRuntime("fakelab", settings, settings.bind(config.control_port))
     scanner = ScanServer(world, settings.bind(config.scan_port), runtime.context, settings.max_message_bytes,
                          runtime.counters).start()
-    runtime.report_errors_from(lambda: scanner.last_error)
+    saver = None
+    if config.save_frames_dir is not None:  # the SEM's software saving to a folder, for the watch source
+        saver = FolderWriter(world, config.save_frames_dir, chunks=config.save_chunks,
+                             chunk_pause_s=config.save_chunk_pause_s, interval_s=config.save_interval_s,
+                             counters=runtime.counters).start()
+    runtime.report_errors_from(lambda: scanner.last_error or (saver and saver.last_error))
     # Said plainly on stdout: this is what a user plugs a stage service or a script into.
     if pty is not None:
         print(f"NV 40/3 serial port (pseudo-terminal): {pty.path}", flush=True)
@@ -239,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         return runtime.run(step)
     finally:
         scanner.stop()
+        if saver is not None:
+            saver.stop()
         tcp.stop()
         if pty is not None:
             pty.stop()

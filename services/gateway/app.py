@@ -58,6 +58,9 @@ class TeachResult(BaseModel):
     shape: list[int]
     pixel_size_nm: float | None
     thumbnail_url: str
+    acquisition: dict[str, Any] = Field(default_factory=dict, description=(
+        "what the reference's source says of its acquisition: pixel_size_nm, magnification, dwell_ns, "
+        "working_distance_mm, high_voltage_kv, detector, instrument, data_bar_rows (absent: not known)"))
     detail: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -189,9 +192,10 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
 
     # -- teach ----------------------------------------------------------------------
     def taught(result: dict) -> TeachResult:
-        detail = {k: v for k, v in result.items() if k not in ("id", "kind", "shape", "pixel_size_nm")}
+        detail = {k: v for k, v in result.items() if k not in ("id", "kind", "shape", "pixel_size_nm", "acquisition")}
         return TeachResult(id=result["id"], kind=result["kind"], shape=result["shape"],
-                           pixel_size_nm=result.get("pixel_size_nm"), thumbnail_url="/reference.png", detail=detail)
+                           pixel_size_nm=result.get("pixel_size_nm"), thumbnail_url="/reference.png",
+                           acquisition=result.get("acquisition", {}), detail=detail)
 
     async def read_upload(upload: UploadFile, field: str) -> bytes:
         data = await upload.read(max_upload_bytes + 1)

@@ -22,7 +22,7 @@ from PIL import Image
 
 from semservo.control import CameraToStage
 from semservo.imagefiles import ImageFileError, read_image, write_image
-from semservo.messages import ControllerEvent
+from semservo.messages import ACQUISITION_FIELDS, ControllerEvent
 from semservo.transport import CommandError, ServiceUnavailable
 from semservo.wire import Frame
 from services.gateway.records import FINISHED, RunStore
@@ -162,9 +162,9 @@ class GatewayCore:
         if self.frames_dir is not None and run_id and self.last_status.get("state") == "servoing":
             header = frame.header
             (self.frames_dir / run_id).mkdir(parents=True, exist_ok=True)
+            known = {key: getattr(header, key) for key in ACQUISITION_FIELDS if getattr(header, key) is not None}
             write_image(self.frames_dir / run_id / f"{header.seq:08d}.tif", frame.pixels, seq=header.seq,
-                        acquired_at_ns=header.acquired_at_ns, pixel_size_nm=header.pixel_size_nm,
-                        magnification=header.magnification, dwell_ns=header.dwell_ns)
+                        acquired_at_ns=header.acquired_at_ns, **known)
             self.counters["frames_saved"] += 1
 
     def on_event(self, event: ControllerEvent) -> None:
@@ -349,6 +349,8 @@ class GatewayCore:
         call(estimator, "estimator", "health")  # a dead estimator is named in a second, not after the teach timeout
         latest = self.latest
         scanned_interval = None
+        acquisition = {} if latest is None else {key: getattr(latest.header, key) for key in ACQUISITION_FIELDS
+                                                 if getattr(latest.header, key) is not None}
         if dwell_ns is not None:
             scan = call(self.ports.get("imageserver"), "imageserver", "scan_once", {"dwell_ns": dwell_ns})
             image = base64.b64decode(scan["image_b64"])
@@ -356,7 +358,7 @@ class GatewayCore:
             scanned_interval = scan.get("source_interval_s")
         if image is not None or mask is not None:
             try:
-                pixels, _ = read_image(image if image is not None else mask)
+                pixels, from_file = read_image(image if image is not None else mask)
             except ImageFileError as error:
                 raise GatewayError(422, "unreadable_image", f"the upload is not a readable PNG/TIFF: {error}") from None
             if latest is not None and pixels.shape != latest.pixels.shape:
@@ -365,6 +367,7 @@ class GatewayCore:
             if image is not None:
                 result = call(estimator, "estimator", "teach", {"image_b64": png_b64(pixels), "label": label or "upload"})
                 reference_pixels = pixels
+                acquisition = from_file  # what the uploaded (or scanned) file says of itself
             else:
                 result = call(estimator, "estimator", "teach", {"mask_b64": png_b64((pixels > 0).astype(np.uint8) * 255)})
                 reference_pixels = latest.pixels if latest is not None else pixels
@@ -374,6 +377,9 @@ class GatewayCore:
         else:
             result = self._teach_live(frames)
             reference_pixels = self.latest.pixels if self.latest is not None else None
+        # The acquisition the reference was made at (pixel size, magnification, working
+        # distance...), as far as its source knows it: it goes with every run's record.
+        result = {**result, "acquisition": acquisition}
         with self.lock:
             self.reference = result
             self.reference_pixels = None if reference_pixels is None else np.array(reference_pixels)
@@ -490,6 +496,9 @@ class GatewayCore:
             # 409, not 422: the point is well formed; the current scan is what it misses.
             raise GatewayError(409, "outside_image", f"({x_px:.1f}, {y_px:.1f}) is outside the current "
                                                      f"{cols} x {rows} image", field="x_px")
+        if frame.header.pixel_size_nm is None:
+            raise GatewayError(409, "pixel_size_unknown", "the live frames carry no pixel size, so a click cannot "
+                                                          "become a stage move: set SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM")
         x_um, y_um = self.camera.stage_move_um(cols / 2 - x_px, rows / 2 - y_px, frame.header.pixel_size_nm)
         return self.move({"x": x_um, "y": y_um}, relative=True)
 

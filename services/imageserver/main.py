@@ -1,8 +1,9 @@
 """Image server process: source -> core -> PUB socket; commands on the control socket.
 
 Run it with ``semservo service imageserver [options]``; options override the
-``SEMSERVO_IMAGESERVER__*`` settings. Sources: ``sim`` (default; the fake lab's SEM)
-and ``replay`` (a folder of frames; implied by ``--replay-dir``).
+``SEMSERVO_IMAGESERVER__*`` settings. Sources: ``sim`` (default; the fake lab's SEM),
+``replay`` (a folder of frames; implied by ``--replay-dir``), ``watch`` (the folder an
+SEM saves into; implied by ``--watch-dir``) and ``adapter`` (a lab's own class).
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
 from semservo.transport import BadRequest, FramePublisher, number
 from services.imageserver.core import FreezeWatch, ImageServerCore
-from services.imageserver.sources import BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable
+from services.imageserver.sources import (BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable,
+                                         adapter_source)
+from services.imageserver.watch import WatchSource
 
 log = logging.getLogger("imageserver")
 
@@ -33,23 +36,57 @@ def build_parser() -> argparse.ArgumentParser:
         description="Publish SEM frames over ZeroMQ PUB/SUB from a source: the fake lab's simulated SEM "
                     "(sim) or a replayed folder of PNG/TIFF frames (replay).",
     )
-    parser.add_argument("--source", choices=["sim", "replay"], help="frame source (default: settings; "
-                        "--replay-dir implies replay)")
+    parser.add_argument("--source", choices=["sim", "replay", "watch", "adapter"],
+                        help="frame source (default: settings; --replay-dir implies replay, --watch-dir watch, "
+                             "--adapter adapter)")
     parser.add_argument("--replay-dir", type=Path, help="folder of PNG/TIFF frames, replayed in name order")
+    parser.add_argument("--watch-dir", type=Path, help="folder the SEM's software saves frames into: each new "
+                                                       "frame is published once, when its file is complete")
+    parser.add_argument("--adapter", help="a lab's image source: entry point name or package.module:ClassName")
+    parser.add_argument("--data-bar", help="rows of data bar to crop from files: auto (default) or a number")
     parser.add_argument("--glob", help="replay only files matching this pattern, e.g. 'frame*'")
     parser.add_argument("--fps", type=float, help="frames per second")
     loop = parser.add_mutually_exclusive_group()
     loop.add_argument("--loop", dest="loop", action="store_true", default=None, help="replay again at the end (default)")
     loop.add_argument("--once", dest="loop", action="store_false", help="replay the folder once, then idle")
     parser.add_argument("--magnification", type=float, help="magnification G, overriding the files")
-    parser.add_argument("--pixel-size-nm", type=float, help="pixel size on the sample; default P = D / G")
+    parser.add_argument("--pixel-size-nm", type=float, help="pixel size on the sample, overriding the files; "
+                                                            "with only --magnification, P = D / G (eq. 43)")
     parser.add_argument("--dwell-ns", type=float, help="dwell time per pixel, overriding the files")
     return parser
 
 
-def make_source(settings: Settings, args: argparse.Namespace) -> ReplaySource | BackgroundAcquisition:
+def _data_bar(value) -> int | str:
+    if value in (None, "auto") or isinstance(value, int):
+        return "auto" if value is None else value
+    try:
+        rows = int(value)
+    except ValueError:
+        raise SystemExit(f"--data-bar must be auto or a number of rows, not {value!r}") from None
+    if rows < 0:
+        raise SystemExit(f"--data-bar must be auto or a number of rows >= 0, not {rows}")
+    return rows
+
+
+#: The watch source publishes every complete file as it comes: the pacer only caps the rate.
+WATCH_MAX_FPS = 1000.0
+
+
+def source_name(settings: Settings, args: argparse.Namespace) -> str:
+    return args.source or ("replay" if args.replay_dir else "watch" if args.watch_dir
+                           else "adapter" if args.adapter else settings.imageserver.source)
+
+
+def make_source(settings: Settings, args: argparse.Namespace):
+    """The source the settings and options name, ready to acquire."""
     config = settings.imageserver
-    source = args.source or ("replay" if args.replay_dir else config.source)
+    source = source_name(settings, args)
+    fps = args.fps or config.fps
+    # From files: the user's options override them; the settings fill what they do not say.
+    overrides = {"magnification": args.magnification, "pixel_size_nm": args.pixel_size_nm, "dwell_ns": args.dwell_ns}
+    fallbacks = {"magnification": config.magnification, "pixel_size_nm": config.pixel_size_nm,
+                 "dwell_ns": config.dwell_ns}
+    data_bar = _data_bar(args.data_bar if args.data_bar is not None else config.data_bar)
     if source == "sim":
         request = ScanRequest(dwell_ns=args.dwell_ns or config.scan_dwell_ns,
                               magnification=args.magnification or config.scan_magnification,
@@ -60,17 +97,26 @@ def make_source(settings: Settings, args: argparse.Namespace) -> ReplaySource | 
         return BackgroundAcquisition(
             SimSource(connect(settings.fakelab.host, settings.fakelab.scan_port), request,
                       timeout_s=config.scan_timeout_s, max_message_bytes=settings.max_message_bytes),
-            fps=args.fps or config.fps,
+            fps=fps,
         )
+    if source == "watch":
+        folder = args.watch_dir or config.watch_dir
+        if folder is None:
+            raise SystemExit("the watch source needs a folder: --watch-dir or SEMSERVO_IMAGESERVER__WATCH_DIR")
+        return WatchSource(folder, pattern=args.glob or config.watch_glob, existing=config.watch_existing,
+                           settle_s=config.watch_settle_s, give_up_s=config.watch_give_up_s,
+                           polling=config.watch_polling, overrides=overrides, fallbacks=fallbacks, data_bar=data_bar)
+    if source == "adapter":
+        spec = args.adapter or config.adapter
+        if not spec:
+            raise SystemExit("the adapter source needs a class: --adapter or SEMSERVO_IMAGESERVER__ADAPTER "
+                             "(an entry point of semservo.image_sources or package.module:ClassName)")
+        return adapter_source(spec, dict(config.adapter_options), fps)
     return ReplaySource(
         args.replay_dir or config.replay_dir,
         pattern=args.glob or config.replay_glob,
         loop=config.loop if args.loop is None else args.loop,
-        magnification=args.magnification,
-        pixel_size_nm=args.pixel_size_nm or config.pixel_size_nm,
-        dwell_ns=args.dwell_ns,
-        default_magnification=config.magnification,
-        default_dwell_ns=config.dwell_ns,
+        overrides=overrides, fallbacks=fallbacks, data_bar=data_bar,
     )
 
 
@@ -81,8 +127,13 @@ def main(argv: list[str] | None = None) -> int:
     config = settings.imageserver
 
     runtime = ServiceRuntime("imageserver", settings, settings.bind(config.control_port))
-    source = make_source(settings, args)
-    core = ImageServerCore(source, fps=args.fps or config.fps)
+    try:
+        source = make_source(settings, args)
+    except (OSError, ValueError, TypeError) as error:  # a missing folder, a bad adapter: say which, and stop
+        log.error("cannot start the %s source: %s", source_name(settings, args), error)
+        return 2
+    fps = WATCH_MAX_FPS if isinstance(source, WatchSource) else args.fps or config.fps
+    core = ImageServerCore(source, fps=fps)
     publisher = FramePublisher(settings.bind(config.frames_port), context=runtime.context)
     log.info("publishing %s on %s at %.1f fps", source.describe(), publisher.endpoint, core.pacer.fps)
 
@@ -166,15 +217,15 @@ def main(argv: list[str] | None = None) -> int:
                 image.pixels,
                 seq=seq,
                 acquired_at_ns=image.acquired_at_ns,
-                pixel_size_nm=image.pixel_size_nm,
-                magnification=image.magnification,
-                dwell_ns=image.dwell_ns,
                 source=source.name,
                 label=image.label,
                 scan_started_at_ns=image.scan_started_at_ns,
                 source_interval_s=image.source_interval_s,
+                **image.acquisition(),
             )
             runtime.counters["frames_published"] += 1
+        for name, value in getattr(source, "counters", {}).items():  # a watched folder's files_* counts
+            runtime.counters[name] = value
         if core.exhausted and runtime.state == "running":
             runtime.state = "finished"
             log.info("replay finished after %d frames", core.seq)

@@ -1,59 +1,53 @@
 """Frame sources. A source yields acquired images with their metadata; the image
 server core paces, numbers and stamps them.
 
-Every source has the same small interface (:class:`FrameSource`), so a vendor adapter
-or the simulated SEM plugs in where ``replay`` sits.
+Every source has the same small interface (:class:`semservo.instruments.ImageSource`),
+so a lab's adapter (:func:`adapter_source`), the simulated SEM (:class:`SimSource`) and
+the watched folder (:class:`services.imageserver.watch.WatchSource`) plug in where
+``replay`` sits.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
-from dataclasses import dataclass
+import inspect
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
 import zmq
 
 from semservo.config import pixel_size_nm
-from semservo.imagefiles import ImageFileError, list_frames, read_image
-from semservo.messages import Reply, ScanRequest
+from semservo.imagefiles import DataBar, ImageFileError, list_frames, read_sem_image
+from semservo.instruments import (IMAGE_SOURCE_GROUP, AcquiredImage, ImageSource, NotReady, SourceUnavailable,
+                                  load_plugin)
+from semservo.sem_metadata import ImageMetadata
+from semservo.messages import ACQUISITION_FIELDS, Reply, ScanRequest
 from semservo.transport import ControlClient, RequestCancelled, ServiceUnavailable
 from semservo.wire import WireError, decode_frame
 
+__all__ = ["AcquiredImage", "BackgroundAcquisition", "FrameSource", "NotReady", "ReplaySource", "SimSource",
+           "SourceUnavailable", "adapter_source", "merge_metadata"]
 
-@dataclass(frozen=True)
-class AcquiredImage:
-    """One image as a source delivers it."""
-
-    pixels: np.ndarray
-    acquired_at_ns: int
-    pixel_size_nm: float
-    magnification: float
-    dwell_ns: float
-    label: str | None = None
-    scan_started_at_ns: int | None = None  # None: the source does not know (a file)
-    source_interval_s: tuple[float, float] | None = None
+log = logging.getLogger("imageserver")
 
 
-class FrameSource(Protocol):
-    name: str
-
-    def acquire(self) -> AcquiredImage | None:
-        """The next image, or None when the source has no more."""
-
-    def describe(self) -> dict: ...
+#: What the image server core asks of a source (the interface labs write against).
+FrameSource = ImageSource
 
 
 class ReplaySource:
     """Replays a folder of PNG or TIFF frames (8 or 16 bit) in name order.
 
-    Metadata comes from the command line or settings when given (``magnification``,
-    ``pixel_size_nm``, ``dwell_ns`` not None), else from each file, else from the
-    ``default_*`` values. Every file is read and checked when the source is made, so a
-    bad folder fails at start with the file named, not halfway through a run.
+    Acquisition metadata: the ``overrides`` (command-line options) over each file's own
+    (:mod:`semservo.sem_metadata`) over the ``fallbacks`` (settings: what to assume
+    when the files do not say). What none of them gives stays unknown, except the
+    pixel size, which follows from a magnification the user gave, P = D / G (eq. 43).
+    Data bars are cropped (``data_bar``). Every file is read and checked when the
+    source is made, so a bad folder fails at start with the file named, not halfway
+    through a run.
     """
 
     name = "replay"
@@ -64,22 +58,20 @@ class ReplaySource:
         *,
         pattern: str = "*",
         loop: bool = True,
-        magnification: float | None = None,
-        pixel_size_nm: float | None = None,
-        dwell_ns: float | None = None,
-        default_magnification: float = 1000.0,
-        default_dwell_ns: float = 720.0,
+        overrides: dict | None = None,
+        fallbacks: dict | None = None,
+        data_bar: DataBar = "auto",
     ):
         self.folder = Path(folder)
         self.loop = loop
         self.paths = list_frames(self.folder, pattern)
         if not self.paths:
             raise FileNotFoundError(f"no PNG or TIFF frames matching {pattern!r} in {self.folder}")
-        self.images: list[tuple[np.ndarray, dict[str, float]]] = []
+        self.images: list[tuple[np.ndarray, ImageMetadata]] = []
         for path in self.paths:
-            pixels, metadata = read_image(path)
-            pixels.setflags(write=False)  # published zero-copy: nobody may change it
-            self.images.append((pixels, metadata))
+            image = read_sem_image(path, data_bar=data_bar)
+            image.pixels.setflags(write=False)  # published zero-copy: nobody may change it
+            self.images.append((image.pixels, image.metadata.updated(data_bar_rows=image.data_bar_rows or None)))
         first = self.images[0][0]
         for path, (pixels, _) in zip(self.paths, self.images):
             if pixels.shape != first.shape or pixels.dtype != first.dtype:
@@ -87,20 +79,10 @@ class ReplaySource:
                     f"{path}: {pixels.shape} {pixels.dtype} differs from {self.paths[0].name}'s "
                     f"{first.shape} {first.dtype}; a replay folder holds one kind of frame"
                 )
-        self.overrides = {
-            key: value
-            for key, value in (("magnification", magnification), ("pixel_size_nm", pixel_size_nm), ("dwell_ns", dwell_ns))
-            if value is not None
-        }
-        self.defaults = {"magnification": default_magnification, "dwell_ns": default_dwell_ns}
+        self.overrides = {key: value for key, value in (overrides or {}).items() if value is not None}
+        self.fallbacks = {key: value for key, value in (fallbacks or {}).items() if value is not None}
         self.position = 0
         self.passes = 0
-
-    def _metadata(self, from_file: dict[str, float], width: int) -> dict[str, float]:
-        merged = {**self.defaults, **from_file, **self.overrides}
-        if "pixel_size_nm" not in merged or ("magnification" in self.overrides and "pixel_size_nm" not in self.overrides):
-            merged["pixel_size_nm"] = pixel_size_nm(merged["magnification"], width)
-        return merged
 
     def acquire(self) -> AcquiredImage | None:
         if self.position >= len(self.images):
@@ -111,7 +93,7 @@ class ReplaySource:
         pixels, from_file = self.images[self.position]
         path = self.paths[self.position]
         self.position += 1
-        metadata = self._metadata(from_file, pixels.shape[1])
+        metadata = merge_metadata(from_file, self.overrides, self.fallbacks, pixels.shape[1])
         return AcquiredImage(pixels=pixels, acquired_at_ns=time.time_ns(), label=path.name, **metadata)
 
     def describe(self) -> dict:
@@ -128,12 +110,17 @@ class ReplaySource:
         }
 
 
-class SourceUnavailable(RuntimeError):
-    """The source cannot deliver a frame now (e.g. the fake lab does not answer)."""
-
-
-class NotReady(Exception):
-    """No new frame yet (the scan is still running); not an error, not the end."""
+def merge_metadata(from_file: ImageMetadata, overrides: dict, fallbacks: dict, width_px: int) -> dict:
+    """The acquisition fields of a frame: ``overrides`` over the file's over
+    ``fallbacks``; the pixel size from a magnification the user gave (P = D / G, eq. 43)
+    when neither the user nor the file gives it. Unknown fields are left out."""
+    merged = {**fallbacks, **from_file.known(), **overrides}
+    user_magnification = overrides.get("magnification") or (
+        None if from_file.magnification is not None else fallbacks.get("magnification"))
+    if user_magnification and ("pixel_size_nm" not in overrides) and (
+            "pixel_size_nm" not in merged or "magnification" in overrides):
+        merged["pixel_size_nm"] = pixel_size_nm(user_magnification, width_px)
+    return merged
 
 
 class BackgroundAcquisition:
@@ -142,15 +129,19 @@ class BackgroundAcquisition:
 
     :meth:`acquire` never blocks: it returns the newest frame the thread has, raises
     :class:`NotReady` when there is none yet, and re-raises the thread's last source
-    error (once). The thread paces itself at ``fps`` at most.
+    error once, even when a frame came after it (a frame first, the error at the next
+    call). The thread paces itself at ``fps`` at most.
     """
 
     def __init__(self, source, fps: float):
         self.source = source
         self.name = source.name
+        # The sources here take ``cancelled`` (asked while they wait); a lab's adapter need not.
+        self._takes_cancel = "cancelled" in inspect.signature(source.acquire).parameters
         self.fps = fps
         self._latest: AcquiredImage | None = None
         self._error: Exception | None = None
+        self._ended = False
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"acquire-{source.name}", daemon=True)
@@ -164,26 +155,42 @@ class BackgroundAcquisition:
                 return
             next_due = max(next_due + 1.0 / self.fps, time.monotonic())
             try:
-                image = self.source.acquire(cancelled=self._stop.is_set)
-            except NotReady:  # cancelled: we are stopping
-                return
+                image = self.source.acquire(cancelled=self._stop.is_set) if self._takes_cancel else self.source.acquire()
+            except NotReady:
+                if self._stop.is_set():  # cancelled: we are stopping
+                    return
+                continue
             except SourceUnavailable as error:
                 with self._lock:
                     self._error = error
                 self._stop.wait(1.0)
                 continue
+            except Exception as error:  # noqa: BLE001 - a lab's adapter may fail any way: say so, keep going
+                log.exception("the %s source failed", self.name)
+                with self._lock:
+                    self._error = SourceUnavailable(f"the {self.name} source failed: {type(error).__name__}: {error}")
+                self._stop.wait(1.0)
+                continue
+            if image is None:  # the source has ended
+                with self._lock:
+                    self._ended = True
+                return
             with self._lock:
-                self._latest, self._error = image, None
+                self._latest = image  # an error not yet reported stays: acquire raises it next
 
-    def acquire(self) -> AcquiredImage:
+    def acquire(self) -> AcquiredImage | None:
         with self._lock:
-            image, error = self._latest, self._error
-            self._latest = None
-            self._error = None
+            image, error, ended = self._latest, self._error, self._ended
+            if image is not None:
+                self._latest = None  # the error, if any, is raised at the next call: never lost
+            else:
+                self._error = None
         if image is not None:
             return image
         if error is not None:
             raise error
+        if ended:
+            return None
         raise NotReady
 
     def describe(self) -> dict:
@@ -253,11 +260,10 @@ class SimSource:
         took = time.monotonic() - started
         self.typical_scan_s = took if self.typical_scan_s is None else 0.8 * self.typical_scan_s + 0.2 * took
         header = frame.header
+        known = {key: getattr(header, key) for key in ACQUISITION_FIELDS if getattr(header, key) is not None}
         return AcquiredImage(pixels=frame.pixels, acquired_at_ns=header.acquired_at_ns or header.published_at_ns,
-                             pixel_size_nm=header.pixel_size_nm, magnification=header.magnification,
-                             dwell_ns=header.dwell_ns, label=header.label,
-                             scan_started_at_ns=header.scan_started_at_ns,
-                             source_interval_s=header.source_interval_s)
+                             label=header.label, scan_started_at_ns=header.scan_started_at_ns,
+                             source_interval_s=header.source_interval_s, **known)
 
     def describe(self) -> dict:
         return {"source": self.name, "endpoint": self.endpoint, "frames": self.frames,
@@ -265,3 +271,18 @@ class SimSource:
 
     def close(self) -> None:
         self.client.close()
+
+
+def adapter_source(spec: str, options: dict, fps: float):
+    """A lab's image source (:class:`semservo.instruments.ImageSourceAdapter`), named
+    by an entry point of ``semservo.image_sources`` or ``package.module:ClassName`` and
+    made with ``options``; a blocking one runs in a background thread."""
+    cls = load_plugin(spec, IMAGE_SOURCE_GROUP)
+    if not (isinstance(cls, type) and callable(getattr(cls, "acquire", None))):
+        raise TypeError(f"{spec!r} is not an image source class (it needs acquire and describe)")
+    source = cls(**options)
+    for method in ("acquire", "describe"):
+        if not callable(getattr(source, method, None)):
+            raise TypeError(f"{spec!r} has no {method}(): see semservo.instruments.ImageSource")
+    blocking = getattr(source, "blocking", True)
+    return BackgroundAcquisition(source, fps=fps) if blocking else source

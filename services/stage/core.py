@@ -1,6 +1,7 @@
-"""The stage service's core: one NV 40/3 on one serial link, and every safety rule,
-whatever the caller asks. No sockets here (the service's main wires them); the serial
-link is real (pyserial, through :class:`semservo.nv40_driver.NV403Driver`).
+"""The stage service's core: one stage driver (by default the NV 40/3 on its serial
+link), and every safety rule, whatever the caller asks and whatever the driver. No
+sockets here (the service's main wires them); the link is real (pyserial, through
+:class:`semservo.nv40_driver.NV403Driver`, or any :class:`semservo.instruments.StageDriver`).
 
 Safety, in the order a move is checked:
 
@@ -41,7 +42,7 @@ from pathlib import Path
 from typing import Callable
 
 from semservo import nv40
-from semservo.nv40_driver import LinkError, LogEntry, NV403Driver
+from semservo.instruments import STAGE_DRIVER_GROUP, DeviceError, LinkError, LogEntry, StageDriver, load_plugin
 from semservo.stage_model import BranchModel, load_model
 
 log = logging.getLogger("stage")
@@ -94,13 +95,13 @@ class StageCore:
     channels: dict[str, int] = field(default_factory=lambda: {"x": 0, "y": 1})
     models: dict = field(default_factory=dict)  # axis -> BranchModel | LinearModel
     clock: Callable[[], float] = time.monotonic
-    open_driver: Callable[[str], NV403Driver] = NV403Driver.open
+    open_driver: Callable[[str], StageDriver] = field(default_factory=lambda: driver_class("nv40").open)
     state_dir: Path | None = None  # None: nothing survives the process (tests of the core)
 
     def __post_init__(self):
         for axis in self.channels:
             self.models.setdefault(axis, BranchModel.tritor(axis if axis in ("x", "y") else "x"))
-        self.driver: NV403Driver | None = None
+        self.driver: StageDriver | None = None
         self.link = "connecting"
         self.state = "ready"  # ready | stopped | held
         self.state_reason = ""
@@ -187,11 +188,10 @@ class StageCore:
             self.driver = self.open_driver(self.url)
             self.driver.on_entry = self._journal_entry
             self.device = self.driver.identify()
-            for channel in self.channels.values():
-                self.driver.set_remote(channel, True)
-            self.device_limits = self.driver.voltage_limits()
-            measured = self.driver.read_voltages()
-        except (LinkError, nv40.ProtocolError) as error:
+            self.driver.take_control(list(self.channels.values()))
+            self.device_limits = tuple(self.driver.output_limits())
+            measured = self.driver.read_outputs()
+        except (LinkError, DeviceError) as error:
             self._lost(f"cannot connect to {self.url}: {error}")
             return False
         before = dict(self.voltages)  # empty at the first connection
@@ -204,7 +204,7 @@ class StageCore:
             self.counters["reconnects"] += 1
         self.link, self.attempts, self.last_error = "connected", 0, None
         self.last_io = self.clock()
-        log.info("NV 40/3 on %s: %s, voltage range %s", self.url, self.device.get("prompt"), self.device_limits)
+        log.info("stage driver on %s: %s, output range %s", self.url, self.device.get("model"), self.device_limits)
         # Power-cycled, or moved by hand, while the link was down: the stage is not where
         # anything believes it is.
         self._uncommanded(changed, "while the serial link was down", "power-cycled or moved by hand")
@@ -230,7 +230,7 @@ class StageCore:
         self.attempts += 1
         self.next_attempt = self.clock() + delay
 
-    def _io(self, action: Callable[[NV403Driver], object]):
+    def _io(self, action: Callable[[StageDriver], object]):
         """Run one exchange with the amplifier; a link failure is recorded and raised as
         :class:`Refused` with code ``link_lost``."""
         if self.link != "connected" or self.driver is None:
@@ -260,7 +260,7 @@ class StageCore:
             log.warning("%s", self.state_reason)
         if now - self.last_io > READBACK_S[self.watchdog.armed]:
             try:
-                measured = self._io(lambda driver: driver.read_voltages())
+                measured = self._io(lambda driver: driver.read_outputs())
             except Refused:
                 return 0.05
             self._compare(measured)
@@ -320,7 +320,7 @@ class StageCore:
     def _write(self, volts: dict[str, float], owner: str | None) -> dict:
         now = self.clock()
         written_at_ns = time.time_ns()
-        readback = self._io(lambda driver: driver.set_channels({self.channels[a]: v for a, v in volts.items()}))
+        readback = self._io(lambda driver: driver.write_outputs({self.channels[a]: v for a, v in volts.items()}))
         for axis, value in volts.items():
             self.voltages[axis] = readback[self.channels[axis]]
             self.last_write[axis] = now
@@ -406,11 +406,18 @@ class StageCore:
 
     def stop(self, reason: str = "stop requested") -> dict:
         """Hold at once and refuse moves until :meth:`resume`. Works in any state, link
-        up or not (nothing is sent: the amplifier keeps its outputs)."""
+        up or not. The driver's ``halt`` stops motion in progress (the NV 40/3 sends
+        nothing: an amplifier keeps its outputs)."""
         self.state, self.state_reason = "stopped", reason
         self.watchdog = Watchdog()
         self._persist()
         log.warning("stage stopped: %s", reason)
+        if self.driver is not None and self.link == "connected":
+            try:  # a controller with motion in progress halts it; an amplifier has none
+                self.driver.halt()
+            except (LinkError, DeviceError) as error:
+                self.last_error = f"stopped, but the driver's halt failed: {error}"
+                log.error("%s", self.last_error)
         return self.describe()
 
     def resume(self) -> dict:
@@ -420,7 +427,7 @@ class StageCore:
 
     def release(self) -> dict:
         """Give the channels back to the front-panel knobs, and stop."""
-        self._io(lambda driver: [driver.set_remote(channel, False) for channel in self.channels.values()])
+        self._io(lambda driver: driver.release(list(self.channels.values())))
         return self.stop("released to the front panel")
 
     def command_log(self, since_ns: int = 0, limit: int = 5000) -> list[dict]:
@@ -431,7 +438,7 @@ class StageCore:
     def describe(self) -> dict:
         return {
             "url": self.url, "link": self.link, "state": self.state, "reason": self.state_reason,
-            "device": self.device.get("prompt"), "voltages": dict(self.voltages), "positions_um": self.positions(),
+            "device": self.device.get("model"), "voltages": dict(self.voltages), "positions_um": self.positions(),
             "limits": {**asdict(self.limits), "device_voltage": list(self.device_limits)},
             "watchdog": {"armed": self.watchdog.armed, "timeout_s": self.watchdog.timeout_s,
                          "owner": self.watchdog.owner},
@@ -444,3 +451,9 @@ def models_from(paths: dict[str, str | None], axes) -> dict:
     """The default TRITOR branches per axis, or a model file (JSON, as written by
     :func:`semservo.stage_model.save_model`) where one is given."""
     return {axis: load_model(paths[axis]) if paths.get(axis) else BranchModel.tritor(axis) for axis in axes}
+
+
+def driver_class(name: str) -> type:
+    """The stage driver ``name`` names: an entry point of ``semservo.stage_drivers``
+    (semservo's own: ``nv40``, ``simulated``) or ``package.module:ClassName``."""
+    return load_plugin(name, STAGE_DRIVER_GROUP)

@@ -1,4 +1,5 @@
-"""Stage process: the NV 40/3 on its serial link behind a request-reply socket.
+"""Stage process: a stage driver (the NV 40/3 on its serial link by default) behind a
+request-reply socket.
 
 Commands (``semservo.transport.ControlClient``): ``state``, ``move`` {targets: {axis:
 um}, relative, owner}, ``set_voltages`` {voltages: {axis: V}, owner}, ``arm`` {hold_after_s,
@@ -19,7 +20,7 @@ from semservo.config import Settings
 from semservo.logs import configure
 from semservo.service import ServiceRuntime
 from semservo.transport import BadRequest, CommandError, number
-from services.stage.core import Refused, StageCore, StageLimits, models_from
+from services.stage.core import Refused, StageCore, StageLimits, driver_class, models_from
 
 log = logging.getLogger("stage")
 
@@ -31,6 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "soft limits, step and rate limits, a watchdog and a stop that always works.",
     )
     parser.add_argument("--url", help="pyserial URL of the amplifier (default: settings, the fake lab's TCP port)")
+    parser.add_argument("--driver", help="stage driver: nv40 (default), simulated, an entry point or "
+                                         "package.module:ClassName")
     return parser
 
 
@@ -52,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     limits = StageLimits(config.voltage_min, config.voltage_max, config.travel_min_um, config.travel_max_um,
                          config.max_step_v, config.max_rate_v_per_s)
     core = StageCore(args.url or config.serial_url, limits=limits, channels=dict(config.axes),
-                     models=models_from(config.model_files, config.axes), state_dir=config.state_dir)
+                     models=models_from(config.model_files, config.axes), state_dir=config.state_dir,
+                     open_driver=driver_class(args.driver or config.driver).open)
     core.connect()
 
     def guarded(action):

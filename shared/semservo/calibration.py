@@ -246,6 +246,9 @@ class Calibrator:
             content = keyframe_offset + motion_px
             if np.hypot(*motion_px) > self.keyframe_px:
                 keyframe, keyframe_offset = MotionEstimator(pixels, rotation=False), content
+            if frame.header.pixel_size_nm is None:
+                raise CalibrationError("the frames carry no pixel size, so image motion cannot be measured in "
+                                       "micrometres: set SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM")
             along, across = self._moved_um(content[0], content[1], frame.header.pixel_size_nm)
             true = None
             if self.truth is not None:

@@ -29,7 +29,7 @@ import zmq
 from semservo import __version__, security
 from semservo.config import Settings, connect
 from semservo.launcher import SERVICES, LaunchError, Launcher, spec
-from semservo.monitor import FrameStats
+from semservo.monitor import FrameStats, acquisition_text
 from semservo.messages import MOTION_TOPIC, MotionEstimate
 from semservo.transport import CommandError, ControlClient, FrameSubscriber, MessageSubscriber, ServiceUnavailable
 
@@ -38,11 +38,14 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-def _replay_environment(args: argparse.Namespace) -> None:
-    """Turn the replay options of ``up`` into settings every child inherits."""
+def _source_environment(args: argparse.Namespace) -> None:
+    """Turn the source options of ``up`` into settings every child inherits."""
     overrides = {
-        "SEMSERVO_IMAGESERVER__SOURCE": args.source or (args.replay_dir and "replay"),
+        "SEMSERVO_IMAGESERVER__SOURCE": args.source or (args.replay_dir and "replay") or (args.watch_dir and "watch"),
         "SEMSERVO_IMAGESERVER__REPLAY_DIR": args.replay_dir and str(Path(args.replay_dir).resolve()),
+        "SEMSERVO_IMAGESERVER__WATCH_DIR": args.watch_dir and str(Path(args.watch_dir).resolve()),
+        "SEMSERVO_FAKELAB__SAVE_FRAMES_DIR": args.watch_dir and args.sim_saves_frames
+                                             and str(Path(args.watch_dir).resolve()),
         "SEMSERVO_FAKELAB__PRESET": args.preset,
         "SEMSERVO_FAKELAB__SPEEDUP": args.speedup and str(args.speedup),
         "SEMSERVO_IMAGESERVER__REPLAY_GLOB": args.glob,
@@ -59,7 +62,16 @@ def _replay_environment(args: argparse.Namespace) -> None:
 
 
 def command_up(args: argparse.Namespace) -> int:
-    _replay_environment(args)
+    if args.sim_saves_frames and not args.watch_dir:
+        print("semservo up: --sim-saves-frames needs --watch-dir (the folder to save into)", file=sys.stderr)
+        return 2
+    if args.watch_dir:
+        if args.sim_saves_frames:
+            Path(args.watch_dir).mkdir(parents=True, exist_ok=True)
+        elif not Path(args.watch_dir).is_dir():
+            print(f"semservo up: no folder to watch at {args.watch_dir}", file=sys.stderr)
+            return 2
+    _source_environment(args)
     settings = Settings()
     launcher = Launcher(settings, restart=args.restart)
     # Ctrl-C stops everything even when started from a shell that ignores SIGINT for
@@ -310,7 +322,7 @@ def command_frames(args: argparse.Namespace) -> int:
             header = frame.header
             print(f"seq {header.seq:6d}  {header.shape[1]}x{header.shape[0]} {header.dtype}  "
                   f"{header.source}{' ' + header.label if header.label else ''}  "
-                  f"mean {frame.pixels.mean():7.2f}")
+                  f"mean {frame.pixels.mean():7.2f}  {acquisition_text(header).rstrip(', ')}")
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
     finally:
@@ -515,7 +527,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for health and for --check")
     up.add_argument("--restart", action="store_true", help="restart a service that dies (with back-off)")
     up.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines")
-    up.add_argument("--source", choices=["sim", "replay"], help="frames from the simulated SEM (default) or a replay")
+    up.add_argument("--source", choices=["sim", "replay", "watch", "adapter"],
+                    help="frames from the simulated SEM (default), a replay, a watched folder or a lab's adapter")
     up.add_argument("--preset", help="simulated condition: optimal, noisy, high-magnification, unstable, "
                                      "high-quality-reference, mask-reference, repeated-pattern")
     up.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
@@ -526,6 +539,11 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--loop", dest="loop", action="store_true", default=None, help="replay in a loop (default)")
     loop.add_argument("--once", dest="loop", action="store_false", help="replay once")
     up.add_argument("--magnification", type=float, help="magnification of the replayed frames")
+    up.add_argument("--watch-dir", help="frames from the folder an SEM's software saves into: each new file is "
+                                        "published once it is complete (see docs/instruments.md)")
+    up.add_argument("--sim-saves-frames", action="store_true",
+                    help="with --watch-dir: the simulated SEM saves its frames there, as a vendor's software "
+                         "would (the whole path without a microscope)")
     up.set_defaults(handler=command_up)
 
     service = commands.add_parser("service", help="run one service in the foreground",

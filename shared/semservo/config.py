@@ -9,9 +9,10 @@ runs as processes on one PC; on two PCs or in containers only ``bind_host`` and 
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, PositiveFloat, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -22,6 +23,7 @@ SCREEN_WIDTH_UM = 212.3
 SCREEN_WIDTH_PX = 512
 
 RECORDED_RUN_NAME = "sem-run-2013"
+SEM_IMAGES_NAME = "sem-images"
 
 
 def pixel_size_nm(magnification: float, width_px: int = SCREEN_WIDTH_PX) -> float:
@@ -35,22 +37,30 @@ def pixel_size_nm(magnification: float, width_px: int = SCREEN_WIDTH_PX) -> floa
     return SCREEN_WIDTH_UM * 1e3 / magnification * SCREEN_WIDTH_PX / width_px
 
 
-def find_recorded_run() -> Path:
-    """Where the real 2013 recording lies: ``<repo>/../shared/data/sem-run-2013``.
-
-    Looked up beside the checkout (the workplace keeps ``shared/`` next to it) and,
-    failing that, beside the current directory. It is never copied into the repository.
-    """
+def _find_shared_data(name: str, marker: str) -> Path:
+    """``<repo>/../shared/data/<name>``: looked up beside the checkout (the workplace
+    keeps ``shared/`` next to it) and, failing that, beside the current directory. The
+    data is never copied into the repository."""
     here = Path(__file__).resolve()
-    candidates = [parent.parent / "shared" / "data" / RECORDED_RUN_NAME for parent in here.parents]
     cwd = Path.cwd().resolve()
-    candidates += [parent.parent / "shared" / "data" / RECORDED_RUN_NAME for parent in (cwd, *cwd.parents)]
+    candidates = [parent.parent / "shared" / "data" / name for parent in (*here.parents, cwd, *cwd.parents)]
     for candidate in candidates:
-        if (candidate / "reference.png").is_file():
+        if (candidate / marker).is_file():
             return candidate
     # Not found: return the conventional place so error messages name it.
-    repo = here.parents[2]
-    return repo.parent / "shared" / "data" / RECORDED_RUN_NAME
+    return here.parents[2].parent / "shared" / "data" / name
+
+
+def find_recorded_run() -> Path:
+    """Where the real 2013 recording lies: ``<repo>/../shared/data/sem-run-2013``
+    (``SEMSERVO_IMAGESERVER__REPLAY_DIR`` points elsewhere)."""
+    return _find_shared_data(RECORDED_RUN_NAME, "reference.png")
+
+
+def find_sem_images() -> Path:
+    """Where the real SEM images of other instruments lie:
+    ``<repo>/../shared/data/sem-images`` (``SEMSERVO_SEM_IMAGES`` points elsewhere)."""
+    return Path(os.environ.get("SEMSERVO_SEM_IMAGES") or _find_shared_data(SEM_IMAGES_NAME, "README.md"))
 
 
 class ImageServerSettings(BaseModel):
@@ -59,14 +69,31 @@ class ImageServerSettings(BaseModel):
     host: str = Field("127.0.0.1", description="address other services connect to")
     frames_port: int = Field(5550, ge=1, le=65535, description="PUB socket for frames")
     control_port: int = Field(5551, ge=1, le=65535, description="REP socket for commands and health")
-    source: Literal["sim", "replay"] = Field("sim", description="sim: the fake lab's SEM; replay: a folder")
+    source: Literal["sim", "replay", "watch", "adapter"] = Field(
+        "sim", description="sim: the fake lab's SEM; replay: a folder, again and again; watch: the folder an SEM "
+                           "saves its frames into; adapter: a lab's own source (see adapter)")
     replay_dir: Path = Field(default_factory=find_recorded_run, description="folder of PNG/TIFF frames")
     replay_glob: str = Field("*", description="which files of the folder to replay, e.g. 'frame*'")
-    fps: PositiveFloat = Field(10.0, le=10_000, description="frames published per second")
+    fps: PositiveFloat = Field(10.0, le=10_000, description="frames published per second (replay, sim)")
     loop: bool = Field(True, description="replay again from the first frame at the end")
-    magnification: PositiveFloat = Field(1000.0, description="used when a file does not say")
-    pixel_size_nm: PositiveFloat | None = Field(None, description="default: P = D / G (eq. 43)")
-    dwell_ns: PositiveFloat = Field(720.0, description="dwell time per pixel, when a file does not say")
+    watch_dir: Path | None = Field(None, description="watch: the folder the SEM's software saves frames into")
+    watch_glob: str = Field("*", description="watch: which files are frames, e.g. '*.tif'")
+    watch_existing: bool = Field(False, description="watch: also publish the files already there at start")
+    watch_settle_s: PositiveFloat = Field(0.3, le=60, description="watch: without a close event, a file is "
+                                                                  "complete once unchanged this long")
+    watch_give_up_s: PositiveFloat = Field(10.0, le=3600, description="watch: longest an unfinished file holds "
+                                                                      "the ones after it")
+    watch_polling: bool = Field(False, description="watch: poll the folder instead of OS events (network shares)")
+    adapter: str | None = Field(None, description="adapter: an entry point of semservo.image_sources or "
+                                                  "package.module:ClassName (semservo.instruments.ImageSourceAdapter)")
+    adapter_options: dict[str, Any] = Field(default_factory=dict, description="adapter: its keyword arguments")
+    data_bar: Literal["auto"] | Annotated[int, Field(ge=0, le=100_000)] = Field(
+        "auto", description="rows of data bar to crop from files: auto (the metadata, else detected), or a number")
+    # What to assume when the files (replay, watch) do not say; unset: unknown, never made up.
+    magnification: PositiveFloat | None = Field(None, description="magnification when a file does not say")
+    pixel_size_nm: PositiveFloat | None = Field(None, description="pixel size when a file does not say; "
+                                                                  "unset with a magnification given: P = D / G (eq. 43)")
+    dwell_ns: PositiveFloat | None = Field(None, description="dwell time per pixel when a file does not say")
     scan_dwell_ns: PositiveFloat | None = Field(None, description="sim: dwell to request (default: the preset's)")
     scan_magnification: PositiveFloat | None = Field(None, description="sim: magnification to request")
     scan_working_distance_um: float | None = Field(None, description="sim: focal plane height (default: the part's top)")
@@ -86,6 +113,11 @@ class FakelabSettings(BaseModel):
     preset: str = Field("optimal", description="one of the paper's conditions (semservo.simulation.world.PRESETS)")
     speedup: PositiveFloat = Field(1.0, le=1000, description="simulated time runs this many times faster")
     seed: int = 2013
+    save_frames_dir: Path | None = Field(None, description="also scan continuously and save every frame here, as "
+                                                           "an SEM's software does (FEI-style TIFF with a data bar)")
+    save_chunks: int = Field(4, ge=1, le=1000, description="each saved file is written in this many pieces")
+    save_chunk_pause_s: float = Field(0.01, ge=0, le=10, description="pause between the pieces")
+    save_interval_s: float = Field(0.1, ge=0, le=3600, description="a frame saved this often at most (wall time)")
 
 
 class EstimatorSettings(BaseModel):
@@ -104,6 +136,8 @@ class StageSettings(BaseModel):
 
     host: str = Field("127.0.0.1", description="address other services connect to")
     control_port: int = Field(5570, ge=1, le=65535, description="REP socket for moves, stop, state, health")
+    driver: str = Field("nv40", description="stage driver: nv40, simulated (in-process, no hardware), an entry "
+                                            "point of semservo.stage_drivers or package.module:ClassName")
     serial_url: str = Field("socket://127.0.0.1:5592",
                             description="pyserial URL: /dev/ttyUSB0, a pseudo-terminal path or socket://host:port")
     axes: dict[str, int] = Field(default_factory=lambda: {"x": 0, "y": 1}, description="axis name -> NV 40/3 channel")

@@ -12,10 +12,13 @@ Every message carries ``v``, the wire version; a receiver drops any other versio
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
+
+from semservo.sem_metadata import ImageMetadata
 
 WIRE_VERSION = 1
 
@@ -47,9 +50,15 @@ class FrameHeader(_Message):
     published_at_ns: int = Field(ge=0, description="Unix time (ns) the frame was handed to the socket")
     shape: tuple[PositiveInt, PositiveInt] = Field(description="(rows, columns)")
     dtype: PixelType
-    pixel_size_nm: PositiveFloat = Field(description="pixel size on the sample, P = D / G (eq. 43)")
-    magnification: PositiveFloat
-    dwell_ns: PositiveFloat = Field(description="dwell time per pixel")
+    # What the source knows of the acquisition; None: not known (never a made-up value).
+    pixel_size_nm: PositiveFloat | None = Field(None, description="pixel size on the sample, P = D / G (eq. 43)")
+    magnification: PositiveFloat | None = None
+    dwell_ns: PositiveFloat | None = Field(None, description="dwell time per pixel")
+    working_distance_mm: PositiveFloat | None = Field(None, description="working distance (focus)")
+    high_voltage_kv: PositiveFloat | None = Field(None, description="accelerating voltage")
+    detector: str | None = Field(None, max_length=200, description="e.g. 'SE', 'ETD', 'InLens'")
+    instrument: str | None = Field(None, max_length=200, description="vendor and model, e.g. 'TESCAN MIRA3 XMU'")
+    data_bar_rows: int | None = Field(None, ge=0, description="rows of data bar cropped from the file's image")
     source: str = Field(min_length=1, max_length=200, description="which source made it, e.g. 'replay'")
     label: str | None = Field(None, max_length=500, description="source-specific name, e.g. the file")
     scan_started_at_ns: int | None = Field(
@@ -60,6 +69,10 @@ class FrameHeader(_Message):
     @property
     def nbytes(self) -> int:
         return self.shape[0] * self.shape[1] * PIXEL_DTYPES[self.dtype].itemsize
+
+
+#: The acquisition fields of a :class:`FrameHeader`: what a file or a source may know.
+ACQUISITION_FIELDS = tuple(field.name for field in dataclasses.fields(ImageMetadata))
 
 
 class Request(_Message):
@@ -129,7 +142,7 @@ class MotionEstimate(_Message):
     confidence: float = Field(ge=0, le=1)
     snr_db: float
     filtered: bool
-    pixel_size_nm: PositiveFloat
+    pixel_size_nm: PositiveFloat | None = Field(description="the frame's; None when its source does not know it")
     frame_acquired_at_ns: int = Field(ge=0)
     frame_published_at_ns: int = Field(ge=0)
     frame_scan_started_at_ns: int | None = Field(None, ge=0, description="the frame's scan_started_at_ns")

@@ -14,6 +14,24 @@ import numpy as np
 from semservo.wire import Frame
 
 
+def acquisition_text(header) -> str:
+    """Pixel size, magnification and dwell as far as the frame knows them."""
+    parts = [f"{header.pixel_size_nm:.1f} nm/px" if header.pixel_size_nm else "pixel size unknown"]
+    if header.magnification:
+        parts.append(f"x{header.magnification:g}")
+    if header.dwell_ns:
+        parts.append(f"{header.dwell_ns:g} ns/px")
+    if header.working_distance_mm:
+        parts.append(f"WD {header.working_distance_mm:g} mm")
+    if header.high_voltage_kv:
+        parts.append(f"{header.high_voltage_kv:g} kV")
+    if header.detector:
+        parts.append(header.detector)
+    if header.data_bar_rows:
+        parts.append(f"data bar {header.data_bar_rows} rows cropped")
+    return ", ".join(parts) + ", "
+
+
 @dataclass
 class FrameStats:
     """Running statistics over the frames seen, with a window for rates and latency."""
@@ -56,8 +74,8 @@ class FrameStats:
         rows, cols = header.shape
         text = (
             f"{self.frames} frames, {self.fps:.1f} fps, seq {header.seq}, {cols}x{rows} {header.dtype}, "
-            f"{header.pixel_size_nm:.1f} nm/px at x{header.magnification:g}, {header.dwell_ns:g} ns/px, "
-            f"source {header.source}"
+            + acquisition_text(header)
+            + f"source {header.source}"
             + (f" ({header.label})" if header.label else "")
             + f", latency p50 {self.latency_ms(50):.2f} ms p99 {self.latency_ms(99):.2f} ms"
         )

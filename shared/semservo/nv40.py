@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from semservo.instruments import DeviceError
+
 BAUD_RATE = 19200
 TERMINATOR = b"\r"
 XON = b"\x11"
@@ -81,7 +83,7 @@ COMMANDS: dict[str, tuple[int, ...]] = {
 SILENT_COMMANDS = frozenset({"setk", "set", "setall"})
 
 
-class ProtocolError(ValueError):
+class ProtocolError(DeviceError):
     """A line the device rejects; ``code`` is its ErrorCode."""
 
     def __init__(self, code: int, detail: str = ""):

@@ -13,27 +13,22 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import serial
 
 from semservo import nv40
+from semservo.instruments import LinkError, LogEntry
 
-
-class LinkError(RuntimeError):
-    """The serial link failed: the port is gone, or the device did not answer in time."""
-
-
-@dataclass(frozen=True)
-class LogEntry:
-    time_ns: int
-    direction: str  # "sent" or "received"
-    text: str
+__all__ = ["LinkError", "LogEntry", "NV403Driver"]
 
 
 class NV403Driver:
-    """One NV 40/3 on one serial link. Thread-safe: one transaction at a time."""
+    """One NV 40/3 on one serial link. Thread-safe: one transaction at a time.
+
+    A :class:`semservo.instruments.StageDriver` (outputs in volts, channels 0-2) for
+    the stage service, and the NV 40/3's own commands for scripts and tests.
+    """
 
     def __init__(self, port: serial.SerialBase, *, reply_timeout_s: float = nv40.REPLY_TIMEOUT_S,
                  log_limit: int = 10_000):
@@ -135,15 +130,15 @@ class NV403Driver:
         text = nv40.strip_flow_control(prompt).decode(nv40.ENCODING).strip()
         model = text[text.rstrip(">").rfind(">") + 1:] if text.count(">") > 1 else text
         firmware = self.transact("ver", expect_lines=3)
-        return {"prompt": model, "firmware": firmware}
+        return {"model": model, "prompt": model, "firmware": firmware}
 
     def set_remote(self, channel: int, remote: bool = True) -> None:
         """Serial control of ``channel`` (True) or the front-panel knob (False)."""
         self.transact("setk", channel, int(remote))
 
-    def release(self) -> None:
-        """Give every channel back to the front panel."""
-        for channel in nv40.CHANNELS:
+    def release(self, channels: list[int] | None = None) -> None:
+        """Give these channels (default: every one) back to the front panel."""
+        for channel in nv40.CHANNELS if channels is None else channels:
             self.set_remote(channel, False)
 
     def voltage_limits(self) -> tuple[float, float]:
@@ -179,3 +174,20 @@ class NV403Driver:
         for channel, value in volts.items():
             self.transact("set", channel, float(value))
         return self.read_voltages()
+
+    # -- the stage driver interface (semservo.instruments.StageDriver) ---------------------
+    def take_control(self, channels: list[int]) -> None:
+        for channel in channels:
+            self.set_remote(channel, True)
+
+    def output_limits(self) -> tuple[float, float]:
+        return self.voltage_limits()
+
+    def read_outputs(self) -> dict[int, float]:
+        return dict(enumerate(self.read_voltages()))
+
+    def write_outputs(self, values: dict[int, float]) -> dict[int, float]:
+        return dict(enumerate(self.set_channels(values)))
+
+    def halt(self) -> None:
+        """An open-loop amplifier holds its outputs: there is no motion to stop."""

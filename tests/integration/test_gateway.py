@@ -74,6 +74,10 @@ def test_teach_jog_position_and_the_record(system):
     assert any(r["action"] == "moved" for r in result["trajectory"])
     assert result["stage_commands"], "the stage command log is kept with the run"
     assert result["settings"]["tolerance_px"] == 0.1
+    # The reference's acquisition, as its frames said it, is kept with the run.
+    acquisition = result["reference"]["acquisition"]
+    assert acquisition["pixel_size_nm"] == pytest.approx(result["trajectory"][-1]["pixel_size_nm"])
+    assert acquisition["magnification"] > 0 and acquisition["dwell_ns"] > 0
 
     # The same run in the history, as CSV and as a Fig. 9 report.
     assert any(summary["id"] == run["run_id"] and summary["state"] == "converged" for summary in lab.runs())

@@ -172,3 +172,27 @@ def test_up_check_beside_a_running_stack_does_not_take_its_services_for_ours(por
     assert result.returncode == 1, result.stdout
     assert "fakelab healthy" not in result.stdout
     assert re.search(r"another process \(pid \d+|fakelab exited with code 1", result.stdout), result.stdout
+
+
+def test_up_on_a_watched_folder_the_simulated_sem_saves_into(ports, tmp_path):
+    """The README's path for a real SEM, with the simulated one saving its frames (FEI
+    TIFFs with a data bar, written in chunks) where the image server watches."""
+    folder = tmp_path / "acquisition"
+    result = subprocess.run(
+        [sys.executable, "-m", "semservo", "up", "--check", "--frames", "3", "--watch-dir", str(folder),
+         "--sim-saves-frames"],
+        capture_output=True, text=True, timeout=180,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "source watch" in result.stdout and "data bar 64 rows cropped" in result.stdout
+    assert "512x512" in result.stdout  # the frame without its bar
+    assert len(list(folder.glob("frame*.tif"))) >= 3
+
+
+def test_up_refuses_a_watch_folder_that_is_not_there(ports, tmp_path):
+    missing = subprocess.run([sys.executable, "-m", "semservo", "up", "--watch-dir", str(tmp_path / "nope")],
+                             capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 2 and "no folder to watch" in missing.stderr
+    alone = subprocess.run([sys.executable, "-m", "semservo", "up", "--sim-saves-frames"],
+                           capture_output=True, text=True, timeout=60)
+    assert alone.returncode == 2 and "--sim-saves-frames needs --watch-dir" in alone.stderr

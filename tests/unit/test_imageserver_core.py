@@ -41,22 +41,29 @@ def test_loop_starts_again_and_once_stops(tmp_path):
     assert once.acquire() is None
 
 
-def test_metadata_precedence_command_line_then_file_then_default(tmp_path):
+def test_metadata_precedence_command_line_then_file_then_settings(tmp_path):
     write_image(tmp_path / "a.tif", np.zeros((64, 128), np.uint8), magnification=5000, dwell_ns=360)
     from_file = ReplaySource(tmp_path).acquire()
     assert (from_file.magnification, from_file.dwell_ns) == (5000, 360)
-    assert from_file.pixel_size_nm == pytest.approx(pixel_size_nm(5000, width_px=128))
+    # The file's magnification says nothing of its microscope's screen: no pixel size is made up.
+    assert from_file.pixel_size_nm is None
 
-    overridden = ReplaySource(tmp_path, magnification=1200, dwell_ns=180).acquire()
+    overridden = ReplaySource(tmp_path, overrides={"magnification": 1200, "dwell_ns": 180}).acquire()
     assert (overridden.magnification, overridden.dwell_ns) == (1200, 180)
-    assert overridden.pixel_size_nm == pytest.approx(pixel_size_nm(1200, width_px=128))
+    assert overridden.pixel_size_nm == pytest.approx(pixel_size_nm(1200, width_px=128))  # the user's G: eq. 43
 
-    explicit = ReplaySource(tmp_path, pixel_size_nm=10.0).acquire()
+    explicit = ReplaySource(tmp_path, overrides={"pixel_size_nm": 10.0}).acquire()
     assert explicit.pixel_size_nm == 10.0
 
     Image.fromarray(np.zeros((64, 64), np.uint8)).save(tmp_path / "b.png")
-    plain = ReplaySource(tmp_path, pattern="b.png", default_magnification=800, default_dwell_ns=999).acquire()
+    unknown = ReplaySource(tmp_path, pattern="b.png").acquire()
+    assert (unknown.magnification, unknown.dwell_ns, unknown.pixel_size_nm) == (None, None, None)
+    assert unknown.acquisition() == {}
+    plain = ReplaySource(tmp_path, pattern="b.png", fallbacks={"magnification": 800, "dwell_ns": 999}).acquire()
     assert (plain.magnification, plain.dwell_ns) == (800, 999)
+    assert plain.pixel_size_nm == pytest.approx(pixel_size_nm(800, width_px=64))
+    # The settings fill only what the file does not say.
+    assert ReplaySource(tmp_path, pattern="a.tif", fallbacks={"magnification": 800}).acquire().magnification == 5000
 
 
 def test_bad_folders_fail_at_start_naming_the_file(tmp_path):
@@ -126,7 +133,8 @@ def test_a_background_source_keeps_the_service_responsive_and_delivers_frames(tm
             self.count += 1
             from services.imageserver.sources import AcquiredImage
 
-            return AcquiredImage(np.full((64, 64), self.count, np.uint8), time.time_ns(), 100.0, 1000.0, 720.0)
+            return AcquiredImage(pixels=np.full((64, 64), self.count, np.uint8), acquired_at_ns=time.time_ns(),
+                                 pixel_size_nm=100.0, magnification=1000.0, dwell_ns=720.0)
 
         def describe(self):
             return {"source": self.name}

@@ -96,8 +96,21 @@ def test_missing_header_field_is_named():
     pixels = np.ones((16, 16), np.uint8)
     parts = parts_for(pixels)
     fields = json.loads(parts[1])
-    del fields["magnification"]
-    with pytest.raises(WireError, match="magnification"):
+    del fields["acquired_at_ns"]
+    with pytest.raises(WireError, match="acquired_at_ns"):
+        decode_frame([parts[0], json.dumps(fields).encode(), parts[2]], max_bytes=LIMIT)
+
+
+def test_acquisition_fields_a_source_does_not_know_stay_unknown():
+    pixels = np.ones((16, 16), np.uint8)
+    parts = parts_for(pixels)
+    fields = json.loads(parts[1])
+    for name in ("magnification", "pixel_size_nm", "dwell_ns"):
+        del fields[name]
+    header = decode_frame([parts[0], json.dumps(fields).encode(), parts[2]], max_bytes=LIMIT).header
+    assert (header.magnification, header.pixel_size_nm, header.dwell_ns, header.working_distance_mm) == (None,) * 4
+    fields["pixel_size_nm"] = -1.0  # known, but wrong: still refused
+    with pytest.raises(WireError, match="pixel_size_nm"):
         decode_frame([parts[0], json.dumps(fields).encode(), parts[2]], max_bytes=LIMIT)
 
 
@@ -127,3 +140,9 @@ def test_frame_header_refuses_unsupported_arrays():
 def test_header_bytes_counts_pixels():
     header = FrameHeader(seq=0, acquired_at_ns=0, published_at_ns=0, shape=(1024, 1536), dtype="uint16", **METADATA)
     assert header.nbytes == 1024 * 1536 * 2
+
+
+def test_the_frame_header_carries_every_acquisition_field():
+    from semservo.messages import ACQUISITION_FIELDS, FrameHeader
+
+    assert set(ACQUISITION_FIELDS) <= set(FrameHeader.model_fields)

@@ -1,0 +1,1 @@
+"""Worked examples of instrument adapters (see docs/instruments.md)."""

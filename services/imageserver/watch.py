@@ -1,0 +1,296 @@
+"""The ``watch`` source: frames as an SEM's own software saves them into a folder.
+
+Most SEM software can save every new frame to a folder; following that folder is the
+adapter that works with any instrument. The folder is watched with the ``watchdog``
+library (inotify on Linux, its polling observer elsewhere or when asked), and scanned
+again every second in case an event was missed.
+
+A file is published once it is **complete**:
+
+* closed after writing (inotify's close-write), or renamed into the folder (a rename
+  is atomic), or, where no such event comes (polling, network shares), unchanged in
+  size and modification time for ``settle_s``;
+* and readable as a whole image (a TIFF whose strips end past the end of the file is
+  still being written).
+
+Frames go out **in the order their files appeared**, each **once**: a file is known by
+its device, inode, size and modification time, so a frame renamed after it was
+published is not published again, while a file rewritten in place is a new frame.
+Files that are deleted before they are read, that are not images, or that stay
+unreadable (unchanged for a second and still not an image) are logged, counted
+(``files_*`` in health) and skipped; a file that never completes holds the ones after
+it for ``give_up_s`` at most.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from watchdog.events import FileSystemEvent, FileSystemEventHandler
+from watchdog.observers import Observer
+from watchdog.observers.polling import PollingObserver
+
+from semservo.imagefiles import IMAGE_SUFFIXES, DataBar, ImageFileError, read_sem_image
+from semservo.instruments import AcquiredImage, NotReady
+from services.imageserver.sources import merge_metadata
+
+log = logging.getLogger("imageserver.watch")
+
+#: How often the folder is listed again, whatever the events say.
+RESCAN_S = 1.0
+#: How many published (and skipped) files are remembered, to never publish one twice.
+REMEMBERED = 100_000
+#: A complete-looking file still unreadable after this long unchanged is skipped.
+UNREADABLE_AFTER_S = 1.0
+
+
+@dataclass
+class Candidate:
+    """A file seen in the folder and not yet published or skipped."""
+
+    path: Path
+    first_seen_ns: int
+    order: int
+    closed: bool = False  # a close-write or rename-in event came after the last change
+    last_signature: tuple[int, int] | None = None  # (size, mtime_ns)
+    stable_since: float = field(default_factory=time.monotonic)
+    unreadable: str | None = None
+
+
+class _Events(FileSystemEventHandler):
+    """watchdog's thread hands every event to the source (kept short: it only notes)."""
+
+    def __init__(self, source: "WatchSource"):
+        self.source = source
+
+    def on_any_event(self, event: FileSystemEvent) -> None:
+        if event.is_directory:
+            return
+        if event.event_type == "moved":
+            self.source.note(Path(str(event.src_path)), gone=True)
+            self.source.note(Path(str(event.dest_path)), closed=True)
+        elif event.event_type == "deleted":
+            self.source.note(Path(str(event.src_path)), gone=True)
+        elif event.event_type in ("created", "modified"):
+            self.source.note(Path(str(event.src_path)), changed=True)
+        elif event.event_type == "closed":
+            self.source.note(Path(str(event.src_path)), closed=True)
+
+
+class WatchSource:
+    """Frames from files appearing in ``folder`` (see the module's docstring)."""
+
+    name = "watch"
+
+    def __init__(
+        self,
+        folder: str | Path,
+        *,
+        pattern: str = "*",
+        existing: bool = False,
+        settle_s: float = 0.3,
+        give_up_s: float = 10.0,
+        polling: bool = False,
+        overrides: dict | None = None,
+        fallbacks: dict | None = None,
+        data_bar: DataBar = "auto",
+        clock=time.monotonic,
+    ):
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise FileNotFoundError(f"no folder to watch at {self.folder}")
+        self.pattern = pattern
+        self.settle_s = settle_s
+        self.give_up_s = give_up_s
+        self.overrides = {key: value for key, value in (overrides or {}).items() if value is not None}
+        self.fallbacks = {key: value for key, value in (fallbacks or {}).items() if value is not None}
+        self.data_bar = data_bar
+        self.clock = clock
+        self.counters = {"files_published": 0, "files_skipped": 0, "files_vanished": 0, "files_ignored": 0,
+                         "files_renamed": 0}
+        self.last_skipped: str | None = None
+        self._lock = threading.Lock()
+        self._candidates: dict[Path, Candidate] = {}
+        self._published: OrderedDict[tuple, str] = OrderedDict()  # identity -> name, to never publish twice
+        self._skipped: OrderedDict[tuple, str] = OrderedDict()  # identity -> reason, to not retry unchanged
+        self._seen_at_start: set[Path] = set()
+        self._order = 0
+        self._next_rescan = 0.0
+        if existing:
+            for path in sorted(self._listing()):
+                self.note(path, changed=True)
+        else:
+            self._seen_at_start = set(self._listing())
+            if self._seen_at_start:
+                log.info("watching %s: %d files already there are not frames of this session (watch_existing "
+                         "publishes them)", self.folder, len(self._seen_at_start))
+        self.observer = PollingObserver(timeout=0.1) if polling else Observer(timeout=0.05)
+        self.observer.schedule(_Events(self), str(self.folder), recursive=False)
+        self.observer.start()
+        self.mode = "polling" if polling else type(self.observer).__name__.replace("Observer", "").lower() or "native"
+
+    # -- what the folder holds -------------------------------------------------------------
+    def _listing(self) -> list[Path]:
+        return [path for path in self.folder.glob(self.pattern) if path.is_file()]
+
+    def _wanted(self, path: Path) -> bool:
+        return path.parent == self.folder and path.match(self.pattern)
+
+    def note(self, path: Path, *, changed: bool = False, closed: bool = False, gone: bool = False) -> None:
+        """Record an event about ``path`` (from watchdog's thread or a rescan)."""
+        if not self._wanted(path):
+            return
+        with self._lock:
+            candidate = self._candidates.get(path)
+            if gone:
+                if candidate is not None:
+                    del self._candidates[path]
+                    self.counters["files_vanished"] += 1
+                    log.info("%s went away before it was complete (deleted or renamed)", path.name)
+                self._seen_at_start.discard(path)
+                return
+            if path in self._seen_at_start:
+                if not (changed or closed):
+                    return
+                self._seen_at_start.discard(path)  # rewritten since: a new frame
+            if candidate is None:
+                if path.suffix.lower() not in IMAGE_SUFFIXES:
+                    self.counters["files_ignored"] += 1
+                    log.debug("ignoring %s: not a PNG or TIFF", path.name)
+                    return
+                candidate = Candidate(path, time.time_ns(), self._order, stable_since=self.clock())
+                self._order += 1
+                self._candidates[path] = candidate
+            if closed:
+                candidate.closed = True
+            elif changed:
+                candidate.closed = False
+                candidate.stable_since = self.clock()
+
+    def _rescan(self) -> None:
+        """List the folder: events can be missed (an overflowing queue, a network share)."""
+        present = set(self._listing())
+        with self._lock:
+            known = set(self._candidates)
+        for path in present - known - self._seen_at_start:
+            if path.suffix.lower() in IMAGE_SUFFIXES and not self._is_done(path):
+                self.note(path, changed=True)
+        for path in known - present:
+            self.note(path, gone=True)
+
+    def _is_done(self, path: Path) -> bool:
+        """Published or skipped as it is now (a change makes it a new file)."""
+        try:
+            identity = self._identity(path)
+        except OSError:
+            return False
+        return identity in self._published or identity in self._skipped
+
+    @staticmethod
+    def _identity(path: Path) -> tuple:
+        stat = path.stat()
+        return (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
+
+    # -- the source interface -------------------------------------------------------------
+    def acquire(self) -> AcquiredImage:
+        """The next complete frame, in the order the files appeared; :class:`NotReady`
+        when none is complete yet. Never blocks for long: one file is read at most."""
+        now = self.clock()
+        if now >= self._next_rescan:
+            self._next_rescan = now + RESCAN_S
+            self._rescan()
+        with self._lock:
+            waiting = sorted(self._candidates.values(), key=lambda candidate: candidate.order)
+        for candidate in waiting:
+            image = self._try(candidate, now)
+            if image is not None:
+                return image
+            if candidate.path in self._candidates and now - candidate.stable_since < self.give_up_s:
+                break  # an earlier file still being written holds the later ones (order)
+        raise NotReady
+
+    def _try(self, candidate: Candidate, now: float) -> AcquiredImage | None:
+        """Publish, skip or keep waiting for one candidate."""
+        path = candidate.path
+        try:
+            stat = path.stat()
+        except FileNotFoundError:
+            self.note(path, gone=True)
+            return None
+        signature = (stat.st_size, stat.st_mtime_ns)
+        if signature != candidate.last_signature:
+            candidate.last_signature = signature
+            if not candidate.closed:
+                candidate.stable_since = now
+        settled = now - candidate.stable_since >= self.settle_s
+        if not (candidate.closed or settled):
+            return None
+        identity = (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
+        given_up = now - candidate.stable_since >= max(2 * self.settle_s, UNREADABLE_AFTER_S)
+        if stat.st_size == 0:  # created, not written yet; or never will be
+            if given_up:
+                self._skip(candidate, identity, "empty file")
+            return None
+        if identity in self._skipped:  # unchanged since it was found unreadable
+            self._forget(candidate)
+            return None
+        if identity in self._published:
+            self._forget(candidate)
+            self.counters["files_renamed"] += 1
+            log.info("%s is %s renamed: already published", path.name, self._published[identity])
+            return None
+        try:
+            image = read_sem_image(path, data_bar=self.data_bar)
+        except FileNotFoundError:
+            self.note(path, gone=True)
+            return None
+        except (ImageFileError, OSError) as error:
+            candidate.unreadable = str(error)
+            # Unchanged for a while and still unreadable: not an image we can use.
+            if given_up:
+                self._skip(candidate, identity, str(error))
+            return None
+        self._forget(candidate)
+        self._published[identity] = path.name
+        while len(self._published) > REMEMBERED:
+            self._published.popitem(last=False)
+        self.counters["files_published"] += 1
+        metadata = merge_metadata(image.metadata.updated(data_bar_rows=image.data_bar_rows or None),
+                                  self.overrides, self.fallbacks, image.pixels.shape[1])
+        image.pixels.setflags(write=False)
+        frame_ns = image.pixels.size * metadata["dwell_ns"] if metadata.get("dwell_ns") else None
+        return AcquiredImage(
+            pixels=image.pixels, acquired_at_ns=stat.st_mtime_ns, label=path.name,
+            # The scan ended before the file appeared; it took rows x columns x dwell.
+            scan_started_at_ns=int(candidate.first_seen_ns - frame_ns) if frame_ns else None,
+            **metadata,
+        )
+
+    def _forget(self, candidate: Candidate) -> None:
+        with self._lock:
+            self._candidates.pop(candidate.path, None)
+
+    def _skip(self, candidate: Candidate, identity: tuple, reason: str) -> None:
+        self._forget(candidate)
+        self._skipped[identity] = reason
+        while len(self._skipped) > REMEMBERED:
+            self._skipped.popitem(last=False)
+        self.counters["files_skipped"] += 1
+        self.last_skipped = f"skipped {candidate.path.name}: {reason}"
+        log.warning("%s", self.last_skipped)
+
+    def describe(self) -> dict:
+        with self._lock:
+            pending = len(self._candidates)
+        return {"source": self.name, "folder": str(self.folder), "pattern": self.pattern, "mode": self.mode,
+                "pending": pending, "last_skipped": self.last_skipped, **self.counters}
+
+    def close(self) -> None:
+        self.observer.stop()
+        self.observer.join(timeout=5)
+
