@@ -57,7 +57,11 @@ class PatternSEM(ImageSourceAdapter):
         )
 
     def set_scan(self, *, dwell_ns: float | None = None, magnification: float | None = None) -> dict:
+        if magnification is not None:
+            raise NotImplementedError("the pattern SEM has one magnification")
         if dwell_ns is not None:
+            if not 10 <= dwell_ns <= 100_000:
+                raise ValueError(f"dwell {dwell_ns:g} ns is outside 10..100000 ns")
             self.dwell_ns = dwell_ns
         return {"dwell_ns": self.dwell_ns}
 

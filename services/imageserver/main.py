@@ -24,7 +24,7 @@ from semservo.service import ServiceRuntime
 from semservo.transport import BadRequest, FramePublisher, number
 from services.imageserver.core import FreezeWatch, ImageServerCore
 from services.imageserver.sources import (BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable,
-                                         adapter_source)
+                                         adapter_source, set_scan)
 from services.imageserver.watch import WatchSource
 
 log = logging.getLogger("imageserver")
@@ -178,7 +178,22 @@ def main(argv: list[str] | None = None) -> int:
                 "magnification": image.magnification, "pixel_size_nm": image.pixel_size_nm,
                 "source_interval_s": image.source_interval_s}
 
+    def scan_settings(args: dict) -> dict:
+        """``set_scan {dwell_ns?, magnification?, working_distance_mm?}``: the frames that
+        follow, on a source that can (the simulated SEM; a lab's adapter)."""
+        values = {key: number(args[key], key) for key in ("dwell_ns", "magnification", "working_distance_mm")
+                  if args.get(key) is not None}
+        if not values:
+            raise BadRequest("set_scan needs dwell_ns, magnification or working_distance_mm")
+        try:
+            return set_scan(source, **values)
+        except NotImplementedError as error:
+            raise BadRequest(str(error)) from None
+        except ValueError as error:  # the source refused the value
+            raise BadRequest(f"scan settings: {error}") from None
+
     runtime.control.register("info", info)
+    runtime.control.register("set_scan", scan_settings)
     runtime.control.register("set_fps", set_fps)
     runtime.control.register("scan_once", scan_once)
     runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq}

@@ -29,7 +29,7 @@ from semservo.transport import ControlClient, RequestCancelled, ServiceUnavailab
 from semservo.wire import WireError, decode_frame
 
 __all__ = ["AcquiredImage", "BackgroundAcquisition", "FrameSource", "NotReady", "ReplaySource", "SimSource",
-           "SourceUnavailable", "adapter_source", "merge_metadata"]
+           "SourceUnavailable", "adapter_source", "merge_metadata", "set_scan"]
 
 log = logging.getLogger("imageserver")
 
@@ -269,6 +269,14 @@ class SimSource:
         return {"source": self.name, "endpoint": self.endpoint, "frames": self.frames,
                 "request": self.request.model_dump()}
 
+    def set_scan(self, *, dwell_ns: float | None = None, magnification: float | None = None) -> dict:
+        """Scan the frames that follow with this dwell or magnification."""
+        changes = {key: value for key, value in (("dwell_ns", dwell_ns), ("magnification", magnification))
+                   if value is not None}
+        self.request = ScanRequest.model_validate({**self.request.model_dump(), **changes})
+        self.typical_scan_s = None  # another dwell: another scan time
+        return {key: getattr(self.request, key) for key in ("dwell_ns", "magnification")}
+
     def close(self) -> None:
         self.client.close()
 
@@ -286,3 +294,22 @@ def adapter_source(spec: str, options: dict, fps: float):
             raise TypeError(f"{spec!r} has no {method}(): see semservo.instruments.ImageSource")
     blocking = getattr(source, "blocking", True)
     return BackgroundAcquisition(source, fps=fps) if blocking else source
+
+
+def set_scan(source, *, dwell_ns: float | None = None, magnification: float | None = None,
+             working_distance_mm: float | None = None) -> dict:
+    """Change the scan settings (and the focus, for the tilt measurement) of the frames
+    that follow, on a source that can: the simulated SEM (dwell, magnification) or a
+    lab's adapter (what it implements). Raises :class:`NotImplementedError` saying what
+    the source cannot do."""
+    target = source.source if isinstance(source, BackgroundAcquisition) else source
+    result: dict = {}
+    if dwell_ns is not None or magnification is not None:
+        if not callable(getattr(target, "set_scan", None)):
+            raise NotImplementedError(f"the {source.name} source cannot change its scan settings")
+        result.update(target.set_scan(dwell_ns=dwell_ns, magnification=magnification))
+    if working_distance_mm is not None:
+        if not callable(getattr(target, "set_working_distance", None)):
+            raise NotImplementedError(f"the {source.name} source cannot set the focus")
+        result["working_distance_mm"] = target.set_working_distance(working_distance_mm)
+    return result

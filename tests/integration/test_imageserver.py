@@ -108,3 +108,33 @@ def test_unreadable_replay_folder_fails_at_start_with_a_clear_error(ports, tmp_p
     output = process.stdout.read()
     assert code != 0
     assert "no folder of frames" in output and "nowhere" in output
+
+
+def test_a_labs_adapter_runs_in_the_image_server_and_takes_scan_settings(ports, monkeypatch):
+    """The worked example of docs/instruments.md, as a real process: frames with the
+    adapter's metadata over ZeroMQ, its focus set through the control socket, and what
+    it cannot do refused in its own words."""
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__ADAPTER_OPTIONS", '{"rows": 128, "cols": 160, "pixel_size_nm": 50}')
+    process = start_service("imageserver", "--adapter", "examples.adapters.pattern_sem:PatternSEM", "--fps", "50")
+    control = ControlClient(connect("127.0.0.1", ports["control"]), timeout_s=5, retries=1)
+    subscriber = FrameSubscriber(connect("127.0.0.1", ports["frames"]), max_message_bytes=2**24)
+    try:
+        wait_healthy(connect("127.0.0.1", ports["control"]), process)
+        frame = subscriber.receive(timeout_s=10)
+        assert frame is not None and frame.pixels.shape == (128, 160)
+        header = frame.header
+        assert (header.source, header.pixel_size_nm, header.detector) == ("pattern-sem", 50.0, "SE")
+        assert header.magnification is None  # the adapter does not say: unknown
+        assert control.request("set_scan", working_distance_mm=4.2) == {"working_distance_mm": 4.2}
+        for _ in range(100):
+            frame = subscriber.receive(timeout_s=2)
+            if frame is not None and frame.header.working_distance_mm == 4.2:
+                break
+        assert frame.header.working_distance_mm == 4.2
+        with pytest.raises(CommandError, match="one magnification"):
+            control.request("set_scan", magnification=3000)
+        assert control.request("info")["adapter"] == "examples.adapters.pattern_sem:PatternSEM"
+    finally:
+        subscriber.close()
+        control.close()
+        stop(process)

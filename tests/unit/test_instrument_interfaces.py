@@ -166,3 +166,26 @@ def test_a_pulled_cable_on_another_driver_is_link_lost_then_reconnects(stage):
     clock.now += 10.0
     core.poll()
     assert core.link == "connected" and core.counters["reconnects"] == 1
+
+
+def test_scan_settings_and_focus_reach_an_adapter_that_can_and_are_refused_by_one_that_cannot(tmp_path):
+    from services.imageserver.sources import ReplaySource, set_scan
+    from semservo.imagefiles import write_image
+
+    source = adapter_source(ADAPTER, {"rows": 32, "cols": 32}, fps=100)
+    try:
+        assert set_scan(source, dwell_ns=500.0, working_distance_mm=3.5) == {"dwell_ns": 500.0,
+                                                                           "working_distance_mm": 3.5}
+        image = next_image(source)
+        while image.dwell_ns != 500.0:  # a frame scanned before the change may still be waiting
+            image = next_image(source)
+        assert image.working_distance_mm == 3.5
+        with pytest.raises(NotImplementedError, match="one magnification"):
+            set_scan(source, magnification=2000.0)
+        with pytest.raises(ValueError, match="outside"):
+            set_scan(source, dwell_ns=1e9)
+    finally:
+        source.close()
+    write_image(tmp_path / "a.png", np.zeros((32, 32), np.uint8))
+    with pytest.raises(NotImplementedError, match="the replay source cannot set the focus"):
+        set_scan(ReplaySource(tmp_path), working_distance_mm=3.0)
