@@ -196,14 +196,19 @@ def main(argv: list[str] | None = None) -> int:
     runtime.control.register("set_scan", scan_settings)
     runtime.control.register("set_fps", set_fps)
     runtime.control.register("scan_once", scan_once)
-    runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq}
+    runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq,
+                               **({"watch": source.describe()} if isinstance(source, WatchSource) else {})}
 
     retry_at = 0.0
     freeze = FreezeWatch()
     started = time.monotonic()
 
     def frozen() -> bool:
-        """A source that stopped delivering (a hung SEM, a dead simulator) is degraded."""
+        """A source that stopped delivering (a hung SEM, a dead simulator) is degraded.
+        A watched folder is not: an SEM that saves nothing for a while is simply not
+        scanning (a run waiting for frames fails on its own estimate timeout, saying so)."""
+        if isinstance(source, WatchSource):
+            return False
         silent = None if core.exhausted else freeze.silent_for(time.monotonic(), started)
         if silent is not None and runtime.state != "degraded":
             runtime.error(f"the frame source is frozen: no frame for {silent:.1f} s ({source.name})")

@@ -114,6 +114,7 @@ class WatchSource:
         self.counters = {"files_published": 0, "files_skipped": 0, "files_vanished": 0, "files_ignored": 0,
                          "files_renamed": 0}
         self.last_skipped: str | None = None
+        self.last_published_at: float | None = None  # on ``clock``
         self._lock = threading.Lock()
         self._candidates: dict[Path, Candidate] = {}
         self._published: OrderedDict[tuple, str] = OrderedDict()  # identity -> name, to never publish twice
@@ -260,6 +261,7 @@ class WatchSource:
         while len(self._published) > REMEMBERED:
             self._published.popitem(last=False)
         self.counters["files_published"] += 1
+        self.last_published_at = now
         metadata = merge_metadata(image.metadata.updated(data_bar_rows=image.data_bar_rows or None),
                                   self.overrides, self.fallbacks, image.pixels.shape[1])
         image.pixels.setflags(write=False)
@@ -287,8 +289,9 @@ class WatchSource:
     def describe(self) -> dict:
         with self._lock:
             pending = len(self._candidates)
+        since = None if self.last_published_at is None else round(self.clock() - self.last_published_at, 3)
         return {"source": self.name, "folder": str(self.folder), "pattern": self.pattern, "mode": self.mode,
-                "pending": pending, "last_skipped": self.last_skipped, **self.counters}
+                "pending": pending, "last_skipped": self.last_skipped, "since_last_frame_s": since, **self.counters}
 
     def close(self) -> None:
         self.observer.stop()

@@ -16,6 +16,8 @@ Read from:
 * **JEOL** (the companion text file beside the image, same name, ``.txt``):
   ``$CM_MAG``, ``$CM_ACCEL_VOLT``, ``$CM_SIGNAL``, ``$CM_INSTRUMENT``, ``$CM_WD``/``$SM_WD``,
   ``$$SM_MICRON_BAR`` with ``$$SM_MICRON_MARKER`` (pixel size), ``$CM_FULL_SIZE``.
+* **Hitachi** (its companion ``.txt``, ``[SemImageFile]``): ``PixelSize``, ``Magnification``,
+  ``WorkingDistance``, ``AcceleratingVoltage``, ``SignalName``, ``InstructName``, ``DataSize``.
 * **semservo** itself: a JSON ``ImageDescription`` (``{"semservo": {...}}``) or PNG text
   chunks, with this module's field names.
 """
@@ -200,6 +202,33 @@ def from_jeol_text(text: str, image_rows: int) -> ImageMetadata:
     )
 
 
+_HITACHI_VALUE = re.compile(r"\s*([-+0-9.eE]+)\s*([A-Za-zµ]*)")
+
+
+def from_hitachi_text(text: str, image_rows: int) -> ImageMetadata:
+    """Hitachi's companion ``.txt`` (``[SemImageFile]``, ``Key=value unit`` lines)."""
+    pairs = _ini_pairs(text)
+
+    def value(key: str, units: dict[str, float], default_unit: str) -> float | None:
+        match = _HITACHI_VALUE.match(pairs.get(key, ""))
+        if not match:
+            return None
+        return _positive(match.group(1), units.get(match.group(2) or default_unit, math.nan))
+
+    size = pairs.get("DataSize", "").lower().split("x")
+    image_area_rows = _positive(size[1]) if len(size) == 2 else None
+    bar = int(image_rows - image_area_rows) if image_area_rows and image_rows > image_area_rows else None
+    return ImageMetadata(
+        pixel_size_nm=value("PixelSize", {"nm": 1.0, "um": 1e3, "µm": 1e3}, "nm"),
+        magnification=_positive(pairs.get("Magnification")),
+        working_distance_mm=value("WorkingDistance", {"um": 1e-3, "µm": 1e-3, "mm": 1.0}, "um"),
+        high_voltage_kv=value("AcceleratingVoltage", {"Volt": 1e-3, "V": 1e-3, "kV": 1.0}, "Volt"),
+        detector=_text(pairs.get("SignalName")),
+        instrument=_text(f"Hitachi {pairs['InstructName']}") if pairs.get("InstructName") else None,
+        data_bar_rows=bar,
+    )
+
+
 def from_tiff(tif, image_rows: int, path: Path | None) -> ImageMetadata:
     """Every source a TIFF may carry, the vendor's own first; ``tif`` is an open
     ``tifffile.TiffFile``."""
@@ -214,7 +243,10 @@ def from_tiff(tif, image_rows: int, path: Path | None) -> ImageMetadata:
     if path is not None:
         companion = path.with_suffix(".txt")
         if companion.is_file():
-            return from_jeol_text(companion.read_text(encoding="latin-1"), image_rows)
+            text = companion.read_text(encoding="latin-1")
+            if "[SemImageFile]" in text:
+                return from_hitachi_text(text, image_rows)
+            return from_jeol_text(text, image_rows)
     description = page.description or ""
     if description.strip().startswith("{"):
         try:

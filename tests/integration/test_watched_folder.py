@@ -74,12 +74,12 @@ def test_positions_the_stage_from_frames_saved_to_a_watched_folder(tmp_path):
         error_px = [abs(final[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
         assert max(error_px) < 0.6, f"true final error {error_px} px"
 
-        health = Health.model_validate(imageserver.request("health"))
         wait_for(lambda: Health.model_validate(imageserver.request("health")).counters.get("files_skipped", 0) >= 1,
                  15, "the garbage file to be skipped")
         health = Health.model_validate(imageserver.request("health"))
         assert health.counters["files_skipped"] == 1 and health.counters["files_published"] > 10
         assert health.state == "running"
+        assert health.details["watch"]["mode"] == "inotify" and health.details["watch"]["since_last_frame_s"] < 5
         log = (tmp_path / "services.log").read_text()
         assert "skipped zz_garbage.tif: " in log
         for open_client in (estimator, stage, controller, fakelab, imageserver):

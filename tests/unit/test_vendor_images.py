@@ -160,3 +160,17 @@ def test_a_colour_palette_or_a_file_cut_short_is_refused_with_the_reason(tmp_pat
     with pytest.raises(ImageFileError, match="truncated"):
         read_sem_image(cut)
     assert data  # the colour file was written whole: the refusal is about its colours
+
+
+def test_hitachi_companion_text_file(tmp_path):
+    pixels = np.full((1024, 1280), 90, np.uint8)
+    tifffile.imwrite(tmp_path / "cells.tif", pixels)
+    (tmp_path / "cells.txt").write_text("[SemImageFile]\nInstructName=S-4800\nSignalName=SE(U)\nDataSize=1280x960\n"
+                                        "PixelSize=99.21875\nMagnification=5000\nAcceleratingVoltage=5000 Volt\n"
+                                        "WorkingDistance=8400 um\n", encoding="latin-1")
+    image = read_sem_image(tmp_path / "cells.tif")
+    assert image.pixels.shape == (960, 1280) and image.data_bar_rows == 64
+    metadata = image.metadata
+    assert metadata.pixel_size_nm == pytest.approx(99.21875) and metadata.magnification == 5000
+    assert metadata.high_voltage_kv == pytest.approx(5.0) and metadata.working_distance_mm == pytest.approx(8.4)
+    assert (metadata.detector, metadata.instrument) == ("SE(U)", "Hitachi S-4800")
