@@ -120,6 +120,7 @@ class WatchSource:
         self._published: OrderedDict[tuple, str] = OrderedDict()  # identity -> name, to never publish twice
         self._skipped: OrderedDict[tuple, str] = OrderedDict()  # identity -> reason, to not retry unchanged
         self._seen_at_start: set[Path] = set()
+        self._ignored: set[Path] = set()
         self._order = 0
         self._next_rescan = 0.0
         if existing:
@@ -161,8 +162,12 @@ class WatchSource:
                 self._seen_at_start.discard(path)  # rewritten since: a new frame
             if candidate is None:
                 if path.suffix.lower() not in IMAGE_SUFFIXES:
-                    self.counters["files_ignored"] += 1
-                    log.debug("ignoring %s: not a PNG or TIFF", path.name)
+                    if path not in self._ignored:  # counted once, however many events it makes
+                        if len(self._ignored) > REMEMBERED:
+                            self._ignored.clear()
+                        self._ignored.add(path)
+                        self.counters["files_ignored"] += 1
+                        log.debug("ignoring %s: not a PNG or TIFF", path.name)
                     return
                 candidate = Candidate(path, time.time_ns(), self._order, stable_since=self.clock())
                 self._order += 1
