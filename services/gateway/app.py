@@ -115,6 +115,9 @@ class Status(BaseModel):
     snr_db: float | None = None
     frame_rate: float
     latest_frame_seq: int | None
+    frame_acquisition: dict[str, Any] = Field(default_factory=dict, description=(
+        "the live frame's acquisition as its source knows it (pixel_size_nm, magnification, dwell_ns, "
+        "working_distance_mm, high_voltage_kv, detector, instrument, data_bar_rows); absent: not known"))
     reference: dict | None
     stage: dict
     services: dict[str, ServiceHealth]

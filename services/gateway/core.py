@@ -609,6 +609,9 @@ class GatewayCore:
             "snr_db": estimator.get("last_snr_db"),
             "frame_rate": round(self.frame_rate.rate(self.clock()), 2),
             "latest_frame_seq": self.latest.header.seq if self.latest is not None else None,
+            "frame_acquisition": {} if self.latest is None else {
+                key: getattr(self.latest.header, key) for key in ACQUISITION_FIELDS
+                if getattr(self.latest.header, key) is not None},
             "reference": self.reference,
             "stage": {"link": stage.get("link"), "state": stage.get("state"), "reason": stage.get("reason"),
                       "voltages": stage.get("voltages"), "positions_um": stage.get("positions_um")},

@@ -30,6 +30,8 @@ def test_the_page_shows_the_live_frame_state_and_every_service(page):
     expect(page.locator("#state")).to_have_text(re.compile("idle|converged|stopped|failed"))
     page.wait_for_function("document.getElementById('live').naturalWidth === 512")
     seq = page.inner_text("#live-seq")
+    # What the frames say of their acquisition (the simulated SEM knows its pixel size and dwell).
+    expect(page.locator("#live-acquisition")).to_contain_text(re.compile(r"\d+\.\d+ nm/px · ×\d+ · \d+ ns/px"))
     page.wait_for_function(f"document.getElementById('live-seq').textContent !== {seq!r}")  # frames keep coming
     for name in ("fakelab", "imageserver", "estimator", "stage", "controller"):
         expect(page.locator(f"#services li[data-service={name}] .up")).to_be_visible()

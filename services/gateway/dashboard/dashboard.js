@@ -112,6 +112,18 @@ async function loadRunIntoPlots(runId) {
 // -- status ---------------------------------------------------------------------------
 const fmt = (value, digits) => (value === null || value === undefined ? "–" : Number(value).toFixed(digits));
 
+// What the live frame says of its acquisition; what it does not know is not shown.
+function acquisitionText(acquisition) {
+  const parts = [];
+  parts.push(acquisition.pixel_size_nm ? `${fmt(acquisition.pixel_size_nm, 2)} nm/px` : "pixel size unknown");
+  if (acquisition.magnification) parts.push(`×${fmt(acquisition.magnification, 0)}`);
+  if (acquisition.dwell_ns) parts.push(`${fmt(acquisition.dwell_ns, 0)} ns/px`);
+  if (acquisition.working_distance_mm) parts.push(`WD ${fmt(acquisition.working_distance_mm, 2)} mm`);
+  if (acquisition.high_voltage_kv) parts.push(`${fmt(acquisition.high_voltage_kv, 1)} kV`);
+  if (acquisition.detector) parts.push(acquisition.detector);
+  return parts.join(" · ");
+}
+
 function showStatus(status) {
   const badge = $("state");
   badge.textContent = status.state;
@@ -127,6 +139,7 @@ function showStatus(status) {
   $("snr").textContent = fmt(status.snr_db, 1);
   $("latency").textContent = fmt(status.last_latency_ms, 1);
   $("live-seq").textContent = status.latest_frame_seq === null ? "(no frames)" : `#${status.latest_frame_seq}`;
+  $("live-acquisition").textContent = acquisitionText(status.frame_acquisition || {});
   const stage = status.stage || {};
   const positions = stage.positions_um || {}, voltages = stage.voltages || {};
   $("stage-x").textContent = fmt(positions.x, 3);
