@@ -13,7 +13,8 @@ A file is published once it is **complete**:
 * and readable as a whole image (a TIFF whose strips end past the end of the file is
   still being written).
 
-Frames go out **in the order their files appeared**, each **once**: a file is known by
+Frames go out **in the order their files appeared** (files that appear together, in one
+poll, in name order), each **once**: a file is known by
 its device, inode, size and modification time, so a frame renamed after it was
 published is not published again, while a file rewritten in place is a new frame.
 Files that are deleted before they are read, that are not images, or that stay
@@ -47,6 +48,9 @@ RESCAN_S = 1.0
 REMEMBERED = 100_000
 #: A complete-looking file still unreadable after this long unchanged is skipped.
 UNREADABLE_AFTER_S = 1.0
+#: Files that appear within this long of each other arrived together (one poll of the
+#: folder, one burst of events): they go out in name order.
+SAME_BATCH_S = 0.05
 
 
 @dataclass
@@ -55,7 +59,7 @@ class Candidate:
 
     path: Path
     first_seen_ns: int
-    order: int
+    order: tuple[int, str]  # (batch of arrival, name): files seen together go in name order
     closed: bool = False  # a close-write or rename-in event came after the last change
     last_signature: tuple[int, int] | None = None  # (size, mtime_ns)
     stable_since: float = field(default_factory=time.monotonic)
@@ -121,7 +125,8 @@ class WatchSource:
         self._skipped: OrderedDict[tuple, str] = OrderedDict()  # identity -> reason, to not retry unchanged
         self._seen_at_start: set[Path] = set()
         self._ignored: set[Path] = set()
-        self._order = 0
+        self._batch = 0
+        self._last_arrival = -1e9
         self._next_rescan = 0.0
         if existing:
             for path in sorted(self._listing()):
@@ -169,8 +174,11 @@ class WatchSource:
                         self.counters["files_ignored"] += 1
                         log.debug("ignoring %s: not a PNG or TIFF", path.name)
                     return
-                candidate = Candidate(path, time.time_ns(), self._order, stable_since=self.clock())
-                self._order += 1
+                now = self.clock()
+                if now - self._last_arrival > SAME_BATCH_S:  # a poll (or a burst) reports several at once
+                    self._batch += 1
+                self._last_arrival = now
+                candidate = Candidate(path, time.time_ns(), (self._batch, path.name), stable_since=now)
                 self._candidates[path] = candidate
             if closed:
                 candidate.closed = True
@@ -212,6 +220,8 @@ class WatchSource:
             self._rescan()
         with self._lock:
             waiting = sorted(self._candidates.values(), key=lambda candidate: candidate.order)
+        for candidate in waiting[1:]:  # every file's settle timer runs, not only the first's
+            self._observe(candidate, now)
         for candidate in waiting:
             image = self._try(candidate, now)
             if image is not None:
@@ -220,19 +230,26 @@ class WatchSource:
                 break  # an earlier file still being written holds the later ones (order)
         raise NotReady
 
-    def _try(self, candidate: Candidate, now: float) -> AcquiredImage | None:
-        """Publish, skip or keep waiting for one candidate."""
-        path = candidate.path
+    def _observe(self, candidate: Candidate, now: float):
+        """The file's stat now, its settle timer restarted if it changed; None if gone."""
         try:
-            stat = path.stat()
+            stat = candidate.path.stat()
         except FileNotFoundError:
-            self.note(path, gone=True)
+            self.note(candidate.path, gone=True)
             return None
         signature = (stat.st_size, stat.st_mtime_ns)
         if signature != candidate.last_signature:
             candidate.last_signature = signature
             if not candidate.closed:
                 candidate.stable_since = now
+        return stat
+
+    def _try(self, candidate: Candidate, now: float) -> AcquiredImage | None:
+        """Publish, skip or keep waiting for one candidate."""
+        path = candidate.path
+        stat = self._observe(candidate, now)
+        if stat is None:
+            return None
         settled = now - candidate.stable_since >= self.settle_s
         if not (candidate.closed or settled):
             return None

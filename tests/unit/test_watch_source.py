@@ -164,3 +164,33 @@ def test_the_users_settings_fill_what_files_do_not_say(tmp_path):
 def test_a_missing_folder_is_refused_by_name(tmp_path):
     with pytest.raises(FileNotFoundError, match="no folder to watch"):
         WatchSource(tmp_path / "nope")
+
+
+class Clock:
+    now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_every_files_settle_time_runs_while_an_earlier_one_waits_and_a_batch_goes_in_name_order(tmp_path):
+    """Without close events (polling), each file must be unchanged for settle_s. The
+    files behind the first are timed from when they were seen, not from when the first
+    was published (frames must not queue up behind one another); files found together
+    go out in name order."""
+    clock = Clock()
+    source = WatchSource(tmp_path, settle_s=0.3, polling=True, clock=clock)
+    try:
+        for name in ("frame_b.tif", "frame_a.tif", "frame_c.tif"):
+            tifffile.imwrite(tmp_path / name, frame(ord(name[-5])))
+        deadline = time.monotonic() + 10
+        while source.describe()["pending"] < 3 and time.monotonic() < deadline:
+            with pytest.raises(NotReady):
+                source.acquire()  # not settled yet: the clock stands still
+            time.sleep(0.05)
+        assert source.describe()["pending"] == 3
+        clock.now = 0.31
+        labels = [source.acquire().label for _ in range(3)]  # all three settled together
+        assert labels == ["frame_a.tif", "frame_b.tif", "frame_c.tif"]
+    finally:
+        source.close()
