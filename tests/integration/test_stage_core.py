@@ -322,3 +322,17 @@ def test_outputs_changed_while_the_link_was_down_stop_the_stage_on_reconnect(lin
     core.resume()
     assert core.connect() and core.state == "ready", "an unchanged amplifier reconnects without a stop"
     core.close()
+
+
+def test_a_run_on_frames_without_a_pixel_size_fails_saying_which_setting_and_moves_nothing(stage, tmp_path):
+    import time
+
+    core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    core.start(RunSettings(), "ref")
+    before = dict(stage.voltages)
+    unknown = estimate(1, 20.0, 5.0, scan_started_at_ns=time.time_ns()).model_copy(update={"pixel_size_nm": None})
+    record = core.on_estimate(unknown)
+    assert record["action"] == "held: pixel size unknown"
+    assert core.state == "failed" and "SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM" in core.reason
+    assert stage.voltages == before
+    assert core.status()["error_um"] is None

@@ -72,6 +72,7 @@ def test_positions_the_stage_from_frames_saved_to_a_watched_folder(tmp_path):
         final = true_pose(fakelab)
         pixel_um = 0.1769167
         error_px = [abs(final[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
+        print(f"converged in {record['iterations']} iterations; true final error {error_px} px")  # shown with -rP
         assert max(error_px) < 0.6, f"true final error {error_px} px"
 
         wait_for(lambda: Health.model_validate(imageserver.request("health")).counters.get("files_skipped", 0) >= 1,

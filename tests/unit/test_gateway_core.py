@@ -80,3 +80,18 @@ def test_a_dead_controller_does_not_block_a_teach():
                                                       "pixel_size_nm": 1.0}),
                      controller=Port(status=ServiceUnavailable("no reply")))
     assert core.teach()["id"] == "ref"
+
+
+def test_click_to_move_on_frames_without_a_pixel_size_is_refused_not_guessed():
+    import numpy as np
+
+    from semservo.wire import Frame, frame_header
+
+    stage = Port(move={"voltages": {}})
+    core = core_with(stage=stage, controller=Port(status={"state": "idle"}))
+    pixels = np.zeros((64, 64), np.uint8)
+    core.latest = Frame(header=frame_header(pixels, seq=1, acquired_at_ns=1, source="watch"), pixels=pixels)
+    with pytest.raises(GatewayError) as refused:
+        core.center(10.0, 20.0)
+    assert refused.value.status == 409 and refused.value.code == "pixel_size_unknown"
+    assert stage.asked == []
