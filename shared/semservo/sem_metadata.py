@@ -18,6 +18,7 @@ Read from:
   ``$$SM_MICRON_BAR`` with ``$$SM_MICRON_MARKER`` (pixel size), ``$CM_FULL_SIZE``.
 * **Hitachi** (its companion ``.txt``, ``[SemImageFile]``): ``PixelSize``, ``Magnification``,
   ``WorkingDistance``, ``AcceleratingVoltage``, ``SignalName``, ``InstructName``, ``DataSize``.
+* **ImageJ / Fiji** calibrations (``unit`` and XResolution): the pixel size.
 * **semservo** itself: a JSON ``ImageDescription`` (``{"semservo": {...}}``) or PNG text
   chunks, with this module's field names.
 """
@@ -229,6 +230,18 @@ def from_hitachi_text(text: str, image_rows: int) -> ImageMetadata:
     )
 
 
+_IMAGEJ_UNIT_NM = {"nm": 1.0, "nanometer": 1.0, "um": 1e3, "µm": 1e3, "micron": 1e3, "microns": 1e3,
+                   "mm": 1e6, "\\u00B5m": 1e3}
+
+
+def from_imagej(imagej: dict, x_resolution: tuple[int, int] | None) -> ImageMetadata:
+    """An ImageJ/Fiji-calibrated TIFF: pixels per ``unit`` in XResolution."""
+    unit = _IMAGEJ_UNIT_NM.get(str(imagej.get("unit", "")).strip().lower())
+    if unit is None or not x_resolution or not x_resolution[0]:
+        return ImageMetadata()
+    return ImageMetadata(pixel_size_nm=_positive(x_resolution[1] / x_resolution[0], unit))
+
+
 def from_tiff(tif, image_rows: int, path: Path | None) -> ImageMetadata:
     """Every source a TIFF may carry, the vendor's own first; ``tif`` is an open
     ``tifffile.TiffFile``."""
@@ -247,6 +260,9 @@ def from_tiff(tif, image_rows: int, path: Path | None) -> ImageMetadata:
             if "[SemImageFile]" in text:
                 return from_hitachi_text(text, image_rows)
             return from_jeol_text(text, image_rows)
+    if getattr(tif, "is_imagej", False) and tif.imagej_metadata:
+        resolution = page.tags.get(282)  # XResolution: pixels per unit, as a fraction
+        return from_imagej(tif.imagej_metadata, resolution.value if resolution is not None else None)
     description = page.description or ""
     if description.strip().startswith("{"):
         try:

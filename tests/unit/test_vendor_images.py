@@ -174,3 +174,11 @@ def test_hitachi_companion_text_file(tmp_path):
     assert metadata.pixel_size_nm == pytest.approx(99.21875) and metadata.magnification == 5000
     assert metadata.high_voltage_kv == pytest.approx(5.0) and metadata.working_distance_mm == pytest.approx(8.4)
     assert (metadata.detector, metadata.instrument) == ("SE(U)", "Hitachi S-4800")
+
+
+def test_an_imagej_calibrated_tiff_gives_its_pixel_size(tmp_path):
+    tifffile.imwrite(tmp_path / "fiji.tif", np.zeros((32, 48), np.uint8), imagej=True,
+                     resolution=(1 / 0.025, 1 / 0.025), metadata={"unit": "micron"})
+    assert read_sem_image(tmp_path / "fiji.tif").metadata.pixel_size_nm == pytest.approx(25.0)
+    tifffile.imwrite(tmp_path / "pixels.tif", np.zeros((32, 48), np.uint8), imagej=True, metadata={"unit": "pixel"})
+    assert read_sem_image(tmp_path / "pixels.tif").metadata.pixel_size_nm is None  # uncalibrated: unknown
