@@ -312,7 +312,13 @@ class ControllerCore:
                 record.setdefault("command_written_at_ns", time.time_ns())
         except CommandError as refusal:
             self._record(record, f"refused by the stage: {refusal.code}")
-            self._finish("failed", f"the stage refused the move ({refusal.code}): {refusal.message}")
+            if refusal.code == "stopped":
+                # An operator's stop reaches the stage first (it must hold at once) and this
+                # controller a moment later: a move in between is refused, and the run was
+                # stopped, not failed.
+                self._finish("stopped", f"the stage was stopped: {refusal.message}")
+            else:
+                self._finish("failed", f"the stage refused the move ({refusal.code}): {refusal.message}")
             return record
         except ServiceUnavailable as error:
             self._record(record, "stage unreachable")

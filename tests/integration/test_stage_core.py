@@ -7,6 +7,7 @@ import pytest
 
 from semservo import nv40
 from semservo.messages import MotionEstimate
+from semservo.transport import CommandError
 from semservo.simulation.world import World
 from services.controller.core import ControllerCore, RunSettings
 from services.fakelab.emulator import ChannelState, NV403Emulator
@@ -118,13 +119,16 @@ class LocalStage:
 
     def request(self, command: str, args: dict | None = None) -> dict:
         args = args or {}
-        if command == "arm":
-            return self.core.arm(args["hold_after_s"], args["owner"])
-        if command == "move":
-            return self.core.move(args["targets"], relative=args["relative"], owner=args["owner"])
-        if command == "log":
-            return {"entries": self.core.command_log(args["since_ns"])}
-        return getattr(self.core, command)(*args.values())
+        try:  # a refusal answers as the service's does: an error with the rule's code
+            if command == "arm":
+                return self.core.arm(args["hold_after_s"], args["owner"])
+            if command == "move":
+                return self.core.move(args["targets"], relative=args["relative"], owner=args["owner"])
+            if command == "log":
+                return {"entries": self.core.command_log(args["since_ns"])}
+            return getattr(self.core, command)(*args.values())
+        except Refused as refusal:
+            raise CommandError(refusal.code, str(refusal)) from None
 
 
 def estimate(seq: int, dx: float, dy: float, *, confidence: float = 0.9, scan_started_at_ns: int) -> MotionEstimate:
@@ -336,3 +340,16 @@ def test_a_run_on_frames_without_a_pixel_size_fails_saying_which_setting_and_mov
     assert core.state == "failed" and "SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM" in core.reason
     assert stage.voltages == before
     assert core.status()["error_um"] is None
+
+
+def test_a_move_refused_because_an_operator_stopped_the_stage_ends_the_run_stopped(stage, tmp_path):
+    """The gateway's stop reaches the stage before the controller: a move in between is
+    refused ("stopped"), and the run is recorded as stopped by the operator, not failed."""
+    import time
+
+    core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    core.start(RunSettings(), "ref")
+    stage.stop("operator pressed stop")
+    record = core.on_estimate(estimate(1, 20.0, 5.0, scan_started_at_ns=time.time_ns()))
+    assert record["action"] == "refused by the stage: stopped"
+    assert core.state == "stopped" and "operator pressed stop" in core.reason
