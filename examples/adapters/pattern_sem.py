@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from semservo.instruments import AcquiredImage, ImageSourceAdapter, SourceUnavailable
+from semservo.instruments import AcquiredImage, ImageSourceAdapter, NotSupported, SourceUnavailable
 
 
 class PatternSEM(ImageSourceAdapter):
@@ -58,7 +58,7 @@ class PatternSEM(ImageSourceAdapter):
 
     def set_scan(self, *, dwell_ns: float | None = None, magnification: float | None = None) -> dict:
         if magnification is not None:
-            raise NotImplementedError("the pattern SEM has one magnification")
+            raise NotSupported("the pattern SEM has one magnification")
         if dwell_ns is not None:
             if not 10 <= dwell_ns <= 100_000:
                 raise ValueError(f"dwell {dwell_ns:g} ns is outside 10..100000 ns")

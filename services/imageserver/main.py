@@ -18,6 +18,7 @@ from pathlib import Path
 from PIL import Image
 
 from semservo.config import Settings, connect
+from semservo.instruments import NotSupported
 from semservo.logs import configure
 from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
@@ -187,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
             raise BadRequest("set_scan needs dwell_ns, magnification or working_distance_mm")
         try:
             return set_scan(source, **values)
-        except NotImplementedError as error:
+        except NotSupported as error:
             raise BadRequest(str(error)) from None
         except ValueError as error:  # the source refused the value
             raise BadRequest(f"scan settings: {error}") from None

@@ -21,7 +21,8 @@ import zmq
 
 from semservo.config import pixel_size_nm
 from semservo.imagefiles import DataBar, ImageFileError, list_frames, read_sem_image
-from semservo.instruments import (IMAGE_SOURCE_GROUP, AcquiredImage, ImageSource, NotReady, SourceUnavailable,
+from semservo.instruments import (IMAGE_SOURCE_GROUP, AcquiredImage, ImageSource, NotReady, NotSupported,
+                                  SourceUnavailable,
                                   load_plugin)
 from semservo.sem_metadata import ImageMetadata
 from semservo.messages import ACQUISITION_FIELDS, Reply, ScanRequest
@@ -300,16 +301,16 @@ def set_scan(source, *, dwell_ns: float | None = None, magnification: float | No
              working_distance_mm: float | None = None) -> dict:
     """Change the scan settings (and the focus, for the tilt measurement) of the frames
     that follow, on a source that can: the simulated SEM (dwell, magnification) or a
-    lab's adapter (what it implements). Raises :class:`NotImplementedError` saying what
+    lab's adapter (what it implements). Raises :class:`~semservo.instruments.NotSupported` saying what
     the source cannot do."""
     target = source.source if isinstance(source, BackgroundAcquisition) else source
     result: dict = {}
     if dwell_ns is not None or magnification is not None:
         if not callable(getattr(target, "set_scan", None)):
-            raise NotImplementedError(f"the {source.name} source cannot change its scan settings")
+            raise NotSupported(f"the {source.name} source cannot change its scan settings")
         result.update(target.set_scan(dwell_ns=dwell_ns, magnification=magnification))
     if working_distance_mm is not None:
         if not callable(getattr(target, "set_working_distance", None)):
-            raise NotImplementedError(f"the {source.name} source cannot set the focus")
+            raise NotSupported(f"the {source.name} source cannot set the focus")
         result["working_distance_mm"] = target.set_working_distance(working_distance_mm)
     return result

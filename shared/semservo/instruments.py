@@ -17,6 +17,7 @@ Either is named in the settings by an entry point (groups :data:`IMAGE_SOURCE_GR
 
 from __future__ import annotations
 
+import abc
 import importlib
 import importlib.metadata
 from dataclasses import dataclass
@@ -55,6 +56,11 @@ class SourceUnavailable(RuntimeError):
     scan failed). The image server says so in health and asks again a second later."""
 
 
+class NotSupported(RuntimeError):
+    """The instrument cannot do what was asked (a capability it lacks, such as focus on
+    a replayed folder); the image server answers it as a refusal in these words."""
+
+
 class NotReady(Exception):
     """No new frame yet (the scan is still running); not an error, not the end."""
 
@@ -78,13 +84,13 @@ class ImageSource(Protocol):
     def close(self) -> None: ...
 
 
-class ImageSourceAdapter:
+class ImageSourceAdapter(abc.ABC):
     """Base class for a lab's own image source (an SEM vendor's API).
 
     Made with the options of ``imageserver.adapter_options`` as keyword arguments.
     Implement :meth:`acquire` (blocking for a scan is fine: the image server runs an
     adapter in a thread of its own, see ``blocking``). The optional capabilities raise
-    :class:`NotImplementedError` until an adapter provides them; the image server then
+    :class:`NotSupported` until an adapter provides them; the image server then
     answers a request for them with a clear refusal.
     """
 
@@ -96,8 +102,9 @@ class ImageSourceAdapter:
     def __init__(self, **options: Any):
         self.options = options
 
+    @abc.abstractmethod
     def acquire(self) -> AcquiredImage | None:
-        raise NotImplementedError
+        """The next image (see :class:`ImageSource` for the contract)."""
 
     def describe(self) -> dict:
         return {"source": self.name, "adapter": f"{type(self).__module__}:{type(self).__qualname__}",
@@ -109,12 +116,12 @@ class ImageSourceAdapter:
     # Optional capabilities ------------------------------------------------------------
     def set_scan(self, *, dwell_ns: float | None = None, magnification: float | None = None) -> dict:
         """Change scan settings for the frames that follow; returns what is now set."""
-        raise NotImplementedError(f"{self.name} cannot change its scan settings")
+        raise NotSupported(f"{self.name} cannot change its scan settings")
 
     def set_working_distance(self, working_distance_mm: float) -> float:
         """Focus at this working distance (the tilt measurement sweeps it); returns the
         working distance now set."""
-        raise NotImplementedError(f"{self.name} cannot set the focus")
+        raise NotSupported(f"{self.name} cannot set the focus")
 
 
 # -- stage drivers -------------------------------------------------------------------------

@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from semservo.instruments import (IMAGE_SOURCE_GROUP, NotReady, PluginError, SourceUnavailable, StageDriver,
-                                  load_plugin)
+from semservo.instruments import (IMAGE_SOURCE_GROUP, NotReady, NotSupported, PluginError, SourceUnavailable,
+                                  StageDriver, load_plugin)
 from semservo.nv40_driver import NV403Driver
 from semservo.simulation.amplifier import SimulatedAmplifier
 from services.imageserver.sources import BackgroundAcquisition, adapter_source
@@ -74,9 +74,16 @@ def test_unknown_adapters_are_refused_saying_why():
 def test_the_adapters_optional_capabilities():
     adapter = load_plugin(ADAPTER, IMAGE_SOURCE_GROUP)(rows=32, cols=32)
     assert adapter.set_working_distance(4.5) == 4.5 and adapter.acquire().working_distance_mm == 4.5
-    from semservo.instruments import ImageSourceAdapter
-    with pytest.raises(NotImplementedError, match="cannot set the focus"):
-        ImageSourceAdapter().set_working_distance(3.0)
+    from semservo.instruments import ImageSourceAdapter, NotSupported
+
+    class FramesOnly(ImageSourceAdapter):
+        def acquire(self):
+            return None
+
+    with pytest.raises(NotSupported, match="cannot set the focus"):
+        FramesOnly().set_working_distance(3.0)
+    with pytest.raises(TypeError, match="abstract"):
+        ImageSourceAdapter()  # an adapter without acquire cannot even be made
 
 
 # -- stage drivers --------------------------------------------------------------------------
@@ -180,12 +187,12 @@ def test_scan_settings_and_focus_reach_an_adapter_that_can_and_are_refused_by_on
         while image.dwell_ns != 500.0:  # a frame scanned before the change may still be waiting
             image = next_image(source)
         assert image.working_distance_mm == 3.5
-        with pytest.raises(NotImplementedError, match="one magnification"):
+        with pytest.raises(NotSupported, match="one magnification"):
             set_scan(source, magnification=2000.0)
         with pytest.raises(ValueError, match="outside"):
             set_scan(source, dwell_ns=1e9)
     finally:
         source.close()
     write_image(tmp_path / "a.png", np.zeros((32, 32), np.uint8))
-    with pytest.raises(NotImplementedError, match="the replay source cannot set the focus"):
+    with pytest.raises(NotSupported, match="the replay source cannot set the focus"):
         set_scan(ReplaySource(tmp_path), working_distance_mm=3.0)
