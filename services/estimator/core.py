@@ -60,7 +60,7 @@ MAX_FRAMES_AVERAGED = 16
 
 
 class EstimatorCore:
-    def __init__(self, *, rotation: bool = True, precision: str = "fast", fft_effort: str = "FFTW_MEASURE",
+    def __init__(self, *, rotation: bool = True, precision: str = "full", fft_effort: str = "FFTW_MEASURE",
                  counters: Counter | None = None):
         self.rotation = rotation
         # Whether each frame's rotation is measured (a run that cannot turn the sample

@@ -109,7 +109,8 @@ def normalized_cross_power_into(current: np.ndarray, reference_conjugate: np.nda
 @_jit
 def newton_on_band(current: np.ndarray, reference_conjugate: np.ndarray, band_rows: np.ndarray,
                    frequency_rows: np.ndarray, frequency_cols: np.ndarray, weights: np.ndarray,
-                   dy: float, dx: float, iterations: int, tolerance: float, weighted: np.ndarray):
+                   dy: float, dx: float, iterations: int, tolerance: float, weighted: np.ndarray,
+                   correlation: bool):
     """Maximize f(d) = Re sum_k w(k) |C(k)| Psi(k) e^{i 2 pi k.d} over the band by Newton.
 
     C = G conj(F) is the cross-power spectrum, so f is the magnitude-weighted,
@@ -117,15 +118,27 @@ def newton_on_band(current: np.ndarray, reference_conjugate: np.ndarray, band_ro
     maximum is the sub-pixel shift. Gradient and Hessian are sums over the band; the
     band is given as a list of spectrum rows (``band_rows``) times the first
     ``frequency_cols.size`` columns. ``weighted`` is a (rows, cols) complex workspace.
+
+    Returns (dy, dx, steps, correlation): with ``correlation`` set, f at the final d over
+    sqrt(sum w |G|^2 * sum w |F|^2), a normalized cross-correlation in [-1, 1] of the
+    band-limited images (1 when the current is the reference moved by d); else 0.
     """
     two_pi = 2.0 * math.pi
     band_height = band_rows.size
     band_width = frequency_cols.size
     # Gather the weighted cross-power over the band once.
+    current_energy = 0.0
+    reference_energy = 0.0
     for i in range(band_height):
         row = band_rows[i]
         for j in range(band_width):
-            weighted[i, j] = weights[i, j] * (current[row, j] * reference_conjugate[row, j])
+            c = current[row, j]
+            r = reference_conjugate[row, j]
+            w = weights[i, j]
+            weighted[i, j] = w * (c * r)
+            if correlation:
+                current_energy += w * (c.real * c.real + c.imag * c.imag)
+                reference_energy += w * (r.real * r.real + r.imag * r.imag)
     steps = 0
     row_ramp = np.empty(band_height, dtype=np.complex128)
     col_ramp = np.empty(band_width, dtype=np.complex128)
@@ -171,7 +184,21 @@ def newton_on_band(current: np.ndarray, reference_conjugate: np.ndarray, band_ro
         dy += step_y
         if abs(step_x) < tolerance and abs(step_y) < tolerance:
             break
-    return dy, dx, steps
+    if not correlation:
+        return dy, dx, steps, 0.0
+    # f at the final d (one more pass of the zero-order sum).
+    for j in range(band_width):
+        phase = two_pi * frequency_cols[j] * dx
+        col_ramp[j] = complex(math.cos(phase), math.sin(phase))
+    value = 0.0
+    for i in range(band_height):
+        phase = two_pi * frequency_rows[i] * dy
+        s0 = 0j
+        for j in range(band_width):
+            s0 += weighted[i, j] * col_ramp[j]
+        value += (complex(math.cos(phase), math.sin(phase)) * s0).real
+    scale = math.sqrt(current_energy * reference_energy)
+    return dy, dx, steps, value / scale if scale > 0.0 else 0.0
 
 
 @_jit

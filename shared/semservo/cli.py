@@ -579,8 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="REFERENCE is a binary mask of the object (paper case 6)")
     estimate.add_argument("--polygon", metavar="'X,Y X,Y ...'",
                           help="use the polygon of these corner points on REFERENCE as a mask reference")
-    estimate.add_argument("--precision", choices=["fast", "full"], default="fast",
-                          help="sub-pixel fit on the 2x search pair (fast, default) or at full resolution")
+    estimate.add_argument("--precision", choices=["fast", "full"], default="full",
+                          help="sub-pixel fit at full resolution (full, default) or on the 2x search pair (fast)")
     estimate.add_argument("--json", action="store_true", help="one JSON object per line")
     estimate.set_defaults(handler=command_estimate)
 

@@ -127,7 +127,7 @@ class EstimatorSettings(BaseModel):
     motion_port: int = Field(5560, ge=1, le=65535, description="PUB socket for motion estimates")
     control_port: int = Field(5561, ge=1, le=65535, description="REP socket for commands and health")
     rotation: bool = Field(True, description="estimate rotation about the beam too")
-    precision: Literal["fast", "full"] = Field("fast", description="sub-pixel fit on the 2x search pair or at full resolution")
+    precision: Literal["fast", "full"] = Field("full", description="sub-pixel fit at full resolution (default) or on the 2x search pair")
     fft_effort: Literal["FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"] = "FFTW_MEASURE"
 
 
