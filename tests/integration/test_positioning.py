@@ -54,15 +54,18 @@ def true_pose(fakelab: ControlClient, span_s: float = 0.5) -> tuple[float, float
     return pose["x_um"], pose["y_um"]
 
 
+def pose_after(fakelab: ControlClient, since_s: float, span_s: float = 0.5, settle_s: float = 0.2) -> tuple[float, float]:
+    """The true pose averaged over ``span_s`` of simulated time, all of it at least
+    ``settle_s`` after ``since_s`` (a move's time): on a loaded machine a few frames can
+    pass in less simulated time than the averaging window, which then straddled the move."""
+    wait_for(lambda: fakelab.request("pose")["t_s"] >= since_s + settle_s + span_s, 30,
+             "simulated time to pass the move")
+    return true_pose(fakelab, span_s)
+
+
 def teach_after_frames(lab) -> dict:
     wait_for(lambda: lab["estimator"].request("report")["latest_frame_seq"] is not None, 30, "a frame")
     return lab["estimator"].request("teach")
-
-
-def settle(lab, frames: int = 3) -> None:
-    """Let a few frames be scanned after a move (a frame in flight shows the old pose)."""
-    seq = lab["estimator"].request("report")["latest_frame_seq"]
-    wait_for(lambda: lab["estimator"].request("report")["latest_frame_seq"] >= seq + frames, 30, "new frames")
 
 
 def test_positions_from_a_displaced_start_to_the_taught_pose(lab):
@@ -71,8 +74,7 @@ def test_positions_from_a_displaced_start_to_the_taught_pose(lab):
     taught = scanned["x_um"], scanned["y_um"]
     moved = lab["stage"].request("move", targets={"x": 6.0, "y": -4.0}, relative=True)
     assert moved["written_at_ns"] > 0
-    settle(lab)
-    start = true_pose(lab["fakelab"])
+    start = pose_after(lab["fakelab"], lab["fakelab"].request("pose")["t_s"])
     assert abs(start[0] - taught[0]) > 3 and abs(start[1] - taught[1]) > 2  # really displaced
 
     run = lab["controller"].request("start", tolerance_px=0.15)

@@ -7,7 +7,6 @@ folder mid-run is skipped, logged and counted, and the run goes on."""
 from __future__ import annotations
 
 import os
-import time
 
 import pytest
 
@@ -51,7 +50,10 @@ def test_positions_the_stage_from_frames_saved_to_a_watched_folder(tmp_path):
         taught = true_pose(fakelab)
 
         stage.request("move", targets={"x": 5.0, "y": -3.0}, relative=True)
-        time.sleep(0.5)  # 10 simulated seconds: the pose averaged over the last half second is after the move
+        moved_at = fakelab.request("pose")["t_s"]
+        # The pose averaged over half a simulated second that begins after the move settled
+        # (wall time is no measure: the sped-up world stands still while it renders).
+        wait_for(lambda: fakelab.request("pose")["t_s"] >= moved_at + 0.7, 30, "simulated time to pass the move")
         start = true_pose(fakelab)
         assert abs(start[0] - taught[0]) > 3 and abs(start[1] - taught[1]) > 2  # really displaced
 
