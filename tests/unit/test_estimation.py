@@ -172,11 +172,18 @@ def blob_texture(turn_deg: float, size: int = 256, blobs: int = 1200) -> np.ndar
     x = np.cos(turn) * positions[:, 0] + np.sin(turn) * positions[:, 1]
     y = -np.sin(turn) * positions[:, 0] + np.cos(turn) * positions[:, 1]
     centre = (size - 1) / 2
-    rows, cols = np.mgrid[0:size, 0:size] - centre
     image = np.zeros((size, size))
     for bx, by, width, height in zip(x, y, widths, heights):
         if abs(bx) < size / 2 + 12 and abs(by) < size / 2 + 12:
-            image += height * np.exp(-((cols - bx) ** 2 + (rows - by) ** 2) / (2 * width**2))
+            # Each blob where it is above 1e-8 of its height (6 widths): the same image
+            # to float32 precision, at a hundredth of the time of the whole grid.
+            reach = 6 * width
+            col_range = np.arange(max(0, int(centre + bx - reach)), min(size, int(centre + bx + reach) + 2))
+            row_range = np.arange(max(0, int(centre + by - reach)), min(size, int(centre + by + reach) + 2))
+            if col_range.size and row_range.size:
+                cols, rows = col_range - centre, row_range - centre
+                image[np.ix_(row_range, col_range)] += height * np.exp(
+                    -((cols[None, :] - bx) ** 2 + (rows[:, None] - by) ** 2) / (2 * width**2))
     return (128 + 50 * image).astype(np.float32)
 
 
