@@ -2,6 +2,6 @@
 
 ``core`` holds the run state machine, the freshness and confidence rules and the run
 records, and reaches the stage through a port (no sockets); ``main`` wires it to the
-estimator's motion stream, the stage service, the fake lab's rotation stage, a control
-socket and a status stream.
+estimator's motion stream, the stage service (every axis, the rotation stage too), a
+control socket and a status stream.
 """

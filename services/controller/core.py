@@ -1,6 +1,6 @@
 """The controller's core: motion estimates in, stage moves out, one run at a time.
 
-No sockets here: the stage and the rotation stage are reached through ports (objects
+No sockets here: the stage service (every axis, the rotation stage too) is reached through ports (objects
 with ``request(command, args) -> dict`` that raise :class:`CommandError` or
 :class:`ServiceUnavailable`), so the same core runs behind ZeroMQ in the service and
 in-process in tests. The law itself is :class:`semservo.control.ControlLaw` (eq. 30-37).
@@ -86,12 +86,11 @@ class RunSettings(BaseModel):
 
 
 class ControllerCore:
-    def __init__(self, stage: Port, *, rotation: Port | None = None, estimator: Port | None = None,
+    def __init__(self, stage: Port, *, estimator: Port | None = None,
                  camera: CameraToStage | None = None,
                  runs_dir: Path | None = None, watchdog_s: float = 3.0, name: str = "controller",
                  clock: Callable[[], float] = time.monotonic, publish: Callable[[str, dict], None] | None = None):
         self.stage = stage
-        self.rotation = rotation
         self.estimator = estimator
         self.camera = camera or CameraToStage()
         self.runs_dir = runs_dir
@@ -113,8 +112,9 @@ class ControllerCore:
     def start(self, settings: RunSettings, reference_id: str) -> dict:
         if self.state == "servoing":
             raise RuntimeError(f"run {self.run['id']} is active")
-        if "rotation" in settings.dofs and self.rotation is None:
-            raise ValueError("rotation is not a degree of freedom here: no rotation stage is configured")
+        if "rotation" in settings.dofs and self.stage.request("state").get("rotation") is None:
+            raise ValueError("rotation is not a degree of freedom here: the stage service has no rotation stage "
+                             "(SEMSERVO_STAGE__ROTATION_STAGE)")
         stage_state = self.stage.request("arm", {"hold_after_s": self.watchdog_s, "owner": self.owner})
         gain = (ExponentialGain(settings.gain_max, settings.gain_min) if settings.gain == "exponential"
                 else AdaptiveGain(settings.gain_scale, settings.gain_min, settings.gain_max))
@@ -307,9 +307,11 @@ class ControllerCore:
                 record["command_written_at_ns"] = written["written_at_ns"]
                 record["voltages"] = written["voltages"]
                 record["positions_um"] = written["positions_um"]
-            if "rotation_deg" in move and self.rotation is not None:
-                self.rotation.request("turn", {"by_deg": move["rotation_deg"]})
-                record.setdefault("command_written_at_ns", time.time_ns())
+            if "rotation_deg" in move:
+                turned = self.stage.request("rotate", {"targets": {"rotation_deg": move["rotation_deg"]},
+                                                       "relative": True, "owner": self.owner})
+                record.setdefault("command_written_at_ns", turned["written_at_ns"])
+                record["angles_deg"] = turned["angles_deg"]
         except CommandError as refusal:
             self._record(record, f"refused by the stage: {refusal.code}")
             if refusal.code == "stopped":

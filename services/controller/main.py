@@ -38,19 +38,6 @@ class ServicePort:
         return self.client.request(command, **(args or {}))
 
 
-class FakelabRotationStage:
-    """The simulated rotation stage of the fake lab, as a port with ``turn`` {by_deg}."""
-
-    def __init__(self, client: ControlClient):
-        self.client = client
-
-    def request(self, command: str, args: dict | None = None) -> dict:
-        if command != "turn":
-            raise CommandError("unknown_command", f"the rotation stage knows 'turn', not {command!r}")
-        current = self.client.request("set_rotation_stage")["rotation_deg"]
-        return self.client.request("set_rotation_stage", rotation_deg=current + float(args["by_deg"]))
-
-
 def build_parser() -> argparse.ArgumentParser:
     return argparse.ArgumentParser(
         prog="semservo service controller",
@@ -74,16 +61,12 @@ def main(argv: list[str] | None = None) -> int:
     for client in (stage_client, estimator_client):
         # A request waiting on a dead peer is abandoned as soon as a stop is asked for.
         client.cancelled = lambda: runtime.stopping
-    rotation = None
-    if config.rotation_stage == "fakelab":
-        rotation = FakelabRotationStage(ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port),
-                                                      timeout_s=timeout, retries=2, context=runtime.context))
 
     def publish(kind: str, data: dict) -> None:
         events.publish(ControllerEvent(kind=kind, run_id=core.run and core.run["id"], data=data))
 
     core = ControllerCore(
-        ServicePort(stage_client), rotation=rotation, estimator=ServicePort(estimator_client),
+        ServicePort(stage_client), estimator=ServicePort(estimator_client),
         camera=CameraToStage(tuple(config.axis_signs), config.orientation_deg, config.rotation_sign),
         runs_dir=config.runs_dir, watchdog_s=config.watchdog_s, publish=publish,
     )

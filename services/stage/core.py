@@ -13,7 +13,9 @@ Safety, in the order a move is checked:
    write within ``max_rate_v_per_s``.
 
 A move that breaks any rule is refused as a whole with the reason (:class:`Refused`),
-never clipped. The watchdog: a run's controller arms it; if the controller then goes
+never clipped. The rotation-and-tilt stage, when the lab has one (``rotate``), follows
+the same rules where they apply: state, owner, finite, within its travel, at most
+``max_turn_deg`` per command. The watchdog: a run's controller arms it; if the controller then goes
 silent for ``timeout_s`` (no move, no heartbeat) the stage holds where it is and
 refuses moves until it is armed again or resumed. While armed, the stage moves for its
 owner only: a jog from anyone else is refused (``owned``).
@@ -42,7 +44,9 @@ from pathlib import Path
 from typing import Callable
 
 from semservo import nv40
-from semservo.instruments import STAGE_DRIVER_GROUP, DeviceError, LinkError, LogEntry, StageDriver, load_plugin
+from semservo.instruments import (
+    STAGE_DRIVER_GROUP, DeviceError, LinkError, LogEntry, RotationStageDriver, StageDriver, load_plugin,
+)
 from semservo.stage_model import BranchModel, load_model
 
 log = logging.getLogger("stage")
@@ -75,6 +79,8 @@ class StageLimits:
     travel_max_um: float = 100.0
     max_step_v: float = 25.0
     max_rate_v_per_s: float = 200.0
+    #: The largest turn or tilt one command may ask (degrees).
+    max_turn_deg: float = 30.0
 
 
 @dataclass
@@ -97,6 +103,8 @@ class StageCore:
     clock: Callable[[], float] = time.monotonic
     open_driver: Callable[[str], StageDriver] = field(default_factory=lambda: driver_class("nv40").open)
     state_dir: Path | None = None  # None: nothing survives the process (tests of the core)
+    #: The rotation-and-tilt stage, if the lab has one (every rule of a move applies).
+    rotation: RotationStageDriver | None = None
 
     def __post_init__(self):
         for axis in self.channels:
@@ -114,8 +122,12 @@ class StageCore:
         self.attempts = 0
         self.next_attempt = 0.0
         self.last_io = 0.0
-        self.counters = {"moves": 0, "refused": 0, "link_lost": 0, "reconnects": 0, "uncommanded_changes": 0}
+        self.counters = {"moves": 0, "turns": 0, "refused": 0, "link_lost": 0, "reconnects": 0,
+                         "uncommanded_changes": 0}
         self.log_archive: list = []  # entries of drivers closed after a link loss, and of earlier processes
+        self.rotation_angles: dict[str, float] | None = None  # as last read (see _rotation_state)
+        self.rotation_travel: dict[str, list[float]] | None = None
+        self.rotation_link = "not used yet"
         self._log_file = None
         self._restore()
 
@@ -292,11 +304,14 @@ class StageCore:
             raise Refused("owned", f"a run ({self.watchdog.owner}) is moving the stage; stop it first "
                                    f"(this request came from {owner or 'an unnamed client'})")
 
-    def _check_ready(self) -> None:
+    def _check_state(self) -> None:
         if self.state == "stopped":
             raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first")
         if self.state == "held":
             raise Refused("held", f"the stage is held: {self.state_reason}")
+
+    def _check_ready(self) -> None:
+        self._check_state()
         if self.link != "connected":
             raise Refused("link_lost", f"serial link to {self.url} is down: {self.last_error}")
 
@@ -379,6 +394,56 @@ class StageCore:
         result["positions_um"] = self.positions()
         return result
 
+    def rotate(self, targets: dict[str, float], *, relative: bool = False, owner: str | None = None) -> dict:
+        """Turn or tilt the rotation-and-tilt stage to ``targets`` (degrees, by axis:
+        ``rotation_deg`` about the beam, ``tilt_x_deg``, ``tilt_y_deg``) or by them
+        (``relative``). The rules of a move apply: not stopped or held, the run's owner
+        only, finite, within the stage's travel, at most ``max_turn_deg`` per command;
+        refused whole, never clipped."""
+        try:
+            self._check_state()
+            self._check_owner(owner)
+            if self.rotation is None:
+                raise Refused("no_rotation_stage", "this lab has no rotation-and-tilt stage "
+                                                   "(SEMSERVO_STAGE__ROTATION_STAGE)")
+            travel = self._rotation_io(self.rotation.travel)
+            self.rotation_travel = {axis: list(span) for axis, span in travel.items()}
+            current = self.rotation_angles = self._rotation_io(self.rotation.read_angles)
+            goal = {}
+            for axis, value in targets.items():
+                if axis not in travel:
+                    raise Refused("bad_axis", f"unknown rotation axis {axis!r}; axes: {', '.join(travel)}")
+                goal[axis] = current[axis] + value if relative else value
+                low, high = travel[axis]
+                if not low <= goal[axis] <= high:  # NaN fails this too
+                    raise Refused("rotation_limit", f"{axis}: {goal[axis]:.4f} degrees is outside the travel "
+                                                    f"{low:g}..{high:g}")
+                if abs(goal[axis] - current[axis]) > self.limits.max_turn_deg:
+                    raise Refused("step_limit", f"{axis}: a {abs(goal[axis] - current[axis]):.3f} degree turn "
+                                                f"exceeds the maximum of {self.limits.max_turn_deg:g} per command")
+        except Refused:
+            self.counters["refused"] += 1
+            raise
+        written_at_ns = time.time_ns()
+        angles = self.rotation_angles = self._rotation_io(lambda: self.rotation.move_to(goal))
+        if owner is not None and owner == self.watchdog.owner:
+            self.watchdog.last_contact = self.clock()
+        self.counters["turns"] += 1
+        return {"written_at_ns": written_at_ns, "angles_deg": angles}
+
+    def _rotation_io(self, action: Callable[[], object]):
+        """A call to the rotation stage; its failures become refusals with the reason."""
+        try:
+            result = action()
+        except LinkError as error:
+            self.last_error = f"rotation stage: {error}"
+            self.rotation_link = f"lost: {error}"
+            raise Refused("rotation_link_lost", str(error)) from None
+        except DeviceError as error:
+            raise Refused("device_refused", str(error)) from None
+        self.rotation_link = "connected"
+        return result
+
     def heartbeat(self, owner: str | None = None) -> dict:
         if owner is not None and owner == self.watchdog.owner:
             self.watchdog.last_contact = self.clock()
@@ -418,6 +483,12 @@ class StageCore:
             except (LinkError, DeviceError) as error:
                 self.last_error = f"stopped, but the driver's halt failed: {error}"
                 log.error("%s", self.last_error)
+        if self.rotation is not None:
+            try:
+                self.rotation.halt()
+            except (LinkError, DeviceError) as error:
+                self.last_error = f"stopped, but the rotation stage's halt failed: {error}"
+                log.error("%s", self.last_error)
         return self.describe()
 
     def resume(self) -> dict:
@@ -443,8 +514,18 @@ class StageCore:
             "watchdog": {"armed": self.watchdog.armed, "timeout_s": self.watchdog.timeout_s,
                          "owner": self.watchdog.owner},
             "models": {axis: model.to_dict()["kind"] for axis, model in self.models.items()},
+            "rotation": self._rotation_state(),
             "last_error": self.last_error, **self.counters,
         }
+
+
+    def _rotation_state(self) -> dict | None:
+        """The rotation-and-tilt stage as last read (at its first use and after every
+        turn: never read here, so a state or a stop never waits on its link); None when
+        the lab has none."""
+        if self.rotation is None:
+            return None
+        return {"angles_deg": self.rotation_angles, "travel_deg": self.rotation_travel, "link": self.rotation_link}
 
 
 def models_from(paths: dict[str, str | None], axes) -> dict:

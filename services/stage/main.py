@@ -2,11 +2,13 @@
 request-reply socket.
 
 Commands (``semservo.transport.ControlClient``): ``state``, ``move`` {targets: {axis:
-um}, relative, owner}, ``set_voltages`` {voltages: {axis: V}, owner}, ``arm`` {hold_after_s,
+um}, relative, owner}, ``rotate`` {targets: {rotation_deg | tilt_x_deg | tilt_y_deg:
+degrees}, relative, owner} (the rotation-and-tilt stage), ``set_voltages`` {voltages: {axis: V}, owner}, ``arm`` {hold_after_s,
 owner}, ``disarm``, ``heartbeat`` {owner}, ``stop`` {reason}, ``resume``, ``release``,
 ``log`` {since_ns}, and ``health``. A refused command answers an error whose code names
 the rule (``travel_limit``, ``voltage_limit``, ``step_limit``, ``rate_limit``, ``held``,
-``stopped``, ``link_lost``, ``owned``, ...).
+``stopped``, ``link_lost``, ``owned``, ``rotation_limit``, ``no_rotation_stage``,
+``rotation_link_lost``, ...).
 
 Run it with ``semservo service stage``; settings ``SEMSERVO_STAGE__*``.
 """
@@ -16,11 +18,12 @@ from __future__ import annotations
 import argparse
 import logging
 
-from semservo.config import Settings
+from semservo.config import Settings, connect
 from semservo.logs import configure
 from semservo.service import ServiceRuntime
-from semservo.transport import BadRequest, CommandError, number
+from semservo.transport import BadRequest, CommandError, ControlClient, number
 from services.stage.core import Refused, StageCore, StageLimits, driver_class, models_from
+from services.stage.rotation import FakelabRotationStage
 
 log = logging.getLogger("stage")
 
@@ -53,10 +56,16 @@ def main(argv: list[str] | None = None) -> int:
     config = settings.stage
     runtime = ServiceRuntime("stage", settings, settings.bind(config.control_port))
     limits = StageLimits(config.voltage_min, config.voltage_max, config.travel_min_um, config.travel_max_um,
-                         config.max_step_v, config.max_rate_v_per_s)
+                         config.max_step_v, config.max_rate_v_per_s, config.max_turn_deg)
+    rotation = None
+    if config.rotation_stage == "fakelab":
+        # Short timeouts: a turn must not stall the service that also has to stop at once.
+        rotation = FakelabRotationStage(ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port),
+                                                      timeout_s=min(settings.request_timeout_s, 1.0), retries=1,
+                                                      context=runtime.context))
     core = StageCore(args.url or config.serial_url, limits=limits, channels=dict(config.axes),
                      models=models_from(config.model_files, config.axes), state_dir=config.state_dir,
-                     open_driver=driver_class(args.driver or config.driver).open)
+                     open_driver=driver_class(args.driver or config.driver).open, rotation=rotation)
     core.connect()
 
     def guarded(action):
@@ -77,6 +86,13 @@ def main(argv: list[str] | None = None) -> int:
             raise BadRequest("relative must be true or false")
         return core.move(_numbers(request_args.get("targets"), "targets"), relative=relative, owner=owner(request_args))
 
+    def rotate(request_args: dict) -> dict:
+        relative = request_args.get("relative", False)
+        if not isinstance(relative, bool):
+            raise BadRequest("relative must be true or false")
+        return core.rotate(_numbers(request_args.get("targets"), "targets"), relative=relative,
+                           owner=owner(request_args))
+
     def arm(request_args: dict) -> dict:
         timeout = number(request_args.get("hold_after_s"), "hold_after_s", "seconds")
         if owner(request_args) is None:
@@ -92,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     commands = {
         "state": lambda _a: core.describe(),
         "move": move,
+        "rotate": rotate,
         "set_voltages": lambda a: core.set_voltages(_numbers(a.get("voltages"), "voltages"), owner=owner(a)),
         "arm": arm,
         "disarm": lambda a: core.disarm(owner(a)),

@@ -151,6 +151,9 @@ class StageSettings(BaseModel):
     max_rate_v_per_s: PositiveFloat = Field(200.0, description="fastest voltage change between commands")
     state_dir: Path = Field(Path("runs"), description="what outlives the process: whether a run had the stage "
                                                       "armed (stage-state.json) and the command log (stage-commands.jsonl)")
+    rotation_stage: Literal["none", "fakelab"] = Field(
+        "fakelab", description="the rotation-and-tilt stage this service drives: the fake lab's simulated one, or none")
+    max_turn_deg: PositiveFloat = Field(30.0, le=360, description="largest turn or tilt one command may ask (degrees)")
 
 
 class ControllerSettings(BaseModel):
@@ -164,8 +167,6 @@ class ControllerSettings(BaseModel):
     axis_signs: tuple[int, int] = Field((1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
     orientation_deg: float = Field(0.0, description="camera-to-stage: stage x axis in the image, counter-clockwise")
     rotation_sign: Literal[-1, 1] = 1
-    rotation_stage: Literal["none", "fakelab"] = Field(
-        "fakelab", description="what turns the sample about the beam: the simulated rotation stage, or nothing")
 
 
 class GatewaySettings(BaseModel):

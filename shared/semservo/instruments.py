@@ -183,6 +183,31 @@ class StageDriver(Protocol):
     def close(self) -> None: ...
 
 
+@runtime_checkable
+class RotationStageDriver(Protocol):
+    """A rotation-and-tilt stage: rotation about the beam and two tilts, in degrees, by
+    axis name (``rotation_deg``, ``tilt_x_deg``, ``tilt_y_deg``: the ones it has).
+
+    The stage service checks every rule (state, owner, finite values, travel, step)
+    before :meth:`move_to` is called. Methods raise :class:`LinkError` when the link
+    fails and :class:`DeviceError` for a command the device refuses.
+    """
+
+    def travel(self) -> dict[str, tuple[float, float]]:
+        """Each axis's travel (degrees), as the device reports or documents it."""
+
+    def read_angles(self) -> dict[str, float]:
+        """Where every axis is now."""
+
+    def move_to(self, angles: dict[str, float]) -> dict[str, float]:
+        """Move these axes; return every axis's angle afterwards."""
+
+    def halt(self) -> None:
+        """Stop any motion in progress."""
+
+    def close(self) -> None: ...
+
+
 # -- finding what a lab wrote --------------------------------------------------------------
 class PluginError(ValueError):
     """A named adapter or driver that cannot be loaded (the reason says why)."""

@@ -110,7 +110,8 @@ COMMANDS = {
                     "set_scan": ["dwell_ns", "magnification", "working_distance_mm"]},
     "estimator": {"teach": ["frames", "image_b64", "path", "polygon", "mask_b64"], "clear": [], "report": [],
                   "measure": ["rotation"]},
-    "stage": {"state": [], "move": ["targets", "relative", "owner"], "set_voltages": ["voltages", "owner"],
+    "stage": {"state": [], "move": ["targets", "relative", "owner"], "rotate": ["targets", "relative", "owner"],
+              "set_voltages": ["voltages", "owner"],
               "arm": ["hold_after_s", "owner"], "disarm": ["owner"], "heartbeat": ["owner"], "log": ["since_ns"]},
     "controller": {"status": [], "run": ["id"], "start": ["tolerance_px", "gain_scale", "max_move_um", "dofs",
                                                           "estimate_timeout_s"]},
@@ -124,6 +125,8 @@ def arguments(names: list[str]):
             yield {name: value}
             if name in ("targets", "voltages"):
                 yield {name: {"x": value}}
+            if name == "targets":
+                yield {name: {"rotation_deg": value}}
             if name == "polygon":
                 yield {name: [[value, 1], [2, 3], [4, 5]]}
 
@@ -131,6 +134,7 @@ def arguments(names: list[str]):
 def test_garbage_and_nan_on_every_control_socket(campaign):
     lab = campaign.client
     voltages = lab.stage()["voltages"]
+    angles = campaign.ask("fakelab", "pose")["rotation_deg"]
     answered, internal = 0, []
     for service, commands in COMMANDS.items():
         client = campaign.control(service, timeout_s=30)
@@ -156,6 +160,7 @@ def test_garbage_and_nan_on_every_control_socket(campaign):
     assert answered > 500
     # Nothing the barrage sent moved the stage (a bad set point is refused whole).
     assert lab.stage()["voltages"] == pytest.approx(voltages, abs=0.01)
+    assert campaign.ask("fakelab", "pose")["rotation_deg"] == angles
     assert lab.status()["frame_rate"] > 0  # the simulated SEM still scans
     campaign.ask("fakelab", "serial_link", plugged=True)
     campaign.ask("fakelab", "set_preset", preset="optimal")

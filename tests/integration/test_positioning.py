@@ -100,6 +100,26 @@ def test_positions_from_a_displaced_start_to_the_taught_pose(lab):
     assert (lab["runs"] / f"{run['run_id']}.json").is_file()
 
 
+def test_servoes_the_rotation_about_the_beam_through_the_stage_service(lab):
+    # Every axis goes through the stage service: the run turns the rotation stage with
+    # the stage's rules (owner, travel, step), not the fake lab directly.
+    reference = teach_after_frames(lab)
+    taught = lab["fakelab"].request("pose", interval_s=reference["source_interval_s"])
+    lab["stage"].request("move", targets={"x": 3.0, "y": -2.0}, relative=True)
+    turned = lab["stage"].request("rotate", targets={"rotation_deg": 1.5}, relative=True)
+    assert turned["angles_deg"]["rotation_deg"] == pytest.approx(taught["rotation_deg"] + 1.5)
+
+    run = lab["controller"].request("start", tolerance_px=0.3, tolerance_deg=0.05, dofs=["x", "y", "rotation"])
+    status = wait_for(lambda: (s := lab["controller"].request("status"))["state"] != "servoing" and s, 120,
+                      "the run to end")
+    assert status["state"] == "converged", status
+    record = lab["controller"].request("run", id=run["run_id"])
+    assert any("angles_deg" in r for r in record["records"])  # turns went through the stage service
+    final = lab["fakelab"].request("pose")
+    assert final["rotation_deg"] == pytest.approx(taught["rotation_deg"], abs=0.1)
+    assert lab["stage"].request("state")["turns"] >= 2
+
+
 def test_limit_breaking_requests_are_refused_and_nothing_moves(lab):
     stage = lab["stage"]
     before = stage.request("state")["voltages"]

@@ -13,6 +13,7 @@ from services.controller.core import ControllerCore, RunSettings
 from services.fakelab.emulator import ChannelState, NV403Emulator
 from services.fakelab.serial_links import PseudoTerminalLink
 from services.stage.core import Refused, StageCore, StageLimits
+from services.stage.rotation import WorldRotationStage
 
 pytestmark = pytest.mark.integration
 
@@ -124,6 +125,10 @@ class LocalStage:
                 return self.core.arm(args["hold_after_s"], args["owner"])
             if command == "move":
                 return self.core.move(args["targets"], relative=args["relative"], owner=args["owner"])
+            if command == "rotate":
+                return self.core.rotate(args["targets"], relative=args["relative"], owner=args["owner"])
+            if command == "state":
+                return self.core.describe()
             if command == "log":
                 return {"entries": self.core.command_log(args["since_ns"])}
             return getattr(self.core, command)(*args.values())
@@ -353,3 +358,55 @@ def test_a_move_refused_because_an_operator_stopped_the_stage_ends_the_run_stopp
     record = core.on_estimate(estimate(1, 20.0, 5.0, scan_started_at_ns=time.time_ns()))
     assert record["action"] == "refused by the stage: stopped"
     assert core.state == "stopped" and "operator pressed stop" in core.reason
+
+
+@pytest.fixture
+def turning_stage(link):
+    """The stage's core with the world's rotation-and-tilt stage as its rotation driver."""
+    world, pty = link
+    core = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6, max_turn_deg=10.0), clock=FakeClock(),
+                     rotation=WorldRotationStage(world))
+    assert core.connect()
+    yield core, world
+    core.close()
+
+
+def test_the_rotation_stage_turns_through_the_stage_and_its_rules(turning_stage):
+    stage, world = turning_stage
+    turned = stage.rotate({"rotation_deg": 2.5}, relative=True)
+    assert turned["angles_deg"]["rotation_deg"] == pytest.approx(2.5) == world.rotation_stage["rotation_deg"]
+    stage.rotate({"tilt_x_deg": -4.0})
+    assert stage.describe()["rotation"]["angles_deg"] == {"rotation_deg": 2.5, "tilt_x_deg": -4.0, "tilt_y_deg": 0.0}
+    for targets, relative, code in [
+        ({"rotation_deg": float("nan")}, True, "rotation_limit"),
+        ({"rotation_deg": float("inf")}, False, "rotation_limit"),
+        ({"tilt_y_deg": 60.0}, False, "rotation_limit"),  # beyond the +-45 degree travel
+        ({"rotation_deg": 15.0}, True, "step_limit"),  # more than max_turn_deg in one command
+        ({"spin": 1.0}, True, "bad_axis"),
+        ({"rotation_deg": 1.0, "tilt_y_deg": 99.0}, False, "rotation_limit"),  # refused whole
+    ]:
+        with pytest.raises(Refused) as refusal:
+            stage.rotate(targets, relative=relative)
+        assert refusal.value.code == code
+    assert world.rotation_stage == {"rotation_deg": 2.5, "tilt_x_deg": -4.0, "tilt_y_deg": 0.0}, "nothing moved"
+
+
+def test_a_stopped_or_owned_stage_does_not_turn(turning_stage):
+    stage, world = turning_stage
+    stage.arm(5.0, owner="run-1")
+    with pytest.raises(Refused) as refusal:
+        stage.rotate({"rotation_deg": 1.0}, relative=True, owner="someone-else")
+    assert refusal.value.code == "owned"
+    stage.rotate({"rotation_deg": 1.0}, relative=True, owner="run-1")
+    stage.stop("operator")
+    with pytest.raises(Refused) as refusal:
+        stage.rotate({"rotation_deg": 1.0}, relative=True, owner="run-1")
+    assert refusal.value.code == "stopped"
+    assert world.rotation_stage["rotation_deg"] == 1.0
+
+
+def test_a_lab_without_a_rotation_stage_says_so(stage):
+    with pytest.raises(Refused) as refusal:
+        stage.rotate({"rotation_deg": 1.0}, relative=True)
+    assert refusal.value.code == "no_rotation_stage"
+    assert stage.describe()["rotation"] is None
