@@ -75,6 +75,19 @@ class MoveRequest(BaseModel):
     relative: bool = Field(True, description="a step from here (jog), or an absolute target")
 
 
+class RotateRequest(BaseModel):
+    """A turn about the beam and/or a tilt of the rotation-and-tilt stage, in degrees."""
+
+    model_config = {**STRICT, "json_schema_extra": {"anyOf": [
+        {"required": [axis], "properties": {axis: {"type": "number"}}}
+        for axis in ("rotation_deg", "tilt_x_deg", "tilt_y_deg")]}}
+    rotation_deg: float | None = Field(None, ge=-360, le=360, description="about the beam, counter-clockwise "
+                                                                         "as displayed (target, or step if relative)")
+    tilt_x_deg: float | None = Field(None, ge=-45, le=45, description="about the x axis")
+    tilt_y_deg: float | None = Field(None, ge=-45, le=45, description="about the y axis")
+    relative: bool = Field(True, description="a step from here, or an absolute target")
+
+
 class CenterRequest(BaseModel):
     """A point of the live image (pixels, x right, y down) to bring to the centre."""
 
@@ -243,6 +256,15 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         if not targets:
             raise GatewayError(422, "invalid", "give x_um and/or y_um", field="x_um")
         return core.move(targets, body.relative)
+
+    @app.post("/stage/rotate", dependencies=Auth, tags=["stage"],
+              summary="Turn or tilt the rotation-and-tilt stage, degrees (through the stage service's rules)")
+    def rotate(body: RotateRequest) -> dict:
+        targets = {axis: value for axis in ("rotation_deg", "tilt_x_deg", "tilt_y_deg")
+                   if (value := getattr(body, axis)) is not None}
+        if not targets:
+            raise GatewayError(422, "invalid", "give rotation_deg, tilt_x_deg and/or tilt_y_deg", field="rotation_deg")
+        return core.rotate(targets, body.relative)
 
     @app.post("/stage/center", dependencies=Auth, tags=["stage"],
               summary="Click to move: bring this point of the live image to its centre")

@@ -485,6 +485,13 @@ class GatewayCore:
                     raise
             time.sleep(0.05)
 
+    def rotate(self, targets: dict[str, float], relative: bool) -> dict:
+        """A turn or tilt of the rotation-and-tilt stage, through the stage service (its
+        travel, step and owner rules). Refused during a run, as a jog is."""
+        self._refuse_during_run("turning the stage")
+        return call(self.ports.get("stage"), "stage", "rotate", {"targets": targets, "relative": relative,
+                                                                  "owner": "gateway"})
+
     def center(self, x_px: float, y_px: float) -> dict:
         """Move the stage so the live image's point (x, y) comes to the centre (click to
         move), through the camera-to-stage transform and the frame's pixel size."""

@@ -126,7 +126,7 @@ class StageCore:
                          "uncommanded_changes": 0}
         self.log_archive: list = []  # entries of drivers closed after a link loss, and of earlier processes
         self.rotation_angles: dict[str, float] | None = None  # as last read (see _rotation_state)
-        self.rotation_travel: dict[str, list[float]] | None = None
+        self.rotation_travel: dict[str, list[float]] = {}
         self.rotation_link = "not used yet"
         self._log_file = None
         self._restore()
@@ -194,7 +194,11 @@ class StageCore:
     def connect(self) -> bool:
         """Open the port, identify the amplifier, take remote control of our channels,
         read its limits and the current outputs. False (and the reason in health) if
-        any of it fails."""
+        any of it fails. The rotation stage, if any, is read at the first connect only
+        (reconnecting after a lost serial link must not also wait on its link); a
+        failure there is reported in ``state``, not a failure of the stage."""
+        if self.rotation_link == "not used yet":
+            self._read_rotation_stage()
         self.close()
         try:
             self.driver = self.open_driver(self.url)
@@ -518,6 +522,16 @@ class StageCore:
             "last_error": self.last_error, **self.counters,
         }
 
+
+    def _read_rotation_stage(self) -> None:
+        if self.rotation is None:
+            return
+        try:
+            self._rotation_io(lambda: self.rotation_travel.update(
+                {axis: list(span) for axis, span in self.rotation.travel().items()}))
+            self.rotation_angles = self._rotation_io(self.rotation.read_angles)
+        except Refused as refusal:
+            log.warning("rotation stage: %s", refusal)
 
     def _rotation_state(self) -> dict | None:
         """The rotation-and-tilt stage as last read (at its first use and after every

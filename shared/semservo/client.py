@@ -86,6 +86,12 @@ def _move_body(x_um: float | None, y_um: float | None, relative: bool) -> dict:
     return {"x_um": x_um, "y_um": y_um, "relative": relative}
 
 
+def _rotate_body(rotation_deg: float | None, tilt_x_deg: float | None, tilt_y_deg: float | None,
+                 relative: bool) -> dict:
+    body = {"rotation_deg": rotation_deg, "tilt_x_deg": tilt_x_deg, "tilt_y_deg": tilt_y_deg}
+    return {**{axis: value for axis, value in body.items() if value is not None}, "relative": relative}
+
+
 def _auth_only(headers) -> dict[str, str]:
     """The token for a WebSocket handshake (httpx's other defaults, e.g. Connection:
     keep-alive, would break the upgrade)."""
@@ -127,6 +133,11 @@ class Client:
 
     def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:
         return self._call("POST", "/stage/move", json=_move_body(x_um, y_um, relative))
+
+    def rotate(self, rotation_deg: float | None = None, tilt_x_deg: float | None = None,
+               tilt_y_deg: float | None = None, *, relative: bool = True) -> dict:
+        """Turn about the beam and/or tilt (degrees), through the stage service's rules."""
+        return self._call("POST", "/stage/rotate", json=_rotate_body(rotation_deg, tilt_x_deg, tilt_y_deg, relative))
 
     def stage(self) -> dict:
         return self._call("GET", "/stage")
@@ -210,6 +221,12 @@ class AsyncClient:
 
     async def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:
         return await self._call("POST", "/stage/move", json=_move_body(x_um, y_um, relative))
+
+    async def rotate(self, rotation_deg: float | None = None, tilt_x_deg: float | None = None,
+                     tilt_y_deg: float | None = None, *, relative: bool = True) -> dict:
+        """Turn about the beam and/or tilt (degrees), through the stage service's rules."""
+        return await self._call("POST", "/stage/rotate",
+                                json=_rotate_body(rotation_deg, tilt_x_deg, tilt_y_deg, relative))
 
     async def stage(self) -> dict:
         return await self._call("GET", "/stage")
