@@ -11,7 +11,9 @@ A file is published once it is **complete**:
   is atomic), or, where no such event comes (polling, network shares), unchanged in
   size and modification time for ``settle_s``;
 * and readable as a whole image (a TIFF whose strips end past the end of the file is
-  still being written).
+  still being written), and unchanged while it was read (a last chunk landing during
+  the read would otherwise make the file a "new" one later: an old frame published
+  again).
 
 Frames go out **in the order their files appeared** (files that appear together, in one
 poll, in name order), each **once**: a file is known by
@@ -269,6 +271,7 @@ class WatchSource:
             return None
         try:
             image = read_sem_image(path, data_bar=self.data_bar)
+            after = path.stat()
         except FileNotFoundError:
             self.note(path, gone=True)
             return None
@@ -277,6 +280,14 @@ class WatchSource:
             # Unchanged for a while and still unreadable: not an image we can use.
             if given_up:
                 self._skip(candidate, identity, str(error))
+            return None
+        if (after.st_dev, after.st_ino, after.st_size, after.st_mtime_ns) != identity:
+            # Written to while it was read: what was read may mix two versions, and the
+            # file published under its old identity would come back as new (a stale
+            # frame, published again after a move). Wait for it to settle.
+            candidate.closed = False
+            candidate.stable_since = now
+            candidate.last_signature = (after.st_size, after.st_mtime_ns)
             return None
         self._forget(candidate)
         self._published[identity] = path.name

@@ -194,3 +194,32 @@ def test_every_files_settle_time_runs_while_an_earlier_one_waits_and_a_batch_goe
         assert labels == ["frame_a.tif", "frame_b.tif", "frame_c.tif"]
     finally:
         source.close()
+
+
+def test_a_file_written_to_while_it_is_read_is_published_once_when_it_settles(watched, monkeypatch):
+    """A CI run published a frame twice: read whole while its last chunk landed, it was
+    remembered by the size before that chunk, and came back as new a second later (an
+    old frame, after a move). A file that changes during the read waits, and goes out
+    once, as it ends up."""
+    import services.imageserver.watch as watch
+
+    folder, source = watched
+    path = folder / "frame_000.tif"
+    data = fei_file(7)
+    original = watch.read_sem_image
+    grown = []
+
+    def read_while_the_writer_appends(*args, **kwargs):
+        image = original(*args, **kwargs)
+        if not grown:  # the writer's last write lands during the first read
+            with open(path, "ab") as file:
+                file.write(b"\0" * 64)
+            grown.append(True)
+        return image
+
+    monkeypatch.setattr(watch, "read_sem_image", read_while_the_writer_appends)
+    path.write_bytes(data)
+    images = collect(source, 1)
+    assert grown and len(images) == 1 and images[0].label == "frame_000.tif"
+    assert nothing_more(source, for_s=2.5)  # past a rescan: not published again
+    assert source.describe()["files_published"] == 1
