@@ -534,27 +534,6 @@ def rotate_about_centre(image: np.ndarray, angle_deg: float, out: np.ndarray | N
                           borderMode=cv2.BORDER_REFLECT)
 
 
-def _shear_rows(image: np.ndarray, slope: float) -> np.ndarray:
-    """``out[y, x] = image[y, x - slope * (y - centre row)]``, each row moved by a phase
-    ramp (exact for a band-limited image; periodic along the row)."""
-    rows, cols = image.shape
-    frequencies = np.fft.rfftfreq(cols)[np.newaxis, :]
-    moves = slope * (np.arange(rows) - (rows - 1) / 2)[:, np.newaxis]
-    return np.fft.irfft(np.fft.rfft(image, axis=1) * np.exp(-2j * np.pi * frequencies * moves), n=cols, axis=1)
-
-
-def rotate_by_shears(image: np.ndarray, angle_deg: float) -> np.ndarray:
-    """Rotate content counter-clockwise as displayed, as :func:`rotate_about_centre`, by
-    three Fourier shears (Unser, Thevenaz and Yaroslavsky 1995): no interpolation blur,
-    so copies turned by different small angles differ only by the turn. For images
-    made once (the probe references); the borders wrap around, where the window is 0."""
-    turn = np.deg2rad(angle_deg)
-    along = np.tan(turn / 2)
-    image = _shear_rows(np.asarray(image, np.float64), along)
-    image = _shear_rows(image.T, -np.sin(turn)).T
-    return _shear_rows(image, along).astype(np.float32)
-
-
 # --------------------------------------------------------------------------------------
 # Mask references (paper case 6)
 
@@ -972,10 +951,7 @@ class MotionEstimator:
                 self._half_derotated_by = angle
             frame = self._half_derotated
         dy, dx = shift
-        windowed = self.search_plans.forward.input_array
-        np.subtract(frame, mean, out=windowed)
-        windowed *= self._moved_window_halved(int(round(dy)), int(round(dx)))
-        spectrum = self.search_plans.forward()
+        spectrum = self._windowed_half_spectrum(frame, mean, shift)
         band = self.search_filtered_fit_band if filtered else self.search_fit_band
         # The unturned reference's fit starts the others (a turn moves the best shift
         # little: by the turn times the distance from the window's centre).
@@ -1034,15 +1010,21 @@ class MotionEstimator:
         dy, dx = shift
         half = rotate_about_centre(self._half_image, -angle, self._half_derotated, PROBE_INTERPOLATION)
         self._half_derotated_by = angle
-        windowed = self.search_plans.forward.input_array
-        np.subtract(half, mean, out=windowed)
-        windowed *= self._moved_window_halved(int(round(dy)), int(round(dx)))
         band = self.search_filtered_fit_band if filtered else self.search_fit_band
         search_dy, search_dx, correlation = refine_on_band(
-            self.search_plans.forward(), self.fit_search_reference_conjugate, band, (dy / 2, dx / 2),
-            workspace=self._search_band_workspace, with_correlation=True)
+            self._windowed_half_spectrum(half, mean, shift), self.fit_search_reference_conjugate, band,
+            (dy / 2, dx / 2), workspace=self._search_band_workspace, with_correlation=True)
         # Block means are centred half a search pixel in: the shift scales exactly.
         return search_dy * 2, search_dx * 2, correlation
+
+    def _windowed_half_spectrum(self, half: np.ndarray, mean: float, shift: tuple[float, float]) -> np.ndarray:
+        """FFT of a halved frame (mean-free) under the full-resolution window moved by the
+        whole-pixel ``shift`` and halved, so it weights the scene as the fast fit's
+        reference does. The plan's buffer."""
+        windowed = self.search_plans.forward.input_array
+        np.subtract(half, mean, out=windowed)
+        windowed *= self._moved_window_halved(int(round(shift[0])), int(round(shift[1])))
+        return self.search_plans.forward()
 
     def _moved_window_halved(self, row_shift: int, col_shift: int) -> np.ndarray:
         """Block means of the full-resolution window moved by whole pixels (kept per shift:
