@@ -39,7 +39,7 @@ from typing import Callable, Literal, Protocol
 import numpy as np
 from pydantic import BaseModel, Field, PositiveFloat, PositiveInt
 
-from semservo.control import AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain
+from semservo.control import AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, TiltLaw
 from semservo.messages import MotionEstimate
 from semservo.transport import CommandError, ServiceUnavailable
 
@@ -57,9 +57,15 @@ class RunSettings(BaseModel):
 
     model_config = {"extra": "forbid", "allow_inf_nan": False, "strict": True}
 
-    dofs: list[Literal["x", "y", "rotation"]] = Field(["x", "y"], min_length=1, description="degrees of freedom")
+    dofs: list[Literal["x", "y", "rotation", "gamma", "alpha", "beta"]] = Field(
+        ["x", "y"], min_length=1, max_length=5,
+        description="degrees of freedom: x, y, rotation (about the beam; also called gamma), alpha and beta (the "
+                    "tilts about the image's x and y axes, measured from focus sweeps)")
     tolerance_px: PositiveFloat = Field(0.1, le=50, description="converged when the translation error is below")
     tolerance_deg: PositiveFloat = Field(0.05, le=10, description="and the rotation error below (rotation DOF)")
+    tolerance_tilt_deg: PositiveFloat = Field(0.1, le=10, description="and each tilt error below (alpha, beta DOFs)")
+    max_turn_deg: PositiveFloat = Field(5.0, le=30, description="largest turn or tilt per iteration (saturation)")
+    min_tilt_confidence: float = Field(0.3, ge=0, le=1, description="less confident tilt measurements hold the tilts")
     converge_frames: PositiveInt = Field(3, le=100, description="converged when the mean error of this many fresh frames is under tolerance")
     converge_on: Literal["mean", "each"] = Field(
         "mean", description="'mean': their mean error is under tolerance; 'each': every one of them is too "
@@ -103,6 +109,7 @@ class ControllerCore:
         self.run: dict | None = None
         self.settings = RunSettings()
         self.law = ControlLaw()
+        self.tilt_law: TiltLaw | None = None
         self.last_heartbeat = 0.0
         self.last_estimate_at = 0.0  # clock time of the last estimate against the run's reference
         self.foreign_estimates = 0  # estimates in a row against another reference
@@ -112,13 +119,29 @@ class ControllerCore:
     def start(self, settings: RunSettings, reference_id: str) -> dict:
         if self.state == "servoing":
             raise RuntimeError(f"run {self.run['id']} is active")
-        if "rotation" in settings.dofs and self.stage.request("state").get("rotation") is None:
-            raise ValueError("rotation is not a degree of freedom here: the stage service has no rotation stage "
-                             "(SEMSERVO_STAGE__ROTATION_STAGE)")
+        dofs = list(dict.fromkeys("rotation" if dof == "gamma" else dof for dof in settings.dofs))
+        if len(dofs) != len(settings.dofs):
+            raise ValueError(f"dofs: each degree of freedom once (gamma is rotation), got {settings.dofs}")
+        settings = settings.model_copy(update={"dofs": dofs})
+        turning = [dof for dof in dofs if dof in ("rotation", "alpha", "beta")]
+        if turning:
+            rotation_stage = self.stage.request("state").get("rotation")
+            if rotation_stage is None:
+                raise ValueError(f"{', '.join(turning)} cannot be servoed here: the stage service has no "
+                                 "rotation-and-tilt stage (SEMSERVO_STAGE__ROTATION_STAGE)")
+            axes = {"rotation": "rotation_deg", "alpha": "tilt_x_deg", "beta": "tilt_y_deg"}
+            missing = [dof for dof in turning if axes[dof] not in (rotation_stage.get("travel_deg") or {})]
+            if missing and rotation_stage.get("travel_deg"):
+                raise ValueError(f"the rotation-and-tilt stage has no axis for {', '.join(missing)}")
+        tilts = tuple(dof for dof in dofs if dof in ("alpha", "beta"))
+        if tilts:
+            self._estimator_measures(rotation="rotation" in dofs, tilts=True, required=True)
         stage_state = self.stage.request("arm", {"hold_after_s": self.watchdog_s, "owner": self.owner})
         gain = (ExponentialGain(settings.gain_max, settings.gain_min) if settings.gain == "exponential"
                 else AdaptiveGain(settings.gain_scale, settings.gain_min, settings.gain_max))
-        self.law = ControlLaw(tuple(settings.dofs), gain, self.camera, integral_time_s=settings.integral_time_s)
+        planar = tuple(dof for dof in settings.dofs if dof in ("x", "y", "rotation"))
+        self.law = ControlLaw(planar, gain, self.camera, integral_time_s=settings.integral_time_s)
+        self.tilt_law = TiltLaw(tilts, gain, self.camera.tilt_signs) if tilts else None
         self.settings = settings
         now_ns = time.time_ns()
         self.run = {
@@ -127,9 +150,14 @@ class ControllerCore:
             "stage_at_start": stage_state, "iterations": 0, "records": [], "outcome": None,
             "last_command_ns": now_ns, "last_source_end_s": None, "low_confidence": 0,
             "min_cost": math.inf, "rising": 0, "held_stale": 0, "recent": [],
+            # Tilts: the last sweep acted on, when the last tilt move has arrived, the
+            # last fresh measurement (None until a sweep after the last tilt move).
+            "last_tilt_seq": None, "tilt_settled_ns": now_ns, "tilt_error": None, "last_tilt_end_s": None,
+            "tilt_iterations": 0,
         }
         self.state, self.reason = "servoing", ""
-        self._estimator_measures(rotation="rotation" in settings.dofs)
+        if not tilts:
+            self._estimator_measures(rotation="rotation" in settings.dofs)
         self.last_heartbeat = self.last_estimate_at = self.clock()
         self.foreign_estimates = 0
         self._open_journal()
@@ -148,16 +176,23 @@ class ControllerCore:
             self._finish("stopped", reason)
         return self.status()
 
-    def _estimator_measures(self, rotation: bool | None) -> None:
+    def _estimator_measures(self, rotation: bool | None, tilts: bool | None = None, required: bool = False) -> None:
         """Tell the estimator whether rotation matters (a run without the rotation DOF
-        does not need it, and translation alone is three times faster); None restores
-        its configuration. Not being heard is logged, never fatal."""
+        does not need it, and translation alone is three times faster) and whether to
+        measure the tilts; None restores its configuration. Not being heard is logged,
+        never fatal, unless ``required`` (a tilt run cannot go without its sweeps)."""
         if self.estimator is None:
+            if required:
+                raise ValueError("tilts need the estimator's focus sweeps, and there is no estimator port")
             return
         try:
-            self.estimator.request("measure", {"rotation": rotation})
+            self.estimator.request("measure", {"rotation": rotation, "tilts": tilts})
         except (CommandError, ServiceUnavailable) as error:
-            log.warning("could not set the estimator's rotation measurement: %s", error)
+            if required:
+                if isinstance(error, CommandError) and error.code == "no_tilt_reference":
+                    raise ValueError(f"tilts cannot be servoed: {error.message}") from None
+                raise
+            log.warning("could not set the estimator's measurements: %s", error)
 
     def _estimator_account(self) -> str:
         """Why estimates stopped, in words, from what the estimator says of itself."""
@@ -177,16 +212,23 @@ class ControllerCore:
         return "the estimator has the reference but publishes nothing (are frames arriving?)"
 
     def _within(self, dx_px: float, dy_px: float, rotation_deg: float) -> bool:
-        """The translation error, and the turn when rotation is servoed, under tolerance."""
-        return math.hypot(dx_px, dy_px) <= self.settings.tolerance_px and (
-            "rotation" not in self.settings.dofs or abs(rotation_deg) <= self.settings.tolerance_deg)
+        """The translation error, the turn when rotation is servoed, and the last fresh
+        tilts when they are, under tolerance."""
+        dofs = self.settings.dofs
+        within = (("x" not in dofs and "y" not in dofs) or math.hypot(dx_px, dy_px) <= self.settings.tolerance_px) \
+            and ("rotation" not in dofs or abs(rotation_deg) <= self.settings.tolerance_deg)
+        if within and self.tilt_law is not None:
+            tilt = self.run.get("tilt_error")
+            within = tilt is not None and all(abs(tilt[dof]) <= self.settings.tolerance_tilt_deg
+                                              for dof in self.tilt_law.dofs)
+        return within
 
     def _finish(self, state: ControllerState, reason: str, *, recovered: bool = False,
                 stage_reachable: bool = True) -> None:
         self.state, self.reason = state, reason
         run = self.run
         if not recovered:  # a recovered run's owner is dead: its watchdog has held the stage
-            self._estimator_measures(rotation=None)
+            self._estimator_measures(rotation=None, tilts=None)
             try:
                 if state != "stopped" and stage_reachable:  # a finished run releases the watchdog
                     self.stage.request("disarm", {"owner": self.owner})
@@ -251,6 +293,7 @@ class ControllerCore:
 
         translation = math.hypot(estimate.dx_px, estimate.dy_px)
         record["error_px"] = translation
+        tilt_step = self._tilt_step(estimate, record) if self.tilt_law is not None else None
         # Converged (by default) when the mean of the last N fresh errors is under the
         # tolerance: the mean, not each one, so estimation noise or vibration near the
         # tolerance cannot keep a finished run going; converge_on="each" asks it of each.
@@ -276,8 +319,11 @@ class ControllerCore:
 
         end_s = estimate.frame_source_interval_s[1] if estimate.frame_source_interval_s else None
         sampling_time = self._sampling_time(estimate, end_s)
-        step = self.law.step(estimate.dx_px, estimate.dy_px, estimate.rotation_deg, estimate.pixel_size_nm,
-                             sampling_time)
+        if self.law.dofs:
+            step = self.law.step(estimate.dx_px, estimate.dy_px, estimate.rotation_deg, estimate.pixel_size_nm,
+                                 sampling_time)
+        else:  # tilts only
+            step = {"error": [], "cost": 0.0, "gain": 0.0, "velocity": [], "move": {}}
         cost = step["cost"]
         run["min_cost"] = min(run["min_cost"], cost)
         # Divergence is judged against the best cost so far, but never against less than
@@ -301,17 +347,31 @@ class ControllerCore:
                                    f"{run['rising']} moves")
             return record
         targets = {axis: move[f"{axis}_um"] for axis in ("x", "y") if f"{axis}_um" in move}
+        turns = {axis: move[axis] for axis in ("rotation_deg",) if axis in move}
+        if tilt_step is not None:
+            turns.update(tilt_step["move"])
+        for axis, value in turns.items():  # saturation, as for the planar move
+            if abs(value) > self.settings.max_turn_deg:
+                turns[axis] = math.copysign(self.settings.max_turn_deg, value)
+                record["saturated"] = True
+        if turns:
+            record["turn_deg"] = turns
         try:
             if targets:
                 written = self.stage.request("move", {"targets": targets, "relative": True, "owner": self.owner})
                 record["command_written_at_ns"] = written["written_at_ns"]
                 record["voltages"] = written["voltages"]
                 record["positions_um"] = written["positions_um"]
-            if "rotation_deg" in move:
-                turned = self.stage.request("rotate", {"targets": {"rotation_deg": move["rotation_deg"]},
-                                                       "relative": True, "owner": self.owner})
+            if turns:
+                turned = self.stage.request("rotate", {"targets": turns, "relative": True, "owner": self.owner})
                 record.setdefault("command_written_at_ns", turned["written_at_ns"])
                 record["angles_deg"] = turned["angles_deg"]
+                # Frames scanned before the turn or tilt has arrived show a pose in between.
+                settled = turned.get("settled_at_ns", turned["written_at_ns"])
+                record["command_settled_at_ns"] = settled
+                if tilt_step is not None:
+                    run["tilt_settled_ns"] = settled
+                    run["tilt_iterations"] += 1
         except CommandError as refusal:
             self._record(record, f"refused by the stage: {refusal.code}")
             if refusal.code == "stopped":
@@ -327,12 +387,54 @@ class ControllerCore:
             self._finish("failed", f"the stage service is unreachable: {error}", stage_reachable=False)
             return record
         run["iterations"] += 1
-        run["last_command_ns"] = record["command_written_at_ns"]
+        run["last_command_ns"] = max(record["command_written_at_ns"], record.get("command_settled_at_ns", 0))
         run["last_source_end_s"] = end_s
         run["last_acted_acquired_ns"] = estimate.frame_acquired_at_ns
         self.last_heartbeat = self.clock()
         record["latency_ms"] = (record["command_written_at_ns"] - estimate.frame_published_at_ns) / 1e6
         return self._record(record, "moved")
+
+    def _tilt_step(self, estimate: MotionEstimate, record: dict) -> dict | None:
+        """The tilts' part of an iteration: acted on once per focus sweep, and only for a
+        sweep scanned after the last tilt move had arrived; held within tolerance (the
+        run converges on that measurement) or when the sweep could not tell the tilts."""
+        run = self.run
+        record.update(alpha_deg=estimate.alpha_deg, beta_deg=estimate.beta_deg,
+                      tilt_confidence=estimate.tilt_confidence, tilt_seq=estimate.tilt_seq)
+        started = estimate.tilt_scan_started_at_ns
+        if estimate.tilt_seq is None or estimate.tilt_seq == run["last_tilt_seq"] or started is None:
+            return None
+        run["last_tilt_seq"] = estimate.tilt_seq
+        if started < run["tilt_settled_ns"]:
+            record["tilt_action"] = "held: sweep scanned during the last tilt move"
+            return None
+        if estimate.alpha_deg is None or estimate.beta_deg is None \
+                or (estimate.tilt_confidence or 0.0) < self.settings.min_tilt_confidence:
+            record["tilt_action"] = "held: tilts not measured with confidence"
+            return None
+        errors = {"alpha": estimate.alpha_deg, "beta": estimate.beta_deg}
+        record["tilt_frames"] = estimate.tilt_frames
+        largest = max(abs(errors[dof]) for dof in self.tilt_law.dofs)
+        # Within tolerance, the run may converge on this measurement; the tilts are still
+        # corrected down to half the tolerance, or the run would end at its edge.
+        within = largest <= self.settings.tolerance_tilt_deg
+        run["tilt_error"] = {dof: errors[dof] for dof in self.tilt_law.dofs} if within else None
+        if largest <= self.settings.tolerance_tilt_deg / 2:
+            record["tilt_action"] = "within tolerance"
+            return None
+        interval = estimate.tilt_source_interval_s
+        end_s = interval[1] if interval else None
+        if end_s is not None and run["last_tilt_end_s"] is not None:
+            sampling_time = max(end_s - run["last_tilt_end_s"], 1e-3)
+        elif interval:
+            sampling_time = max(2 * (interval[1] - interval[0]), 1e-3)
+        else:
+            sampling_time = max(estimate.tilt_sweep_s or 1.0, 1e-3)
+        run["last_tilt_end_s"] = end_s
+        step = self.tilt_law.step(estimate.alpha_deg, estimate.beta_deg, sampling_time)
+        record.update(tilt_error=step["error"], tilt_cost=step["cost"], tilt_gain=step["gain"],
+                      tilt_velocity=step["velocity"], tilt_sampling_time_s=sampling_time, tilt_action="moved")
+        return step
 
     def _sampling_time(self, estimate: MotionEstimate, end_s: float | None) -> float:
         """The measured time between this iteration and the last (eq. 37), on the image
@@ -459,6 +561,9 @@ class ControllerCore:
             "mean_error_px": last and last.get("mean_error_px"),
             "error_um": last and last["pixel_size_nm"] and last["error_px"] * last["pixel_size_nm"] / 1000,
             "cost": last and last.get("cost"), "rotation_deg": last and last["rotation_deg"],
+            "alpha_deg": next((r["alpha_deg"] for r in reversed(records) if r.get("alpha_deg") is not None), None),
+            "beta_deg": next((r["beta_deg"] for r in reversed(records) if r.get("beta_deg") is not None), None),
+            "tilt_iterations": run.get("tilt_iterations", 0),
             "last_latency_ms": last_moved and last_moved["latency_ms"],
             "held_stale": run.get("held_stale", 0), "path": run.get("path"),
         }

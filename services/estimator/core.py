@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from semservo.estimation import MotionEstimator
+from semservo.tilt import TiltEstimate, depth_map, egi_tilt_between, estimate_tilt, plan_sweep
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import MotionEstimate
 from semservo.wire import Frame
@@ -59,9 +60,37 @@ MIN_MASK_AREA_PX = 256
 MAX_FRAMES_AVERAGED = 16
 
 
+@dataclass(frozen=True)
+class TiltSettings:
+    """How tilts are measured from focus sweeps (section II-B-2)."""
+
+    depth_of_field_um: float = 3.5  # the SEM's at the sweep's settings: sets the sweep's step
+    centre_um: float = 0.0  # where the first sweep is centred (the working distance offset in focus)
+    max_tilt_deg: float = 15.0  # the first sweep is wide enough for this much tilt
+    kernel_px: int = 32
+    method: str = "plane"  # or "egi": the paper's extended Gaussian image correlation
+
+
+@dataclass
+class TiltReference:
+    """The taught pose's focus sweep: its kernel depths and plane."""
+
+    reference_id: str
+    depths: np.ndarray
+    estimate: TiltEstimate
+    pixel_size_um: float
+    frames: int
+    working_distances: tuple[float, ...] = ()
+
+    @property
+    def grid(self) -> tuple[float, float]:
+        """The taught sweep's (first working distance, step): later sweeps sample the same places."""
+        return self.working_distances[0], (self.working_distances[-1] - self.working_distances[0]) / (self.frames - 1)
+
+
 class EstimatorCore:
     def __init__(self, *, rotation: bool = True, precision: str = "full", fft_effort: str = "FFTW_MEASURE",
-                 counters: Counter | None = None):
+                 counters: Counter | None = None, tilt: TiltSettings | None = None):
         self.rotation = rotation
         # Whether each frame's rotation is measured (a run that cannot turn the sample
         # switches it off: translation alone takes a third of the time).
@@ -74,6 +103,97 @@ class EstimatorCore:
         self.recent: deque[Frame] = deque(maxlen=MAX_FRAMES_AVERAGED)
         self.last_estimate: MotionEstimate | None = None
         self.counters: Counter = counters if counters is not None else Counter()
+        self.tilt_settings = tilt or TiltSettings()
+        self.tilt_reference: TiltReference | None = None
+        self.measure_tilts = False
+        self.last_tilt: dict | None = None  # the latest tilt measurement against the reference
+        self.tilt_sequence = 0
+        self.tilt_error: str | None = None
+
+    # -- tilts (focus sweeps) ----------------------------------------------------
+    def next_sweep(self) -> list[float]:
+        """The working distances (um) of the next sweep: wide for the first, tracking
+        after (:func:`semservo.tilt.plan_sweep`)."""
+        settings, reference = self.tilt_settings, self.tilt_reference
+        if self.latest is None or self.latest.header.pixel_size_nm is None:
+            raise TeachError("a focus sweep needs frames with a pixel size; none has arrived")
+        field_um = self.latest.pixels.shape[1] * self.latest.header.pixel_size_nm / 1000
+        last = self.last_tilt if self.last_tilt and self.last_tilt.get("confidence", 0) > 0 else None
+        if last is not None:
+            tilt = (last["absolute_alpha_deg"], last["absolute_beta_deg"])
+            return plan_sweep(last["centre_um"], settings.depth_of_field_um, field_um, tilt_deg=tilt,
+                              grid=reference.grid if reference is not None else None).tolist()
+        if reference is not None:
+            tilt = (reference.estimate.alpha_deg, reference.estimate.beta_deg)
+            # Not yet measured since teaching: anything up to the stage's usual tilt from there.
+            return plan_sweep(reference.estimate.centre_depth, settings.depth_of_field_um, field_um,
+                              max_tilt_deg=settings.max_tilt_deg + max(map(abs, tilt)), grid=reference.grid).tolist()
+        return plan_sweep(settings.centre_um, settings.depth_of_field_um, field_um,
+                          max_tilt_deg=settings.max_tilt_deg).tolist()
+
+    def _tilt_of(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None):
+        if pixel_size_nm is None:
+            raise TeachError("the sweep's frames carry no pixel size: tilts cannot be measured")
+        kernel = self.tilt_settings.kernel_px
+        try:
+            estimate = estimate_tilt(sweep, working_distances, pixel_size_nm / 1000, kernel=kernel)
+        except ValueError as error:
+            raise TeachError(f"focus sweep: {error}") from None
+        return estimate, depth_map(sweep, working_distances, kernel)
+
+    def teach_tilt(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None) -> dict:
+        """The taught pose's sweep (with the reference image just taught): refused with
+        the reason when it cannot tell the tilts (a flat scene, focus outside it)."""
+        if self.reference is None:
+            raise TeachError("teach an image before its tilt sweep")
+        estimate, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
+        if estimate.confidence <= 0:
+            raise TeachError(f"the reference's focus sweep cannot tell the tilts: {estimate.reason}")
+        self.tilt_reference = TiltReference(self.reference.id, depths, estimate, pixel_size_nm / 1000, len(sweep),
+                                            tuple(float(value) for value in working_distances))
+        self.last_tilt = None
+        self.reference.detail["tilt"] = {"alpha_deg": estimate.alpha_deg, "beta_deg": estimate.beta_deg,
+                                         "centre_um": estimate.centre_depth, "kernels_used": estimate.kernels_used,
+                                         "frames": len(sweep)}
+        return self.reference.describe()
+
+    def tilt_from_sweep(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None, *,
+                        scan_started_at_ns: int | None = None, source_interval_s=None, took_s: float | None = None,
+                        ) -> dict:
+        """The tilts of a sweep against the taught one's: alpha and beta (degrees, the
+        convention of :mod:`semservo.tilt`) with a confidence (0: not measured, the
+        reason given). With ``method="egi"`` the rotation between the two EGIs."""
+        reference = self.tilt_reference
+        if reference is None or self.reference is None or reference.reference_id != self.reference.id:
+            raise TeachError("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
+        started = time.perf_counter()
+        estimate, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
+        if self.tilt_settings.method == "egi":
+            alpha, beta, peak = egi_tilt_between(reference.depths, depths, self.tilt_settings.kernel_px,
+                                                 reference.pixel_size_um)
+            confidence = min(estimate.confidence, 1.0 if np.isfinite(alpha) else 0.0)
+        else:
+            alpha = estimate.alpha_deg - reference.estimate.alpha_deg
+            beta = estimate.beta_deg - reference.estimate.beta_deg
+            confidence = estimate.confidence
+        self.tilt_sequence += 1
+        result = {
+            "tilt_seq": self.tilt_sequence, "reference_id": reference.reference_id,
+            "alpha_deg": float(alpha) if confidence > 0 else None, "beta_deg": float(beta) if confidence > 0 else None,
+            "confidence": float(confidence), "reason": estimate.reason,
+            "absolute_alpha_deg": estimate.alpha_deg, "absolute_beta_deg": estimate.beta_deg,
+            "centre_um": estimate.centre_depth, "kernels_used": estimate.kernels_used,
+            "kernels_total": estimate.kernels_total, "frames": len(sweep),
+            "working_distances_um": [float(value) for value in working_distances],
+            "scan_started_at_ns": scan_started_at_ns, "source_interval_s": source_interval_s, "sweep_s": took_s,
+            "estimation_ms": (time.perf_counter() - started) * 1e3,
+            # A small depth map for the dashboard: kernel depths from the centre (um), null where unclear.
+            "depth_map_um": [[None if not np.isfinite(v) else round(float(v - estimate.centre_depth), 3)
+                              for v in row] for row in depths],
+        }
+        self.last_tilt = result
+        self.counters["tilt_measurements"] += 1
+        return result
 
     # -- teaching -------------------------------------------------------------
     def _install(self, pixels: np.ndarray, kind: str, pixel_size_nm: float | None, mask=None, **detail) -> dict:
@@ -84,6 +204,7 @@ class EstimatorCore:
             raise TeachError(str(error)) from None
         # Only now, with the new estimator built, is the old reference replaced.
         self.estimator = estimator
+        self.tilt_reference, self.last_tilt = None, None  # a new reference needs its own sweep
         self.reference = Reference(
             id=uuid.uuid4().hex[:12], kind=kind, shape=pixels.shape, pixel_size_nm=pixel_size_nm,
             taught_at_ns=time.time_ns(), detail=detail,
@@ -163,17 +284,25 @@ class EstimatorCore:
                                     fft_effort="FFTW_ESTIMATE")
         estimator.estimate(np.roll(texture, 2, axis=1))
 
-    def measure(self, rotation: bool | None) -> dict:
-        """Measure rotation per frame or not (None: as configured)."""
+    def measure(self, rotation: bool | None, tilts: bool | None = None) -> dict:
+        """Measure rotation per frame or not (None: as configured); measure the tilts
+        from focus sweeps, one after another, or not (None: not)."""
         if rotation and not self.rotation:
             raise TeachError("rotation is off in this estimator's configuration (SEMSERVO_ESTIMATOR__ROTATION)")
+        if tilts and (self.tilt_reference is None or self.reference is None
+                      or self.tilt_reference.reference_id != self.reference.id):
+            raise TeachError("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
         self.measure_rotation = self.rotation if rotation is None else bool(rotation)
-        return {"rotation": self.measure_rotation}
+        self.measure_tilts = bool(tilts)
+        if self.measure_tilts:
+            self.last_tilt = None  # the first sweep of a run is the wide one
+        return {"rotation": self.measure_rotation, "tilts": self.measure_tilts}
 
     def clear(self) -> dict:
         had = self.reference is not None
         self.estimator = None
         self.reference = None
+        self.tilt_reference, self.last_tilt, self.measure_tilts = None, None, False
         return {"cleared": had}
 
     # -- per frame ------------------------------------------------------------
@@ -203,16 +332,34 @@ class EstimatorCore:
             frame_source_interval_s=frame.header.source_interval_s,
             published_at_ns=now, estimation_ms=elapsed_ms,
             latency_ms=(now - frame.header.published_at_ns) / 1e6,
+            **self._tilt_fields(),
         )
         self.counters["estimates"] += 1
         self.last_estimate = estimate
         return estimate
+
+    def _tilt_fields(self) -> dict:
+        """The latest tilt measurement against this reference, carried by every estimate
+        (the controller acts on each one once: by its ``tilt_seq``)."""
+        tilt = self.last_tilt
+        if not self.measure_tilts or tilt is None or self.reference is None or tilt["reference_id"] != self.reference.id:
+            return {}
+        return {"alpha_deg": tilt["alpha_deg"], "beta_deg": tilt["beta_deg"], "tilt_confidence": tilt["confidence"],
+                "tilt_seq": tilt["tilt_seq"], "tilt_scan_started_at_ns": tilt["scan_started_at_ns"],
+                "tilt_frames": tilt["frames"], "tilt_sweep_s": tilt["sweep_s"],
+                "tilt_source_interval_s": tilt["source_interval_s"]}
 
     def report(self) -> dict:
         return {
             "reference": self.reference.describe() if self.reference else None,
             "rotation": self.rotation,
             "measure_rotation": self.measure_rotation,
+            "measure_tilts": self.measure_tilts,
+            "tilt_reference": None if self.tilt_reference is None else {
+                "reference_id": self.tilt_reference.reference_id, "frames": self.tilt_reference.frames,
+                "alpha_deg": self.tilt_reference.estimate.alpha_deg, "beta_deg": self.tilt_reference.estimate.beta_deg},
+            "last_tilt": self.last_tilt,
+            "tilt_error": self.tilt_error,
             "precision": self.precision,
             "latest_frame_seq": self.latest.header.seq if self.latest else None,
             "last_estimate": self.last_estimate.model_dump() if self.last_estimate else None,

@@ -29,9 +29,6 @@ log = logging.getLogger("fakelab.acquisition")
 
 #: The data bar under each saved image, as a fraction of its height.
 DATA_BAR_FRACTION = 0.125
-#: The simulator focuses at a height relative to the part (um); the files say a working
-#: distance as an SEM does: this nominal one plus that height.
-NOMINAL_WORKING_DISTANCE_MM = 10.0
 
 
 def fei_metadata_text(*, pixel_size_nm: float, dwell_ns: float, working_distance_mm: float, rows: int,
@@ -106,7 +103,7 @@ class FolderWriter:
         settings = scan_settings(self.world, self.request)
         pixels, _, _ = self.world.scan(settings)
         text = fei_metadata_text(pixel_size_nm=settings.pixel_um * 1000, dwell_ns=settings.dwell_ns,
-                                 working_distance_mm=NOMINAL_WORKING_DISTANCE_MM + settings.working_distance_um / 1000,
+                                 working_distance_mm=self.world.preset.working_distance_mm + settings.working_distance_um / 1000,
                                  rows=pixels.shape[0],
                                  cols=pixels.shape[1])
         data = encode_fei_tiff(with_data_bar(pixels), text)

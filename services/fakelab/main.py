@@ -184,12 +184,21 @@ def main(argv: list[str] | None = None) -> int:
         return value
 
     def set_rotation_stage(args: dict) -> dict:
+        """``set_rotation_stage {rotation_deg?, tilt_x_deg?, tilt_y_deg?, halt?}``: send
+        the rotation-and-tilt stage towards these angles (it moves at its own speed), or
+        halt it; always says where it is, where it is going and when it gets there."""
+        halt = args.pop("halt", False)
+        if not isinstance(halt, bool):
+            raise BadRequest("halt must be true or false")
         angles = {key: number(value, key, "degrees") for key, value in args.items()}
         try:
+            if halt:
+                world.halt_rotation_stage()
             world.set_rotation_stage(**angles)
         except (TypeError, ValueError) as error:
             raise BadRequest(str(error)) from None
-        return dict(world.rotation_stage)
+        return {**world.rotation_stage, "targets_deg": world.goniometer.targets(),
+                "settles_in_s": world.rotation_stage_settles_in_s()}
 
     def set_preset(args: dict) -> dict:
         name = args.get("preset")
@@ -197,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
             raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
         with world.lock, world.render_lock:  # not while a frame renders with the old SEM
             world.preset = PRESETS[name]
-            world.sem = SEM(world.preset.scene, world.seed)
+            world.sem = SEM.for_preset(world.preset, world.seed)
         return describe({})
 
     def serial_link(args: dict) -> dict:

@@ -22,6 +22,6 @@ def scan_settings(world: World, request: ScanRequest) -> ScanSettings:
         dwell_ns=request.dwell_ns or preset.dwell_ns,
         magnification=request.magnification or preset.magnification,
         rows=request.rows, cols=request.cols,
-        working_distance_um=10.0 if request.working_distance_um is None else request.working_distance_um,
+        working_distance_um=preset.focus_um if request.working_distance_um is None else request.working_distance_um,
         brightness=request.brightness, contrast=request.contrast, bit_depth=request.bit_depth,
     )

@@ -62,6 +62,9 @@ class TeachResult(BaseModel):
         "what the reference's source says of its acquisition: pixel_size_nm, magnification, dwell_ns, "
         "working_distance_mm, high_voltage_kv, detector, instrument, data_bar_rows (absent: not known)"))
     detail: dict[str, Any] = Field(default_factory=dict)
+    tilt: dict[str, Any] | None = Field(None, description=(
+        "taught with tilts: the taught pose's focus sweep (alpha_deg, beta_deg of its plane, centre_um, "
+        "kernels_used, frames)"))
 
 
 class MoveRequest(BaseModel):
@@ -121,6 +124,11 @@ class Status(BaseModel):
     error_um: float | None
     mean_error_px: float | None = None
     cost: float | None
+    rotation_deg: float | None = Field(None, description="the last rotation error about the beam (gamma), degrees")
+    alpha_deg: float | None = Field(None, description="the last measured tilt error about the image's x axis, degrees")
+    beta_deg: float | None = Field(None, description="the last measured tilt error about the image's y axis, degrees")
+    tilt: dict | None = Field(None, description="the estimator's last focus sweep: frames, kernels, a small depth "
+                                                "map (um from the centre's focus; null where unclear)")
     last_latency_ms: float | None
     latency_p50_ms: float | None
     latency_p99_ms: float | None
@@ -211,7 +219,7 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         detail = {k: v for k, v in result.items() if k not in ("id", "kind", "shape", "pixel_size_nm", "acquisition")}
         return TeachResult(id=result["id"], kind=result["kind"], shape=result["shape"],
                            pixel_size_nm=result.get("pixel_size_nm"), thumbnail_url="/reference.png",
-                           acquisition=result.get("acquisition", {}), detail=detail)
+                           acquisition=result.get("acquisition", {}), detail=detail, tilt=result.get("tilt"))
 
     async def read_upload(upload: UploadFile, field: str) -> bytes:
         data = await upload.read(max_upload_bytes + 1)
@@ -231,6 +239,8 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
         image: Annotated[UploadFile | None, File(description="PNG/TIFF reference of the current scan's size")] = None,
         mask: Annotated[UploadFile | None, File(description="PNG/TIFF binary mask (paper case 6)")] = None,
         label: Annotated[str | None, Form(max_length=200)] = None,
+        tilts: Annotated[bool, Query(description="also sweep the focus at the taught pose, so a run can servo the "
+                                                 "tilts alpha and beta (takes a sweep's scans: seconds)")] = False,
     ) -> TeachResult:
         if request.headers.get("content-type", "").split(";")[0].strip() == "application/json":
             # Said, not ignored: a script posting {"frames": 4} would otherwise get one frame.
@@ -240,8 +250,11 @@ def create_app(core: GatewayCore, *, api_token: str | None = None, max_upload_by
             raise GatewayError(422, "invalid", "give one of image, mask, dwell_ns", field="image")
         image_bytes = await read_upload(image, "image") if image is not None else None
         mask_bytes = await read_upload(mask, "mask") if mask is not None else None
+        if tilts and (image is not None or mask is not None):
+            raise GatewayError(422, "invalid", "tilts are taught from the live scan (a focus sweep), not with an "
+                                               "uploaded image or mask", field="tilts")
         result = await asyncio.to_thread(core.teach, frames=frames, image=image_bytes, mask=mask_bytes, label=label,
-                                         dwell_ns=dwell_ns)
+                                         dwell_ns=dwell_ns, tilts=tilts)
         return taught(result)
 
     @app.post("/teach/polygon", response_model=TeachResult, dependencies=Auth, tags=["teach"],

@@ -335,12 +335,17 @@ class GatewayCore:
                           "reference are in two different simulated worlds"), False
         pixel_um = record["records"][-1]["pixel_size_nm"] / 1000
         error_um = [pose["x_um"] - taught["x_um"], pose["y_um"] - taught["y_um"]]
+        # The rotation-and-tilt stage's true angles against the taught ones (degrees).
+        angles = {key: pose[key] - taught[key] for key in ("rotation_deg", "tilt_x_deg", "tilt_y_deg")
+                  if pose.get(key) is not None and taught.get(key) is not None}
         return ({"error_um": error_um, "error_px": [value / pixel_um for value in error_um],
-                 "error_norm_px": float(np.hypot(*error_um) / pixel_um), "pixel_size_um": pixel_um}, None, False)
+                 "error_norm_px": float(np.hypot(*error_um) / pixel_um), "pixel_size_um": pixel_um,
+                 "error_deg": angles}, None, False)
 
     # -- teaching -------------------------------------------------------------
     def teach(self, *, frames: int = 1, image: bytes | None = None, mask: bytes | None = None,
-              polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None) -> dict:
+              polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None,
+              tilts: bool = False) -> dict:
         """Teach the estimator; a refusal keeps the previous reference (the estimator
         installs a new one only when it is built). ``dwell_ns``: scan the reference once
         at that dwell (a slow, high-quality reference, paper case 5)."""
@@ -351,6 +356,9 @@ class GatewayCore:
         scanned_interval = None
         acquisition = {} if latest is None else {key: getattr(latest.header, key) for key in ACQUISITION_FIELDS
                                                  if getattr(latest.header, key) is not None}
+        if tilts and (image is not None or mask is not None or polygon is not None or dwell_ns is not None):
+            raise GatewayError(422, "invalid", "tilts are taught with the live frames (a focus sweep at the taught "
+                                               "pose), not with an upload, a mask or a one-off scan", field="tilts")
         if dwell_ns is not None:
             scan = call(self.ports.get("imageserver"), "imageserver", "scan_once", {"dwell_ns": dwell_ns})
             image = base64.b64decode(scan["image_b64"])
@@ -375,7 +383,7 @@ class GatewayCore:
             result = call(estimator, "estimator", "teach", {"polygon": polygon})
             reference_pixels = latest.pixels if latest is not None else None
         else:
-            result = self._teach_live(frames)
+            result = self._teach_live(frames, tilts)
             reference_pixels = self.latest.pixels if self.latest is not None else None
         # The acquisition the reference was made at (pixel size, magnification, working
         # distance...), as far as its source knows it: it goes with every run's record.
@@ -395,13 +403,15 @@ class GatewayCore:
         self.broadcast({"kind": "reference", "run_id": None, "data": result})
         return result
 
-    def _teach_live(self, frames: int) -> dict:
+    def _teach_live(self, frames: int, tilts: bool = False) -> dict:
         """Teach from the live frames, waiting (up to ``TEACH_FRAMES_WAIT_S``) for as many
-        as asked to average: a system that has just started has sent fewer."""
+        as asked to average: a system that has just started has sent fewer. With
+        ``tilts``, the estimator also sweeps the focus at the taught pose."""
         deadline = self.clock() + TEACH_FRAMES_WAIT_S
         while True:
             try:
-                return call(self.ports.get("estimator"), "estimator", "teach", {"frames": frames})
+                return call(self.ports.get("estimator"), "estimator", "teach",
+                            {"frames": frames, **({"tilts": True} if tilts else {})})
             except GatewayError as error:
                 if error.code != "not_enough_frames" or self.clock() > deadline:
                     raise
@@ -439,7 +449,8 @@ class GatewayCore:
         except (ServiceUnavailable, CommandError):
             return None
         return {"reference_id": reference["id"], "x_um": pose["x_um"], "y_um": pose["y_um"],
-                "world_id": pose.get("world_id")}
+                "world_id": pose.get("world_id"),
+                **{key: pose[key] for key in ("rotation_deg", "tilt_x_deg", "tilt_y_deg") if key in pose}}
 
     # -- images ---------------------------------------------------------------
     def latest_png(self) -> bytes:
@@ -609,6 +620,10 @@ class GatewayCore:
             "error_um": run.get("error_um"),
             "mean_error_px": run.get("mean_error_px"),
             "cost": run.get("cost"),
+            "rotation_deg": run.get("rotation_deg"),
+            "alpha_deg": run.get("alpha_deg"),
+            "beta_deg": run.get("beta_deg"),
+            "tilt": estimator.get("last_tilt"),
             "last_latency_ms": run.get("last_latency_ms"),
             "latency_p50_ms": None if latencies is None else float(np.percentile(latencies, 50)),
             "latency_p99_ms": None if latencies is None else float(np.percentile(latencies, 99)),

@@ -63,7 +63,8 @@ CREATE INDEX IF NOT EXISTS iterations_by_run ON iterations(run_id, iteration);
 
 #: Columns of a run's CSV: one row per iteration, the paper's Fig. 9 quantities.
 CSV_COLUMNS = ("iteration", "seq", "action", "t_ns", "dx_px", "dy_px", "rotation_deg", "error_px", "cost", "gain",
-               "confidence", "snr_db", "move_x_um", "move_y_um", "voltage_x", "voltage_y", "latency_ms")
+               "confidence", "snr_db", "move_x_um", "move_y_um", "voltage_x", "voltage_y", "latency_ms",
+               "alpha_deg", "beta_deg", "tilt_action", "turn_rotation_deg", "turn_tilt_x_deg", "turn_tilt_y_deg")
 
 FINISHED = ("converged", "failed", "stopped")
 
@@ -216,9 +217,12 @@ class RunStore:
         for record in run["trajectory"]:
             move = record.get("move") or {}
             voltages = record.get("voltages") or {}
+            turn = record.get("turn_deg") or {}
             writer.writerow([record.get("iteration"), record.get("seq"), record.get("action"), record.get("t_ns"),
                              record.get("dx_px"), record.get("dy_px"), record.get("rotation_deg"),
                              record.get("error_px"), record.get("cost"), record.get("gain"), record.get("confidence"),
                              record.get("snr_db"), move.get("x_um"), move.get("y_um"), voltages.get("x"),
-                             voltages.get("y"), record.get("latency_ms")])
+                             voltages.get("y"), record.get("latency_ms"), record.get("alpha_deg"),
+                             record.get("beta_deg"), record.get("tilt_action"), turn.get("rotation_deg"),
+                             turn.get("tilt_x_deg"), turn.get("tilt_y_deg")])
         return out.getvalue()

@@ -22,10 +22,11 @@ from semservo.instruments import NotSupported
 from semservo.logs import configure
 from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
-from semservo.transport import BadRequest, FramePublisher, number
+from semservo.transport import BadRequest, CommandError, FramePublisher, number
 from services.imageserver.core import FreezeWatch, ImageServerCore
 from services.imageserver.sources import (BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable,
                                          adapter_source, set_scan)
+from services.imageserver.sweep import FocusSweeps
 from services.imageserver.watch import WatchSource
 
 log = logging.getLogger("imageserver")
@@ -193,6 +194,41 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError as error:  # the source refused the value
             raise BadRequest(f"scan settings: {error}") from None
 
+    sweeps = None
+    if isinstance(source, BackgroundAcquisition) and isinstance(source.source, SimSource):
+        sweep_source = SimSource(source.source.endpoint, source.source.request,
+                                 timeout_s=max(config.scan_timeout_s, 60.0),
+                                 max_message_bytes=settings.max_message_bytes)  # its own socket, in its own thread
+
+        def scan_at(working_distance_um: float):
+            request = source.source.request.model_copy(update={"working_distance_um": working_distance_um})
+            return sweep_source.acquire_with(request)
+
+        sweeps = FocusSweeps(scan_at)
+
+    def start_sweep(args: dict) -> dict:
+        """``start_sweep {working_distances_um: [...]}``: scan the field at each working
+        distance (um offsets from the nominal focus, larger deeper) in the background;
+        fetch the frames with ``sweep {sweep_id}``. Only a scanning source can."""
+        if sweeps is None:
+            raise BadRequest(f"focus sweeps need a scanning source (sim); the {source.name} source cannot focus")
+        try:
+            return sweeps.start(args.get("working_distances_um"))
+        except ValueError as error:
+            raise BadRequest(str(error)) from None
+        except RuntimeError as error:
+            raise CommandError("busy", str(error)) from None
+
+    def sweep(args: dict) -> dict:
+        if sweeps is None:
+            raise BadRequest(f"focus sweeps need a scanning source (sim), not {source.name}")
+        try:
+            return sweeps.result(args.get("sweep_id"))
+        except KeyError as error:
+            raise CommandError("no_such_sweep", str(error.args[0])) from None
+
+    runtime.control.register("start_sweep", start_sweep)
+    runtime.control.register("sweep", sweep)
     runtime.control.register("info", info)
     runtime.control.register("set_scan", scan_settings)
     runtime.control.register("set_fps", set_fps)
@@ -256,6 +292,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return runtime.run(step)
     finally:
+        if sweeps is not None:
+            sweeps.close()
+            sweep_source.close()
         if hasattr(source, "close"):
             source.close()
         publisher.close()

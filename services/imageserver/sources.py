@@ -240,9 +240,13 @@ class SimSource:
     def acquire(self, cancelled=None) -> AcquiredImage:
         """One frame; ``cancelled`` (asked while waiting) abandons the request and
         raises :class:`NotReady`."""
+        return self.acquire_with(self.request, cancelled)
+
+    def acquire_with(self, request: ScanRequest, cancelled=None) -> AcquiredImage:
+        """One frame scanned with ``request`` (e.g. at another working distance)."""
         started = time.monotonic()
         try:
-            parts = self.client.request_parts(self.request.model_dump_json().encode(), timeout_s=self._timeout(),
+            parts = self.client.request_parts(request.model_dump_json().encode(), timeout_s=self._timeout(),
                                               cancelled=cancelled)
         except RequestCancelled:
             raise NotReady from None

@@ -127,6 +127,7 @@ class StageCore:
         self.log_archive: list = []  # entries of drivers closed after a link loss, and of earlier processes
         self.rotation_angles: dict[str, float] | None = None  # as last read (see _rotation_state)
         self.rotation_travel: dict[str, list[float]] = {}
+        self.rotation_targets: dict[str, float] = {}  # where the last commands sent each axis
         self.rotation_link = "not used yet"
         self._log_file = None
         self._restore()
@@ -274,6 +275,7 @@ class StageCore:
             self.watchdog = Watchdog()
             self._persist()
             log.warning("%s", self.state_reason)
+            self._halt_rotation()  # a turn still on its way stops too
         if now - self.last_io > READBACK_S[self.watchdog.armed]:
             try:
                 measured = self._io(lambda driver: driver.read_outputs())
@@ -413,27 +415,36 @@ class StageCore:
             travel = self._rotation_io(self.rotation.travel)
             self.rotation_travel = {axis: list(span) for axis, span in travel.items()}
             current = self.rotation_angles = self._rotation_io(self.rotation.read_angles)
+            # Relative to where the last command sent it (a stage that is still on its way,
+            # or inside its gear's play, is not yet there: adding to its angle now would
+            # drop what remains of the last move).
+            base = {**current, **self.rotation_targets}
             goal = {}
             for axis, value in targets.items():
                 if axis not in travel:
                     raise Refused("bad_axis", f"unknown rotation axis {axis!r}; axes: {', '.join(travel)}")
-                goal[axis] = current[axis] + value if relative else value
+                goal[axis] = base[axis] + value if relative else value
                 low, high = travel[axis]
                 if not low <= goal[axis] <= high:  # NaN fails this too
                     raise Refused("rotation_limit", f"{axis}: {goal[axis]:.4f} degrees is outside the travel "
                                                     f"{low:g}..{high:g}")
-                if abs(goal[axis] - current[axis]) > self.limits.max_turn_deg:
-                    raise Refused("step_limit", f"{axis}: a {abs(goal[axis] - current[axis]):.3f} degree turn "
+                if abs(goal[axis] - base[axis]) > self.limits.max_turn_deg:
+                    raise Refused("step_limit", f"{axis}: a {abs(goal[axis] - base[axis]):.3f} degree turn "
                                                 f"exceeds the maximum of {self.limits.max_turn_deg:g} per command")
         except Refused:
             self.counters["refused"] += 1
             raise
         written_at_ns = time.time_ns()
         angles = self.rotation_angles = self._rotation_io(lambda: self.rotation.move_to(goal))
+        self.rotation_targets.update(goal)
+        settles = getattr(self.rotation, "settles_in_s", None)
+        settles_in_s = float(settles()) if callable(settles) else 0.0
         if owner is not None and owner == self.watchdog.owner:
             self.watchdog.last_contact = self.clock()
         self.counters["turns"] += 1
-        return {"written_at_ns": written_at_ns, "angles_deg": angles}
+        # Until then the stage is still turning: frames scanned meanwhile show a pose in between.
+        return {"written_at_ns": written_at_ns, "angles_deg": angles, "targets_deg": {**angles, **goal},
+                "settled_at_ns": written_at_ns + int(settles_in_s * 1e9)}
 
     def _rotation_io(self, action: Callable[[], object]):
         """A call to the rotation stage; its failures become refusals with the reason."""
@@ -487,13 +498,18 @@ class StageCore:
             except (LinkError, DeviceError) as error:
                 self.last_error = f"stopped, but the driver's halt failed: {error}"
                 log.error("%s", self.last_error)
-        if self.rotation is not None:
-            try:
-                self.rotation.halt()
-            except (LinkError, DeviceError) as error:
-                self.last_error = f"stopped, but the rotation stage's halt failed: {error}"
-                log.error("%s", self.last_error)
+        self._halt_rotation()
         return self.describe()
+
+    def _halt_rotation(self) -> None:
+        if self.rotation is None:
+            return
+        self.rotation_targets.clear()  # it stops where it is
+        try:
+            self.rotation.halt()
+        except (LinkError, DeviceError) as error:
+            self.last_error = f"the rotation stage's halt failed: {error}"
+            log.error("%s", self.last_error)
 
     def resume(self) -> dict:
         self.state, self.state_reason = "ready", ""

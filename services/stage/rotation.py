@@ -5,24 +5,30 @@ link. A real one plugs in as another :class:`semservo.instruments.RotationStageD
 
 from __future__ import annotations
 
+import time
+
 from semservo.instruments import DeviceError, LinkError
 from semservo.simulation.world import ROTATION_STAGE_LIMITS_DEG
 from semservo.transport import CommandError, ControlClient, ServiceUnavailable
 
 
 class FakelabRotationStage:
-    """:class:`semservo.instruments.RotationStageDriver` for the simulated stage."""
+    """:class:`semservo.instruments.RotationStageDriver` for the simulated stage (it
+    moves at a finite speed, with backlash: :mod:`semservo.simulation.goniometer`)."""
 
     def __init__(self, client: ControlClient):
         self.client = client
+        self.settles_at = 0.0  # monotonic time at which the last move has arrived
 
-    def _request(self, **angles: float) -> dict[str, float]:
+    def _request(self, **args) -> dict[str, float]:
         try:
-            return {axis: float(value) for axis, value in self.client.request("set_rotation_stage", **angles).items()}
+            reply = self.client.request("set_rotation_stage", **args)
         except ServiceUnavailable as error:
             raise LinkError(f"the rotation stage (fake lab) does not answer: {error}") from None
         except CommandError as error:
             raise DeviceError(f"the rotation stage refused: {error.message}") from None
+        self.settles_at = time.monotonic() + float(reply.get("settles_in_s", 0.0))
+        return {axis: float(value) for axis, value in reply.items() if axis in ROTATION_STAGE_LIMITS_DEG}
 
     def travel(self) -> dict[str, tuple[float, float]]:
         return dict(ROTATION_STAGE_LIMITS_DEG)
@@ -31,10 +37,14 @@ class FakelabRotationStage:
         return self._request()
 
     def move_to(self, angles: dict[str, float]) -> dict[str, float]:
-        return self._request(**angles)
+        self._request(**angles)
+        return self.read_angles()
+
+    def settles_in_s(self) -> float:
+        return max(self.settles_at - time.monotonic(), 0.0)
 
     def halt(self) -> None:
-        """The simulated stage reaches each target at once: nothing is ever in motion."""
+        self._request(halt=True)
 
     def close(self) -> None:
         self.client.close()
@@ -60,8 +70,11 @@ class WorldRotationStage:
             raise DeviceError(str(error)) from None
         return self.read_angles()
 
+    def settles_in_s(self) -> float:
+        return self.world.rotation_stage_settles_in_s()
+
     def halt(self) -> None:
-        """Every target is reached at once: nothing is ever in motion."""
+        self.world.halt_rotation_stage()
 
     def close(self) -> None:
         """Nothing to close."""

@@ -68,7 +68,8 @@ def _headers(token: str | None) -> dict[str, str]:
 
 
 def _teach_request(frames: int, image: str | Path | bytes | None, mask: str | Path | bytes | None,
-                   polygon: list | None, label: str | None, dwell_ns: float | None = None) -> tuple[str, dict]:
+                   polygon: list | None, label: str | None, dwell_ns: float | None = None,
+                   tilts: bool = False) -> tuple[str, dict]:
     if polygon is not None:
         return "/teach/polygon", {"json": {"polygon": polygon}}
     files, data = {}, {}
@@ -79,7 +80,11 @@ def _teach_request(frames: int, image: str | Path | bytes | None, mask: str | Pa
     if label:
         data["label"] = label
     params = {"frames": frames} if dwell_ns is None else {"frames": frames, "dwell_ns": dwell_ns}
-    return "/teach", {"params": params, "files": files or None, "data": data or None}
+    if tilts:
+        params["tilts"] = "true"
+    # A teach with tilts waits for a focus sweep: seconds to a minute of scans.
+    extra = {"timeout": 150.0} if tilts else {}
+    return "/teach", {"params": params, "files": files or None, "data": data or None, **extra}
 
 
 def _move_body(x_um: float | None, y_um: float | None, relative: bool) -> dict:
@@ -124,11 +129,13 @@ class Client:
             else response.content
 
     def teach(self, *, frames: int = 1, image: str | Path | bytes | None = None, mask: str | Path | bytes | None = None,
-              polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None) -> dict:
+              polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None,
+              tilts: bool = False) -> dict:
         """Teach the live frame (``frames`` > 1 averages that many), one scan at a slow
         ``dwell_ns`` (a high-quality reference), an image file, a mask image, or a
-        polygon of corner points [[x, y], ...] on the live frame."""
-        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns)
+        polygon of corner points [[x, y], ...] on the live frame. ``tilts``: also sweep
+        the focus at the taught pose, so runs can servo alpha and beta."""
+        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns, tilts)
         return self._call("POST", path, **kwargs)
 
     def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:
@@ -215,8 +222,8 @@ class AsyncClient:
             else response.content
 
     async def teach(self, *, frames: int = 1, image=None, mask=None, polygon: list | None = None,
-                    label: str | None = None, dwell_ns: float | None = None) -> dict:
-        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns)
+                    label: str | None = None, dwell_ns: float | None = None, tilts: bool = False) -> dict:
+        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns, tilts)
         return await self._call("POST", path, **kwargs)
 
     async def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:

@@ -96,7 +96,7 @@ class ImageServerSettings(BaseModel):
     dwell_ns: PositiveFloat | None = Field(None, description="dwell time per pixel when a file does not say")
     scan_dwell_ns: PositiveFloat | None = Field(None, description="sim: dwell to request (default: the preset's)")
     scan_magnification: PositiveFloat | None = Field(None, description="sim: magnification to request")
-    scan_working_distance_um: float | None = Field(None, description="sim: focal plane height (default: the part's top)")
+    scan_working_distance_um: float | None = Field(None, description="sim: focus, the working distance's offset from the stage's reference surface in um, larger deeper (default: the preset's, the part's top)")
     scan_brightness: float = Field(0.0, ge=-1, le=1, description="sim: offset, fraction of full scale")
     scan_contrast: float = Field(1.0, gt=0, le=10, description="sim: gain")
     scan_bit_depth: Literal[8, 16] = Field(8, description="sim: 8- or 16-bit frames")
@@ -129,6 +129,16 @@ class EstimatorSettings(BaseModel):
     rotation: bool = Field(True, description="estimate rotation about the beam too")
     precision: Literal["fast", "full"] = Field("full", description="sub-pixel fit at full resolution (default) or on the 2x search pair")
     fft_effort: Literal["FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"] = "FFTW_MEASURE"
+    tilt_method: Literal["plane", "egi"] = Field(
+        "plane", description="tilts from the focus sweep: a robust plane fit (default) or the paper's EGI correlation")
+    tilt_depth_of_field_um: float = Field(
+        3.5, gt=0, le=1e4, description="the SEM's depth of field for the tilt sweeps (2 P / beam half-angle): sets "
+                                       "their step; the fake lab's tilts preset: 3.5 um")
+    tilt_centre_um: float = Field(0.0, ge=-1e4, le=1e4, description="working distance offset (um) the first sweep is "
+                                                                    "centred on: where the taught view is in focus")
+    tilt_max_deg: float = Field(15.0, gt=0, le=45, description="the first sweep is wide enough for this much tilt")
+    tilt_kernel_px: int = Field(32, ge=8, le=256, description="kernel size of the focus measure (eq. 13)")
+    sweep_timeout_s: float = Field(120.0, gt=0, le=3600, description="a focus sweep that takes longer has failed")
 
 
 class StageSettings(BaseModel):

@@ -169,6 +169,7 @@ class CameraToStage:
     axis_signs: tuple[int, int] = (1, 1)
     orientation_deg: float = 0.0
     rotation_sign: int = 1  # +1: a positive rotation stage turn turns content counter-clockwise
+    tilt_signs: tuple[int, int] = (1, 1)  # +1: a positive stage tilt tilts the surface by +alpha / +beta
 
     def stage_move_um(self, content_dx_px: float, content_dy_px: float, pixel_size_nm: float) -> tuple[float, float]:
         """The stage move (um, stage axes) that moves the content by (dx, dy) px."""
@@ -260,3 +261,60 @@ class ControlLaw:
             "velocity": velocity.tolist(), "move": move,
             "integral": None if self.integral is None else self.integral.tolist(),
         }
+
+
+# --------------------------------------------------------------------------------------
+# The tilts: the theta-u rotation feature (eq. 30, 34) for alpha and beta
+
+#: The out-of-plane degrees of freedom, measured from focus sweeps (alpha about the
+#: image's x axis, beta about its y axis; :mod:`semservo.tilt`'s convention).
+TILT_DEGREES_OF_FREEDOM = ("alpha", "beta")
+
+
+def theta_u(rotation: np.ndarray) -> np.ndarray:
+    """The rotation vector theta u of a rotation matrix (the feature of eq. 30)."""
+    cosine = np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0)
+    theta = math.acos(cosine)
+    if theta < 1e-12:
+        return np.zeros(3)
+    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
+    return theta * axis / (2 * math.sin(theta))
+
+
+@dataclass
+class TiltLaw:
+    """The law of eq. 36-37 for the tilts: the error is the theta-u vector of the tilt
+    rotation R_x(alpha) R_y(beta) between the current and the taught surface (eq. 30),
+    its interaction matrix the x-y block of L_w (eq. 34), damped as eq. 36. It runs at
+    the rate of the focus sweeps, with the time between two sweeps as its sampling time,
+    and keeps its own previous velocity for eq. 37."""
+
+    dofs: tuple[str, ...] = TILT_DEGREES_OF_FREEDOM
+    gain: AdaptiveGain | ExponentialGain = field(default_factory=AdaptiveGain)
+    tilt_signs: tuple[int, int] = (1, 1)  # +1: a positive stage tilt tilts the surface by +alpha / +beta
+    previous_velocity: np.ndarray | None = None
+
+    def step(self, alpha_deg: float, beta_deg: float, sampling_time_s: float) -> dict:
+        """Error (rad), cost, gain, velocity (rad/s) and the stage's tilt move (degrees,
+        ``{"tilt_x_deg", "tilt_y_deg"}`` for the chosen DOFs)."""
+        from semservo.tilt import tilt_rotation  # the convention lives there
+
+        unknown = set(self.dofs) - set(TILT_DEGREES_OF_FREEDOM)
+        if unknown:
+            raise ValueError(f"unknown tilt degrees of freedom {sorted(unknown)}")
+        vector = theta_u(tilt_rotation(alpha_deg if "alpha" in self.dofs else 0.0,
+                                       beta_deg if "beta" in self.dofs else 0.0))
+        theta = float(np.linalg.norm(vector))
+        full = theta_u_interaction(theta, vector if theta > 0 else (1.0, 0.0, 0.0))
+        index = [TILT_DEGREES_OF_FREEDOM.index(dof) for dof in self.dofs]
+        error = vector[index]
+        interaction = full[np.ix_(index, index)]
+        gain = min(self.gain(np.degrees(error)), NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
+        velocity = levenberg_marquardt_velocity(error, interaction, gain)
+        previous = self.previous_velocity if self.previous_velocity is not None else velocity
+        moved = displacement(previous, velocity, sampling_time_s)
+        self.previous_velocity = velocity
+        axes = {"alpha": ("tilt_x_deg", self.tilt_signs[0]), "beta": ("tilt_y_deg", self.tilt_signs[1])}
+        move = {axes[dof][0]: math.degrees(value) * axes[dof][1] for dof, value in zip(self.dofs, moved)}
+        return {"error": error.tolist(), "cost": cost(error), "gain": gain, "velocity": velocity.tolist(),
+                "move": move}

@@ -200,7 +200,13 @@ class RotationStageDriver(Protocol):
         """Where every axis is now."""
 
     def move_to(self, angles: dict[str, float]) -> dict[str, float]:
-        """Move these axes; return every axis's angle afterwards."""
+        """Start moving these axes; return every axis's angle now (a stage that moves at
+        a finite speed is still on its way: see :meth:`settles_in_s`)."""
+
+    def settles_in_s(self) -> float:
+        """Seconds (wall clock) until the last move has arrived; 0 when still. The
+        stage service tells the controller, which treats frames scanned before then as
+        stale. Optional: a driver without it is taken to arrive at once."""
 
     def halt(self) -> None:
         """Stop any motion in progress."""

@@ -150,6 +150,16 @@ class MotionEstimate(_Message):
     published_at_ns: int = Field(ge=0, description="Unix time (ns) this estimate was sent")
     estimation_ms: float = Field(ge=0, description="time spent estimating")
     latency_ms: float = Field(description="frame published -> estimate published")
+    # The latest tilt measurement (focus sweep) against the reference, while tilts are
+    # measured: alpha about x, beta about y (degrees, :mod:`semservo.tilt`'s convention).
+    alpha_deg: float | None = None
+    beta_deg: float | None = None
+    tilt_confidence: float | None = Field(None, ge=0, le=1)
+    tilt_seq: int | None = Field(None, ge=0, description="which sweep: a new number is a new measurement")
+    tilt_scan_started_at_ns: int | None = Field(None, ge=0, description="when that sweep's first scan began")
+    tilt_frames: int | None = Field(None, ge=0, description="frames that sweep took")
+    tilt_sweep_s: float | None = Field(None, ge=0, description="wall time that sweep took")
+    tilt_source_interval_s: tuple[float, float] | None = Field(None, description="that sweep on the source's clock")
 
 
 class ScanRequest(_Message):

@@ -104,17 +104,18 @@ POISON = [math.nan, math.inf, -math.inf, 1e308, -1e308, 2**70, -(2**70), "x", No
 #: Every command each service answers, and the arguments it takes.
 COMMANDS = {
     "fakelab": {"info": [], "pose": ["t_s", "interval_s"], "set_rotation_stage": ["rotation_deg", "tilt_x_deg",
-                                                                                  "tilt_y_deg"],
+                                                                                  "tilt_y_deg", "halt"],
                 "set_preset": ["preset"], "serial_link": ["plugged"]},
     "imageserver": {"info": [], "set_fps": ["fps"], "scan_once": ["dwell_ns", "magnification"],
-                    "set_scan": ["dwell_ns", "magnification", "working_distance_mm"]},
-    "estimator": {"teach": ["frames", "image_b64", "path", "polygon", "mask_b64"], "clear": [], "report": [],
-                  "measure": ["rotation"]},
+                    "set_scan": ["dwell_ns", "magnification", "working_distance_mm"],
+                    "start_sweep": ["working_distances_um"], "sweep": ["sweep_id"]},
+    "estimator": {"teach": ["frames", "image_b64", "path", "polygon", "mask_b64", "tilts"], "clear": [], "report": [],
+                  "measure": ["rotation", "tilts"]},
     "stage": {"state": [], "move": ["targets", "relative", "owner"], "rotate": ["targets", "relative", "owner"],
               "set_voltages": ["voltages", "owner"],
               "arm": ["hold_after_s", "owner"], "disarm": ["owner"], "heartbeat": ["owner"], "log": ["since_ns"]},
     "controller": {"status": [], "run": ["id"], "start": ["tolerance_px", "gain_scale", "max_move_um", "dofs",
-                                                          "estimate_timeout_s"]},
+                                                          "estimate_timeout_s", "tolerance_tilt_deg", "max_turn_deg"]},
 }
 
 

@@ -167,8 +167,12 @@ def test_a_serial_move_shows_in_the_pose_and_the_simulated_frames(fakelab, ports
 
 def test_rotation_stage_and_bad_requests(fakelab):
     _, control, _ = fakelab
-    assert control.request("set_rotation_stage", rotation_deg=2.5)["rotation_deg"] == 2.5
-    assert control.request("pose")["rotation_deg"] == 2.5
+    sent = control.request("set_rotation_stage", rotation_deg=2.5)
+    assert sent["targets_deg"]["rotation_deg"] == 2.5 and sent["settles_in_s"] > 0  # it turns at its own speed
+    time.sleep(sent["settles_in_s"] + 0.05)
+    assert control.request("pose")["rotation_deg"] == pytest.approx(2.5, abs=0.01)
+    halted = control.request("set_rotation_stage", halt=True)
+    assert halted["settles_in_s"] == 0
     from semservo.transport import CommandError
 
     with pytest.raises(CommandError, match="unknown rotation stage axis"):

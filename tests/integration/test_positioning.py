@@ -107,7 +107,7 @@ def test_servoes_the_rotation_about_the_beam_through_the_stage_service(lab):
     taught = lab["fakelab"].request("pose", interval_s=reference["source_interval_s"])
     lab["stage"].request("move", targets={"x": 3.0, "y": -2.0}, relative=True)
     turned = lab["stage"].request("rotate", targets={"rotation_deg": 1.5}, relative=True)
-    assert turned["angles_deg"]["rotation_deg"] == pytest.approx(taught["rotation_deg"] + 1.5)
+    assert turned["targets_deg"]["rotation_deg"] == pytest.approx(taught["rotation_deg"] + 1.5)
 
     run = lab["controller"].request("start", tolerance_px=0.3, tolerance_deg=0.05, dofs=["x", "y", "rotation"])
     status = wait_for(lambda: (s := lab["controller"].request("status"))["state"] != "servoing" and s, 120,

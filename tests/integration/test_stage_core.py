@@ -374,9 +374,14 @@ def turning_stage(link):
 def test_the_rotation_stage_turns_through_the_stage_and_its_rules(turning_stage):
     stage, world = turning_stage
     turned = stage.rotate({"rotation_deg": 2.5}, relative=True)
-    assert turned["angles_deg"]["rotation_deg"] == pytest.approx(2.5) == world.rotation_stage["rotation_deg"]
+    # The stage turns at its own speed: the reply says where it is going and when it gets there.
+    assert turned["targets_deg"]["rotation_deg"] == pytest.approx(2.5) == world.goniometer.targets()["rotation_deg"]
+    assert turned["settled_at_ns"] > turned["written_at_ns"]
+    stage.rotate({"rotation_deg": 0.5}, relative=True)  # relative to where it was sent, not to where it is yet
+    assert world.goniometer.targets()["rotation_deg"] == pytest.approx(3.0)
     stage.rotate({"tilt_x_deg": -4.0})
-    assert stage.describe()["rotation"]["angles_deg"] == {"rotation_deg": 2.5, "tilt_x_deg": -4.0, "tilt_y_deg": 0.0}
+    assert world.pose(world.now() + 5.0).rotation_deg == pytest.approx(3.0, abs=0.01)
+    assert world.goniometer.targets() == {"rotation_deg": 3.0, "tilt_x_deg": -4.0, "tilt_y_deg": 0.0}
     for targets, relative, code in [
         ({"rotation_deg": float("nan")}, True, "rotation_limit"),
         ({"rotation_deg": float("inf")}, False, "rotation_limit"),
@@ -388,7 +393,8 @@ def test_the_rotation_stage_turns_through_the_stage_and_its_rules(turning_stage)
         with pytest.raises(Refused) as refusal:
             stage.rotate(targets, relative=relative)
         assert refusal.value.code == code
-    assert world.rotation_stage == {"rotation_deg": 2.5, "tilt_x_deg": -4.0, "tilt_y_deg": 0.0}, "nothing moved"
+    assert world.goniometer.targets() == {"rotation_deg": 3.0, "tilt_x_deg": -4.0, "tilt_y_deg": 0.0}, \
+        "nothing more was commanded"
 
 
 def test_a_stopped_or_owned_stage_does_not_turn(turning_stage):
@@ -399,10 +405,13 @@ def test_a_stopped_or_owned_stage_does_not_turn(turning_stage):
     assert refusal.value.code == "owned"
     stage.rotate({"rotation_deg": 1.0}, relative=True, owner="run-1")
     stage.stop("operator")
+    # A stop halts a turn on its way: the stage stays where the stop found it.
+    halted = world.goniometer.targets()["rotation_deg"]
+    assert 0.0 <= halted <= 1.0
     with pytest.raises(Refused) as refusal:
         stage.rotate({"rotation_deg": 1.0}, relative=True, owner="run-1")
     assert refusal.value.code == "stopped"
-    assert world.rotation_stage["rotation_deg"] == 1.0
+    assert world.goniometer.targets()["rotation_deg"] == halted
 
 
 def test_a_lab_without_a_rotation_stage_says_so(stage):
@@ -410,3 +419,68 @@ def test_a_lab_without_a_rotation_stage_says_so(stage):
         stage.rotate({"rotation_deg": 1.0}, relative=True)
     assert refusal.value.code == "no_rotation_stage"
     assert stage.describe()["rotation"] is None
+
+
+class TiltingEstimator:
+    """The estimator's port for a tilt run: it accepts ``measure`` with tilts."""
+
+    def __init__(self):
+        self.asked = []
+
+    def request(self, command: str, args: dict | None = None) -> dict:
+        self.asked.append((command, args))
+        return {"reference": {"id": "ref"}} if command == "report" else {}
+
+
+def with_tilt(base: MotionEstimate, seq: int, alpha: float, beta: float, started_ns: int,
+              confidence: float = 0.9) -> MotionEstimate:
+    return base.model_copy(update={"alpha_deg": alpha, "beta_deg": beta, "tilt_confidence": confidence,
+                                   "tilt_seq": seq, "tilt_scan_started_at_ns": started_ns, "tilt_frames": 9,
+                                   "tilt_source_interval_s": (seq * 4.0, seq * 4.0 + 3.0)})
+
+
+def test_the_tilts_are_servoed_once_per_fresh_sweep_and_saturated(turning_stage, tmp_path):
+    import time
+
+    stage, world = turning_stage
+    estimator = TiltingEstimator()
+    core = ControllerCore(LocalStage(stage), estimator=estimator, runs_dir=tmp_path)
+    core.start(RunSettings(dofs=["x", "y", "gamma", "alpha", "beta"], converge_frames=1, max_turn_deg=2.0), "ref")
+    assert ("measure", {"rotation": True, "tilts": True}) in estimator.asked
+    assert core.settings.dofs == ["x", "y", "rotation", "alpha", "beta"], "gamma is the rotation about the beam"
+    now = time.time_ns()
+    first = core.on_estimate(with_tilt(estimate(1, 0.0, 0.0, scan_started_at_ns=now), 1, 12.0, -0.5, now))
+    # A 12 degree tilt error: the move is saturated at max_turn_deg, with the right signs.
+    assert first["tilt_action"] == "moved" and first["saturated"]
+    assert first["turn_deg"]["tilt_x_deg"] == pytest.approx(-2.0) and 0 < first["turn_deg"]["tilt_y_deg"] < 2.0
+    assert world.goniometer.targets()["tilt_x_deg"] == pytest.approx(-2.0)
+    # The same sweep again does not move the tilts twice; a sweep scanned during the
+    # tilt move is held.
+    later = time.time_ns()
+    again = core.on_estimate(with_tilt(estimate(2, 0.0, 0.0, scan_started_at_ns=later + 10**9), 1, 12.0, -0.5, now))
+    assert "tilt_action" not in again and "tilt_x_deg" not in again.get("turn_deg", {})
+    during = core.on_estimate(with_tilt(estimate(3, 0.0, 0.0, scan_started_at_ns=later + 2 * 10**9), 2, 10.0, -0.4,
+                                        first["command_settled_at_ns"] - 1))
+    assert during["tilt_action"].startswith("held: sweep scanned during")
+    # Converged only once a fresh sweep says the tilts are within tolerance.
+    assert core.state == "servoing"
+    settled = max(first["command_settled_at_ns"], during.get("command_settled_at_ns", 0))
+    done = core.on_estimate(with_tilt(estimate(4, 0.01, 0.0, scan_started_at_ns=settled + 10**9), 3, 0.04, -0.03,
+                                      settled + 1))
+    assert done["tilt_action"] == "within tolerance" and core.state == "converged", core.reason
+    assert ("measure", {"rotation": None, "tilts": None}) in estimator.asked, "the estimator is told the run ended"
+
+
+def test_a_tilt_run_without_a_taught_sweep_is_refused(turning_stage, tmp_path):
+    stage, _ = turning_stage
+
+    class NoSweep(TiltingEstimator):
+        def request(self, command, args=None):
+            if command == "measure" and (args or {}).get("tilts"):
+                raise CommandError("no_tilt_reference", "no tilt reference: teach with tilts=true first")
+            return super().request(command, args)
+
+    core = ControllerCore(LocalStage(stage), estimator=NoSweep(), runs_dir=tmp_path)
+    with pytest.raises(ValueError, match="teach with tilts=true"):
+        core.start(RunSettings(dofs=["x", "y", "alpha"]), "ref")
+    assert core.state == "idle" and stage.watchdog.owner is None

@@ -59,9 +59,9 @@ def test_a_run_that_cannot_turn_switches_rotation_off_and_back():
     core.process(frame(texture, 0))
     core.teach_latest()
     turned = rotate_about_centre(texture, 5.0)  # content turned: measured only when asked
-    assert core.measure(False) == {"rotation": False}
+    assert core.measure(False) == {"rotation": False, "tilts": False}
     assert core.process(frame(turned, 1)).rotation_deg == 0.0
-    assert core.measure(None) == {"rotation": True}  # back to the configuration
+    assert core.measure(None) == {"rotation": True, "tilts": False}  # back to the configuration
     assert core.process(frame(turned, 2)).rotation_deg == pytest.approx(5.0, abs=0.3)
 
 
@@ -69,4 +69,29 @@ def test_rotation_cannot_be_asked_of_an_estimator_configured_without_it():
     core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
     with pytest.raises(TeachError, match="rotation is off"):
         core.measure(True)
-    assert core.measure(False) == {"rotation": False}
+    assert core.measure(False) == {"rotation": False, "tilts": False}
+
+
+def test_tilts_are_measured_against_the_taught_sweep_and_refused_without_one():
+    from tests.unit.test_tilt import KERNEL, PIXEL_UM, SIZE, WORKING_DISTANCES_UM, sweep_of_plane, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    with pytest.raises(TeachError, match="teach with tilts=true"):
+        core.measure(None, tilts=True)
+    with pytest.raises(TeachError, match="cannot tell the tilts"):  # a featureless sweep is refused
+        core.teach_tilt(sweep_of_plane(1.0, 1.0, scene=np.full((SIZE, SIZE), 120.0)), list(WORKING_DISTANCES_UM),
+                        PIXEL_UM * 1000)
+    taught = core.teach_tilt(sweep_of_plane(1.0, -1.0), list(WORKING_DISTANCES_UM), PIXEL_UM * 1000)
+    assert taught["tilt"]["alpha_deg"] == pytest.approx(1.0, abs=0.3)
+    assert core.measure(None, tilts=True)["tilts"] is True
+    measured = core.tilt_from_sweep(sweep_of_plane(4.0, -3.0), list(WORKING_DISTANCES_UM), PIXEL_UM * 1000,
+                                    scan_started_at_ns=5)
+    # Against the taught sweep: (4 - 1, -3 - -1) degrees.
+    assert measured["alpha_deg"] == pytest.approx(3.0, abs=0.3) and measured["beta_deg"] == pytest.approx(-2.0, abs=0.3)
+    assert measured["confidence"] > 0.5 and len(measured["depth_map_um"]) == SIZE // KERNEL
+    estimate = core.process(frame(texture().astype(np.float32), 1, pixel_size_nm=PIXEL_UM * 1000))
+    assert estimate.tilt_seq == measured["tilt_seq"] and estimate.alpha_deg == measured["alpha_deg"]
+    core.teach_latest()  # a new reference needs its own sweep
+    assert core.tilt_reference is None

@@ -160,3 +160,35 @@ def test_a_background_source_keeps_the_service_responsive_and_delivers_frames(tm
         assert [int(image.pixels[0, 0]) for _, image in frames] == [1, 2, 3]
     finally:
         source.close()
+
+
+def test_a_focus_sweep_scans_each_working_distance_in_the_background():
+    import time as clock
+
+    from semservo.instruments import AcquiredImage
+    from services.imageserver.sweep import FocusSweeps, check_working_distances, decode_sweep
+
+    scanned = []
+
+    def scan(working_distance_um: float) -> AcquiredImage:
+        scanned.append(working_distance_um)
+        return AcquiredImage(pixels=np.full((8, 8), len(scanned), np.uint8), acquired_at_ns=len(scanned),
+                             scan_started_at_ns=len(scanned), source_interval_s=(len(scanned), len(scanned) + 0.5),
+                             pixel_size_nm=70.0)
+
+    sweeps = FocusSweeps(scan)
+    started = sweeps.start([-1.0, 0.0, 1.0])
+    for _ in range(100):
+        result = sweeps.result(started["sweep_id"])
+        if result["state"] != "scanning":
+            break
+        clock.sleep(0.01)
+    assert result["state"] == "done" and scanned == [-1.0, 0.0, 1.0]
+    frames = decode_sweep(result)
+    assert frames.shape == (3, 8, 8) and frames[2, 0, 0] == 3 and result["source_interval_s"] == [1, 3.5]
+    with pytest.raises(KeyError):
+        sweeps.result("nope")
+    for bad in ([0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 1.0, 3.0], [0.0, float("nan"), 1.0], "0,1,2", [0, True, 2]):
+        with pytest.raises(ValueError):
+            check_working_distances(bad)
+    sweeps.close()

@@ -10,6 +10,7 @@ import pytest
 from semservo.config import pixel_size_nm
 from semservo.estimation import MotionEstimator
 from semservo.simulation.piezo import PiezoAxis, voltage_for
+from semservo.simulation.goniometer import BACKLASH_DEG
 from semservo.simulation.sem import SEM, Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
 
@@ -82,7 +83,7 @@ def sharpness(image: np.ndarray) -> float:
 
 def test_defocus_blur_grows_with_height_offset_and_recovers_in_focus():
     sem = SEM("gold-on-carbon", seed=3)
-    settings = ScanSettings(dwell_ns=5800.0, magnification=5000.0, working_distance_um=0.2)
+    settings = ScanSettings(dwell_ns=5800.0, magnification=5000.0, working_distance_um=-0.2)
     in_focus = sharpness(render(sem, settings, Pose(z_um=0.0)))
     values = [sharpness(render(sem, settings, Pose(z_um=z))) for z in (10.0, 25.0, 60.0)]
     assert in_focus > values[0] > values[1] > values[2]
@@ -91,8 +92,9 @@ def test_defocus_blur_grows_with_height_offset_and_recovers_in_focus():
 
 def test_tilt_defocuses_the_field_away_from_the_tilt_axis():
     # The paper's tilt estimation assumes a depth of field under 300 nm: a wide beam.
-    sem = SEM("gold-on-carbon", seed=3, beam_half_angle=0.1)
-    settings = ScanSettings(dwell_ns=5800.0, magnification=5000.0, working_distance_um=0.2)
+    # Tilted about axes through the surface (no pivot lever), so the centre stays in focus.
+    sem = SEM("gold-on-carbon", seed=3, beam_half_angle=0.1, pivot_depth_um=0.0)
+    settings = ScanSettings(dwell_ns=5800.0, magnification=5000.0, working_distance_um=-0.2)
     tilted = render(sem, settings, Pose(tilt_y_deg=30.0))
     flat = render(sem, settings)
     # Tilted about the field's centre: focused there, one edge above focus, one below.
@@ -147,7 +149,13 @@ def test_piezo_settles_and_creeps_after_a_step():
 
 def test_presets_cover_the_papers_conditions():
     assert set(PRESETS) == {"optimal", "noisy", "high-magnification", "unstable", "high-quality-reference",
-                            "mask-reference", "repeated-pattern"}
+                            "mask-reference", "repeated-pattern", "tilts"}
+    # The tilt regime: a small depth of field (2 P / alpha) of a few micrometres.
+    from semservo.simulation.sem import beam_half_angle
+    tilts = PRESETS["tilts"]
+    depth_of_field = 2 * pixel_size_nm(tilts.magnification, 512) / 1000 / beam_half_angle(tilts.aperture_um,
+                                                                                          tilts.working_distance_mm)
+    assert 2 < depth_of_field < 5
     assert (PRESETS["optimal"].dwell_ns, PRESETS["optimal"].magnification) == (720, 1200)
     assert PRESETS["noisy"].dwell_ns == 180
     assert (PRESETS["high-magnification"].magnification, PRESETS["high-magnification"].dwell_ns) == (5000, 360)
@@ -189,8 +197,10 @@ def test_the_rotation_stage_refuses_nan_and_what_is_beyond_its_travel():
     with pytest.raises(ValueError, match="tilt_x_deg"):
         world.set_rotation_stage(rotation_deg=10.0, tilt_x_deg=float("nan"))
     assert world.rotation_stage["rotation_deg"] == 0.0, "refused whole: nothing changed"
+    assert world.goniometer.targets()["tilt_x_deg"] == 0.0
     world.set_rotation_stage(rotation_deg=12.5)
-    assert world.pose().rotation_deg == 12.5
+    # It gets there at its own speed (10 degrees per simulated second).
+    assert world.pose(world.now() + 2.0).rotation_deg == pytest.approx(12.5 - BACKLASH_DEG["rotation_deg"] / 2)
 
 
 def test_a_failed_render_does_not_stop_simulated_time(monkeypatch):

@@ -23,7 +23,7 @@ def texture(seed: int = 3) -> np.ndarray:
 def sweep_of_plane(alpha_deg: float, beta_deg: float, centre_um: float = 0.1, scene: np.ndarray | None = None,
                    seed: int = 5) -> np.ndarray:
     """Frames of a tilted plane at each working distance: each kernel blurred by its
-    distance from focus at its centre (depth = centre + tan(alpha) y - tan(beta) x,
+    distance from focus at its centre (depth = centre + tan(alpha) y - tan(beta) x / cos(alpha),
     the module's convention), with shot-like noise."""
     scene = texture() if scene is None else scene
     rng = np.random.default_rng(seed)
@@ -34,7 +34,8 @@ def sweep_of_plane(alpha_deg: float, beta_deg: float, centre_um: float = 0.1, sc
         blurred: dict[float, np.ndarray] = {}
         for row, y in enumerate(centres):
             for col, x in enumerate(centres):
-                depth = centre_um + np.tan(np.radians(alpha_deg)) * y * PIXEL_UM - np.tan(np.radians(beta_deg)) * x * PIXEL_UM
+                depth = (centre_um + np.tan(np.radians(alpha_deg)) * y * PIXEL_UM
+                         - np.tan(np.radians(beta_deg)) / np.cos(np.radians(alpha_deg)) * x * PIXEL_UM)
                 sigma = round(BLUR_PX_PER_UM * abs(depth - distance), 2)
                 if sigma not in blurred:
                     blurred[sigma] = cv2.GaussianBlur(scene, (0, 0), sigma) if sigma > 0.05 else scene

@@ -4,9 +4,16 @@ Facts from ``shared/reference/sem-imaging.md``:
 
 * Pixel size on the sample P = D / G (paper eq. 43), D = 212.3 um for 512 pixels.
 * Probe: a Gaussian point-spread function (sigma ~0.7 px in focus), optionally
-  astigmatic. Defocus: beyond half the depth of field DoF = 2 P / alpha (alpha the beam
-  half-angle, 7.2 mrad here: DoF 59 um at x1000, 12 um at x5000) the beam widens by
-  alpha |z - WD|.
+  astigmatic. Defocus: the beam widens by alpha |z - WD| (alpha the beam half-angle,
+  the aperture's radius over the working distance: 7.2 mrad by default, 40 mrad in the
+  small-depth-of-field ``tilts`` preset), so the depth of field, where that blur
+  reaches a pixel, is DoF = 2 P / alpha: 59 um at x1000 by default, 12 um at x5000.
+* Tilt (the rotation-and-tilt stage, :mod:`semservo.simulation.goniometer`): the
+  surface is turned by alpha about the image's x axis and beta about its y axis, about a
+  pivot below the surface, and projected orthographically: the field is foreshortened
+  by cos alpha along y and cos beta along x, shifted by the pivot's lever, and its depth
+  changes across the field (dz/dy = tan alpha, dz/dx = -tan beta, :mod:`semservo.tilt`'s
+  convention), so parts of a tilted image are out of focus.
 * Raster: pixels are acquired one at a time, dwell plus dead time each, lines end with a
   fly-back. Each line, and each pixel's time within it, sees the pose the stage has at
   that moment, so motion during a scan shears, stretches or repeats the content.
@@ -26,10 +33,21 @@ import cv2
 import numpy as np
 
 from semservo.config import pixel_size_nm
+from semservo.simulation.goniometer import PIVOT_DEPTH_UM
 from semservo.simulation.scenes import Sample, rasterize
 
-#: Beam half-angle (rad): DoF = 2 P / alpha gives ~59 um at x1000 (textbook example).
-BEAM_HALF_ANGLE = 0.0072
+#: The nominal working distance (mm) and the default objective aperture (diameter, um):
+#: a beam half-angle of 7.2 mrad, DoF = 2 P / alpha ~59 um at x1000 (textbook example).
+NOMINAL_WORKING_DISTANCE_MM = 10.0
+DEFAULT_APERTURE_UM = 144.0
+
+
+def beam_half_angle(aperture_um: float, working_distance_mm: float) -> float:
+    """alpha = aperture radius / working distance (rad)."""
+    return aperture_um / 2 / (working_distance_mm * 1000.0)
+
+
+BEAM_HALF_ANGLE = beam_half_angle(DEFAULT_APERTURE_UM, NOMINAL_WORKING_DISTANCE_MM)
 #: Blur levels of the stack (sigma in image pixels); a pixel blends its two neighbours.
 BLUR_LEVELS_PX = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0)
 #: Electrons collected per ns of dwell at full yield (sets the SNR per dwell time).
@@ -47,7 +65,10 @@ class ScanSettings:
     magnification: float = 1200.0
     rows: int = 512
     cols: int = 512
-    working_distance_um: float = 10.0  # height of the focal plane on the sample's z axis
+    # Focus: the working distance's offset (um) from the nominal one, which focuses on the
+    # untilted stage's reference surface; larger is farther from the lens. -10 focuses on
+    # the top of the micropart's 10 um bar.
+    working_distance_um: float = -10.0
     brightness: float = 0.0  # offset, fraction of full scale
     contrast: float = 1.0  # gain
     bit_depth: int = 8
@@ -98,8 +119,15 @@ class SEM:
     seed: int = 2013
     extent_um: float | None = None
     beam_half_angle: float = BEAM_HALF_ANGLE  # a larger aperture or shorter WD: less DoF
+    pivot_depth_um: float = PIVOT_DEPTH_UM  # the tilt axes' depth below the surface
     _stacks: dict = field(default_factory=dict)
     charge: np.ndarray = field(default_factory=lambda: np.zeros((64, 64), np.float32))
+
+    @classmethod
+    def for_preset(cls, preset, seed: int) -> "SEM":
+        """The SEM of a :class:`semservo.simulation.world.Preset`: its scene, aperture
+        and working distance."""
+        return cls(preset.scene, seed, beam_half_angle=beam_half_angle(preset.aperture_um, preset.working_distance_mm))
 
     def _stack(self, settings: ScanSettings) -> _BlurStack:
         """The sample sampled at half the image pixel, blurred to each level (cached per
@@ -159,25 +187,44 @@ class SEM:
         # Image-plane coordinates (um) of every pixel, centred.
         image_x = ((np.arange(cols, dtype=np.float32) - (cols - 1) / 2) * pixel)[None, :]
         image_y = ((np.arange(rows, dtype=np.float32) - (rows - 1) / 2) * pixel)[:, None]
+        relative_x, relative_y = image_x - stage_x, image_y - stage_y
+        # The tilt cradle: the surface point (u, v) (on the turned sample) goes to
+        # R (u, v, -pivot) + (0, 0, pivot), R = R_x(alpha) R_y(beta); the image sees its x
+        # and y, so (u, v) follows from the pixel by solving those two rows.
+        tilt_x, tilt_y = along_line("tilt_x_deg"), along_line("tilt_y_deg")
+        tilted = bool(np.any(tilt_x) or np.any(tilt_y))
+        if tilted:
+            alpha, beta, lever = np.deg2rad(tilt_x), np.deg2rad(tilt_y), self.pivot_depth_um
+            cos_a, sin_a, cos_b, sin_b = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+            surface_u = (relative_x + lever * sin_b) / cos_b
+            surface_v = (relative_y - sin_a * sin_b * surface_u - lever * sin_a * cos_b) / cos_a
+            surface_depth = -cos_a * sin_b * surface_u + sin_a * surface_v + lever * (1 - cos_a * cos_b)
+        else:
+            surface_u, surface_v, surface_depth = relative_x, relative_y, 0.0
         # Content moves +x with the stage and turns counter-clockwise as displayed with
         # +rotation, so the sample point seen at an image point is R^-1 (image - stage).
-        relative_x, relative_y = image_x - stage_x, image_y - stage_y
         cos, sin = np.cos(theta), np.sin(theta)
-        sample_x = cos * relative_x - sin * relative_y
-        sample_y = sin * relative_x + cos * relative_y
+        sample_x = cos * surface_u - sin * surface_v
+        sample_y = sin * surface_u + cos * surface_v
         map_x, map_y = sample.to_grid(sample_x, sample_y)
         map_x, map_y = map_x.astype(np.float32), map_y.astype(np.float32)
 
-        # Defocus from the height under each pixel, the stage z and the tilts.
+        # Defocus: the depth of each pixel's point (away from the lens: the tilted
+        # surface's, less the feature's height along the normal and the stage's z)
+        # against the focus; no dead zone, the blur grows as alpha |depth - focus|.
         height = cv2.remap(sample.height_um, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        z = height + along_line("z_um")
-        tilt_x, tilt_y = along_line("tilt_x_deg"), along_line("tilt_y_deg")
-        if np.any(tilt_x) or np.any(tilt_y):
-            z = z + np.tan(np.deg2rad(tilt_x)) * sample_y + np.tan(np.deg2rad(tilt_y)) * sample_x
-        depth_of_field = 2 * pixel / self.beam_half_angle
-        defocus = np.maximum(np.abs(z - settings.working_distance_um) - depth_of_field / 2, 0.0)
+        if tilted:
+            height = height * (cos_a * cos_b)
+        depth = surface_depth - height - along_line("z_um")
+        defocus = np.abs(depth - settings.working_distance_um)
         sigma_px = self.beam_half_angle * defocus / pixel
-        position = np.interp(sigma_px, BLUR_LEVELS_PX, np.arange(len(BLUR_LEVELS_PX))).astype(np.float32)
+        # Blend the two nearest blur levels linearly in variance: a mixture of two
+        # Gaussian kernels has exactly the blended second moment, so the blur grows
+        # smoothly (as sqrt(probe^2 + (alpha dz / P)^2)) and the focus peak is round, not
+        # a cusp at each level.
+        levels_variance = np.square(BLUR_LEVELS_PX)
+        position = np.interp(np.square(sigma_px), levels_variance,
+                             np.arange(len(BLUR_LEVELS_PX))).astype(np.float32)
         lower = np.floor(position).astype(np.int32)
         weight = position - lower
         intensity = np.zeros((rows, cols), np.float32)

@@ -18,8 +18,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from semservo.simulation.goniometer import LIMITS_DEG, Goniometer
 from semservo.simulation.piezo import PiezoAxis
-from semservo.simulation.sem import SEM, Pose, ScanSettings
+from semservo.simulation.sem import DEFAULT_APERTURE_UM, NOMINAL_WORKING_DISTANCE_MM, SEM, Pose, ScanSettings
 
 #: Each channel starts at this voltage, about mid-travel, so the stage can move both ways.
 HOME_VOLTAGE = 38.0
@@ -37,6 +38,13 @@ class Preset:
     unstable_levels: bool = False  # brightness and contrast change during the run
     mask_reference: bool = False
     description: str = ""
+    #: The objective aperture and the nominal working distance set the beam half-angle,
+    #: hence the depth of field (:class:`semservo.simulation.sem.SEM`).
+    aperture_um: float = DEFAULT_APERTURE_UM
+    working_distance_mm: float = NOMINAL_WORKING_DISTANCE_MM
+    #: Where a scan focuses unless told: the working distance's offset (um) from the
+    #: stage's reference surface, larger deeper (-10: the micropart's top).
+    focus_um: float = -10.0
 
 
 PRESETS = {
@@ -53,6 +61,12 @@ PRESETS = {
                description="a binary mask of the part as the reference (case 6)"),
         Preset("repeated-pattern", "chessboard", 1200, 180,
                description="calibration chessboard at 180 ns/px (case 7)"),
+        # The paper's tilt regime: high magnification and a small depth of field (a large
+        # aperture at a short working distance: beam half-angle 40 mrad, depth of field
+        # 3.5 um), on a flat sample rich in texture, so that depth from focus can see a
+        # tilt of a fraction of a degree across the field.
+        Preset("tilts", "gold-on-carbon", 3000, 360, aperture_um=400.0, working_distance_mm=5.0, focus_um=0.0,
+               description="x3000, small depth of field (400 um aperture at 5 mm), gold on carbon (tilts)"),
     )
 }
 
@@ -74,7 +88,7 @@ class Disturbances:
 
 
 #: The simulated rotation-and-tilt stage's travel (degrees).
-ROTATION_STAGE_LIMITS_DEG = {"rotation_deg": (-360.0, 360.0), "tilt_x_deg": (-45.0, 45.0), "tilt_y_deg": (-45.0, 45.0)}
+ROTATION_STAGE_LIMITS_DEG = LIMITS_DEG
 
 
 @dataclass
@@ -94,11 +108,11 @@ class World:
         for axis in self.axes.values():
             axis.command(HOME_VOLTAGE, -1e6)
         self.home_um = {channel: axis.position(0.0) for channel, axis in self.axes.items()}
-        self.rotation_stage = {"rotation_deg": 0.0, "tilt_x_deg": 0.0, "tilt_y_deg": 0.0}  # simulated
+        self.goniometer = Goniometer()  # the simulated rotation-and-tilt stage
         # Which world this is: truths measured across a restart of the simulator compare
         # two different worlds, and must be refused rather than computed.
         self.id = uuid.uuid4().hex[:12]
-        self.sem = SEM(self.preset.scene, self.seed)
+        self.sem = SEM.for_preset(self.preset, self.seed)
         self.rng = np.random.default_rng(self.seed)
         self.frames = 0
 
@@ -119,20 +133,29 @@ class World:
         with self.lock:
             return self.axes[channel].voltage
 
-    def set_rotation_stage(self, **angles: float) -> None:
-        """The simulated rotation stage (rotation about the beam, two tilts), degrees,
-        within :data:`ROTATION_STAGE_LIMITS_DEG`; anything else is refused whole."""
-        checked = {}
-        for key, value in angles.items():
-            if key not in ROTATION_STAGE_LIMITS_DEG:
-                raise ValueError(f"unknown rotation stage axis {key!r}; axes: {', '.join(ROTATION_STAGE_LIMITS_DEG)}")
-            low, high = ROTATION_STAGE_LIMITS_DEG[key]
-            value = float(value)
-            if not low <= value <= high:  # NaN fails this too
-                raise ValueError(f"{key} must be a number of degrees within {low:g}..{high:g}, got {value!r}")
-            checked[key] = value
+    def set_rotation_stage(self, **angles: float) -> dict[str, float]:
+        """Send the simulated rotation stage (rotation about the beam, two tilts) towards
+        these angles (degrees, within :data:`ROTATION_STAGE_LIMITS_DEG`; anything else is
+        refused whole). It gets there at its own speed, with backlash
+        (:mod:`semservo.simulation.goniometer`). Returns the targets."""
         with self.lock:
-            self.rotation_stage.update(checked)
+            return self.goniometer.command(self.now(), **angles)
+
+    def halt_rotation_stage(self) -> dict[str, float]:
+        with self.lock:
+            self.goniometer.halt(self.now())
+            return self.goniometer.targets()
+
+    @property
+    def rotation_stage(self) -> dict[str, float]:
+        """Where the rotation stage is now (degrees)."""
+        with self.lock:
+            return self.goniometer.angles(self.now())
+
+    def rotation_stage_settles_in_s(self) -> float:
+        """Wall seconds until the rotation stage reaches its targets (0 when there)."""
+        with self.lock:
+            return max(self.goniometer.arrival() - self.now(), 0.0) / self.speedup
 
     def pose(self, t: float | None = None) -> Pose:
         """The true pose at simulated time ``t``: stage displacement from home, drift and
@@ -144,7 +167,7 @@ class World:
                 x_um=self.axes[0].position(t) - self.home_um[0] + drift_x,
                 y_um=self.axes[1].position(t) - self.home_um[1] + drift_y,
                 z_um=self.axes[2].position(t) - self.home_um[2],
-                **self.rotation_stage,
+                **self.goniometer.angles(t),
             )
 
     # -- the SEM -------------------------------------------------------------------
@@ -195,4 +218,4 @@ class World:
 
     def describe(self) -> dict:
         return {"world_id": self.id, "preset": asdict(self.preset), "speedup": self.speedup, "frames": self.frames,
-                "rotation_stage": dict(self.rotation_stage)}
+                "rotation_stage": self.rotation_stage, "rotation_stage_targets": self.goniometer.targets()}

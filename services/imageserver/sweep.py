@@ -1,0 +1,115 @@
+"""Focus sweeps for the tilt measurement (paper section II-B-2): the same field scanned at
+a series of working distances, in a thread of its own, while the frame stream goes on.
+
+A sweep takes several scans; the control socket must stay responsive meanwhile, so a
+sweep is started (``start_sweep``), runs in the background, and its frames are fetched
+when it is done (``sweep``). One sweep at a time; the last one's result is kept until
+the next starts. No sockets here: ``scan(working_distance_um)`` acquires one frame.
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import math
+import threading
+import time
+import uuid
+from typing import Callable
+
+import numpy as np
+
+from semservo.instruments import AcquiredImage
+
+log = logging.getLogger("imageserver.sweep")
+
+#: The most frames one sweep may ask for (a sweep of 60 frames is minutes of scanning).
+MAX_SWEEP_FRAMES = 60
+
+
+def check_working_distances(values) -> list[float]:
+    """The sweep's working distances (um offsets): 3 to ``MAX_SWEEP_FRAMES`` finite
+    numbers, increasing and evenly spaced; ValueError naming what is wrong."""
+    if not isinstance(values, list) or not 3 <= len(values) <= MAX_SWEEP_FRAMES:
+        raise ValueError(f"working_distances_um must be a list of 3..{MAX_SWEEP_FRAMES} numbers")
+    checked = []
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                or abs(value) > 1e4:
+            raise ValueError(f"working_distances_um: {value!r} is not a finite number of micrometres (|x| <= 1e4)")
+        checked.append(float(value))
+    steps = np.diff(checked)
+    if (steps <= 0).any() or np.ptp(steps) > 1e-6 * abs(steps.mean()):
+        raise ValueError("working_distances_um must be increasing and evenly spaced")
+    return checked
+
+
+class FocusSweeps:
+    def __init__(self, scan: Callable[[float], AcquiredImage]):
+        self.scan = scan
+        self._lock = threading.Lock()
+        self._state: dict = {}
+        self._thread: threading.Thread | None = None
+        self._cancel = threading.Event()
+
+    def start(self, working_distances_um) -> dict:
+        distances = check_working_distances(working_distances_um)
+        with self._lock:
+            if self._thread is not None and self._thread.is_alive():
+                raise RuntimeError(f"sweep {self._state['sweep_id']} is still scanning")
+            self._cancel.clear()
+            self._state = {"sweep_id": uuid.uuid4().hex[:10], "state": "scanning", "scanned": 0,
+                           "frames": len(distances), "working_distances_um": distances, "started_at": time.monotonic()}
+            self._thread = threading.Thread(target=self._run, args=(self._state, distances), name="focus-sweep",
+                                            daemon=True)
+            self._thread.start()
+            return {key: self._state[key] for key in ("sweep_id", "state", "frames", "working_distances_um")}
+
+    def _run(self, state: dict, distances: list[float]) -> None:
+        images: list[AcquiredImage] = []
+        try:
+            for distance in distances:
+                if self._cancel.is_set():
+                    raise RuntimeError("cancelled")
+                images.append(self.scan(distance))
+                state["scanned"] = len(images)
+            shapes = {image.pixels.shape for image in images}
+            if len(shapes) != 1:
+                raise ValueError(f"the sweep's frames differ in size: {sorted(shapes)}")
+            first, last = images[0], images[-1]
+            result = {
+                "state": "done", "dtype": str(first.pixels.dtype), "shape": list(first.pixels.shape),
+                "frames_b64": [base64.b64encode(np.ascontiguousarray(image.pixels).tobytes()).decode()
+                               for image in images],
+                "pixel_size_nm": first.pixel_size_nm, "magnification": first.magnification,
+                "scan_started_at_ns": first.scan_started_at_ns or first.acquired_at_ns,
+                "acquired_at_ns": last.acquired_at_ns,
+                "source_interval_s": ([first.source_interval_s[0], last.source_interval_s[1]]
+                                      if first.source_interval_s and last.source_interval_s else None),
+                "took_s": time.monotonic() - state["started_at"],
+            }
+        except Exception as error:  # noqa: BLE001 - a failed sweep says why; the stream goes on
+            log.warning("focus sweep %s failed: %s", state["sweep_id"], error)
+            result = {"state": "failed", "error": f"{type(error).__name__}: {error}"}
+        with self._lock:
+            state.update(result)
+
+    def result(self, sweep_id) -> dict:
+        """The sweep's state; its frames (base64, raw pixels) once done."""
+        with self._lock:
+            if not self._state or sweep_id != self._state["sweep_id"]:
+                raise KeyError(f"no sweep {sweep_id!r} (the last one was "
+                               f"{self._state.get('sweep_id') if self._state else 'none'})")
+            return {key: value for key, value in self._state.items() if key != "started_at"}
+
+    def close(self) -> None:
+        self._cancel.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+
+def decode_sweep(result: dict) -> np.ndarray:
+    """A done sweep's frames as an array (frames, rows, cols)."""
+    dtype, shape = np.dtype(result["dtype"]), tuple(result["shape"])
+    return np.stack([np.frombuffer(base64.b64decode(data), dtype=dtype).reshape(shape)
+                     for data in result["frames_b64"]])
