@@ -34,10 +34,10 @@ import re
 import time
 import uuid
 from pathlib import Path
-from typing import Callable, Literal, Protocol
+from typing import Annotated, Callable, Literal, Protocol
 
 import numpy as np
-from pydantic import BaseModel, Field, PositiveFloat, PositiveInt
+from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, PositiveInt
 
 from semservo.control import AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, TiltLaw
 from semservo.messages import MotionEstimate
@@ -50,6 +50,18 @@ ControllerState = Literal["idle", "servoing", "converged", "failed", "stopped"]
 
 class Port(Protocol):
     def request(self, command: str, args: dict | None = None) -> dict: ...
+
+
+def _whole(value):
+    """A JSON number with no fraction (297.0) is a whole number, as JSON Schema says; 297.5,
+    text and booleans stay refused (the model is strict)."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+#: A count: a positive whole number, given as 3 or 3.0.
+Count = Annotated[PositiveInt, BeforeValidator(_whole)]
 
 
 class RunSettings(BaseModel):
@@ -66,24 +78,24 @@ class RunSettings(BaseModel):
     tolerance_tilt_deg: PositiveFloat = Field(0.1, le=10, description="and each tilt error below (alpha, beta DOFs)")
     max_turn_deg: PositiveFloat = Field(5.0, le=30, description="largest turn or tilt per iteration (saturation)")
     min_tilt_confidence: float = Field(0.3, ge=0, le=1, description="less confident tilt measurements hold the tilts")
-    converge_frames: PositiveInt = Field(3, le=100, description="converged when the mean error of this many fresh frames is under tolerance")
+    converge_frames: Count = Field(3, le=100, description="converged when the mean error of this many fresh frames is under tolerance")
     converge_on: Literal["mean", "each"] = Field(
         "mean", description="'mean': their mean error is under tolerance; 'each': every one of them is too "
                             "(lands nearer, takes more frames, and may never end where vibration exceeds the tolerance)")
-    max_iterations: PositiveInt = Field(150, le=100_000, description="moves before the run fails")
+    max_iterations: Count = Field(150, le=100_000, description="moves before the run fails")
     gain: Literal["adaptive", "exponential"] = Field("adaptive", description="eq. 35, or the exponential gain")
     gain_scale: PositiveFloat = Field(50.0, description="Lambda of eq. 35 (error x s)")
     gain_min: PositiveFloat = Field(0.5, le=10, description="per second")
     gain_max: PositiveFloat = Field(0.8, le=10, description="per second")
     min_confidence: float = Field(0.5, ge=0, le=1, description="lower-confidence estimates hold the stage")
-    lost_after: PositiveInt = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
+    lost_after: Count = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
     max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per iteration (saturation)")
     integral_time_s: float | None = Field(
         10.0, gt=0, le=1000,
         description="integral action T_i in seconds, against drift (null: the paper's proportional law)")
     hold: bool = Field(False, description="keep servoing after convergence (hold against drift)")
     diverge_factor: float = Field(4.0, gt=1, le=1e6, description="cost above this x its minimum ...")
-    diverge_iterations: PositiveInt = Field(5, le=1000, description="... for this many moves in a row: diverging")
+    diverge_iterations: Count = Field(5, le=1000, description="... for this many moves in a row: diverging")
     diverge_floor_px: PositiveFloat = Field(
         1.0, le=100, description="... never judged on errors under this (estimation noise and vibration near the "
                                  "target are not divergence, however small the tolerance)")

@@ -17,8 +17,15 @@ def report_png(run: dict) -> bytes:
     error_axes, cost_axes, voltage_axes = figure.subplots(1, 3)
     iterations = [r["iteration"] for r in moved]
     if moved:
-        for index, name in enumerate(run.get("settings", {}).get("dofs", ["x", "y"])):
-            error_axes.plot(iterations, [r["error"][index] for r in moved], label=f"e_{name}")
+        dofs = run.get("settings", {}).get("dofs", ["x", "y"])
+        planar = [dof for dof in dofs if dof in ("x", "y", "rotation")]
+        for index, name in enumerate(planar):
+            error_axes.plot(iterations, [r["error"][index] if index < len(r["error"]) else None for r in moved],
+                            label=f"e_{name}")
+        for dof, key in (("alpha", "alpha_deg"), ("beta", "beta_deg")):  # the tilts, at each sweep (degrees)
+            values = [(r["iteration"], r[key]) for r in moved if dof in dofs and r.get(key) is not None]
+            if values:
+                error_axes.plot(*zip(*values), ".", label=f"{dof} (deg)")
         cost_axes.semilogy(iterations, [max(r["cost"], 1e-12) for r in moved], color="black")
         for axis in ("x", "y"):
             values = [(r["iteration"], r["voltages"][axis]) for r in moved if (r.get("voltages") or {}).get(axis) is not None]

@@ -454,9 +454,13 @@ def command_demo(args: argparse.Namespace) -> int:
     starts (simulated hardware) and stops again."""
     from semservo.client import Client, SemservoError
 
+    tilts = args.dof == "all"
+    turns = args.dof in ("rotation", "all")
     if args.speedup:
         os.environ["SEMSERVO_FAKELAB__SPEEDUP"] = str(args.speedup)
         os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(200 * args.speedup)
+    if tilts:  # the tilts are seen through focus: the small-depth-of-field condition
+        os.environ.setdefault("SEMSERVO_FAKELAB__PRESET", "tilts")
     settings = Settings()
     url = args.url or f"http://127.0.0.1:{settings.gateway.http_port}"
     launcher = None
@@ -475,13 +479,28 @@ def command_demo(args: argparse.Namespace) -> int:
                 print("no frames reach the gateway: is the image server running?", file=sys.stderr)
                 return 1
             time.sleep(0.2)
-        reference = lab.teach(frames=args.frames)
-        print(f"1. taught reference {reference['id']} (mean of {args.frames} live frames)")
+        if tilts:
+            print("1. teaching: the mean of the live frames, and a focus sweep at the taught pose (the tilts) ...",
+                  flush=True)
+        reference = lab.teach(frames=args.frames, tilts=tilts)
+        print(f"1. taught reference {reference['id']} (mean of {args.frames} live frames"
+              + (f"; focus sweep of {reference['tilt']['frames']} frames, {reference['tilt']['kernels_used']} kernels "
+                 "in focus somewhere)" if tilts else ")"))
         lab.move(x_um=args.offset[0], y_um=args.offset[1])
-        time.sleep(args.settle)
         print(f"2. displaced the stage by ({args.offset[0]:+g}, {args.offset[1]:+g}) um, as an operator's joystick would")
-        run = lab.start(tolerance_px=args.tolerance)
-        print(f"3. positioning run {run['run_id']} started (tolerance {args.tolerance:g} px); waiting ...", flush=True)
+        dofs = ["x", "y"]
+        if turns:
+            angles = {"rotation_deg": args.turn}
+            if tilts:
+                angles.update(tilt_x_deg=args.tilt[0], tilt_y_deg=args.tilt[1])
+            lab.rotate(**angles)
+            dofs += ["gamma", "alpha", "beta"] if tilts else ["gamma"]
+            print("   turned the sample by " + ", ".join(f"{value:+g} deg {name}" for name, value in zip(
+                ("gamma", "alpha", "beta"), (args.turn, *(args.tilt if tilts else ())))))
+        time.sleep(args.settle)
+        run = lab.start(tolerance_px=args.tolerance, dofs=dofs)
+        print(f"3. positioning run {run['run_id']} started ({', '.join(dofs)}; tolerance {args.tolerance:g} px); "
+              "waiting ...", flush=True)
         result = lab.wait(run["run_id"], timeout=args.timeout)
         duration_s = ((result["finished_at_ns"] or time.time_ns()) - result["started_at_ns"]) / 1e9
         print(f"4. {result['state']} after {result['iterations']} iterations in {duration_s:.1f} s"
@@ -492,6 +511,11 @@ def command_demo(args: argparse.Namespace) -> int:
         if truth:
             print(f"   true final error (simulator) {truth['error_norm_px']:.3f} px = "
                   f"{1000 * float(np.hypot(*truth['error_um'])):.1f} nm")
+            angles = truth.get("error_deg") or {}
+            if turns and angles:
+                print("   true final angles (simulator): " + ", ".join(
+                    f"{name} {angles[key]:+.3f} deg" for name, key in (("gamma", "rotation_deg"), ("alpha", "tilt_x_deg"),
+                                                                       ("beta", "tilt_y_deg")) if key in angles))
         report = Path(settings.controller.runs_dir) / f"{run['run_id']}-report.png"
         report.parent.mkdir(parents=True, exist_ok=True)
         report.write_bytes(lab.http.get(f"/runs/{run['run_id']}/report.png").content)
@@ -630,6 +654,13 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--offset", type=float, nargs=2, default=(6.0, -4.0), metavar=("X_UM", "Y_UM"),
                       help="how far to displace the stage (default 6 -4 um)")
     demo.add_argument("--tolerance", type=float, default=0.1, help="converged under this error, px (default 0.1)")
+    demo.add_argument("--dof", choices=["xy", "rotation", "all"], default="xy",
+                      help="degrees of freedom: xy (default), rotation (x, y and the turn about the beam) or all five "
+                           "(x, y, gamma and the tilts alpha, beta, from focus sweeps; a demo that starts the system "
+                           "starts it in the small-depth-of-field 'tilts' preset)")
+    demo.add_argument("--turn", type=float, default=3.0, help="with --dof rotation/all: turn about the beam, degrees")
+    demo.add_argument("--tilt", type=float, nargs=2, default=(2.0, -1.5), metavar=("ALPHA", "BETA"),
+                      help="with --dof all: tilts about x and y, degrees (default 2 -1.5)")
     demo.add_argument("--frames", type=int, default=4, help="live frames averaged into the reference (default 4)")
     demo.add_argument("--settle", type=float, default=1.0, help="seconds to wait after the jog (default 1)")
     demo.add_argument("--timeout", type=float, default=300.0, help="give up on the run after this many seconds")

@@ -27,3 +27,19 @@ def test_the_demo_starts_the_system_positions_and_reports(ports, monkeypatch, tm
     assert true_px < 0.5
     report = Path(re.search(r"report \(error, cost, voltages per iteration\): (\S+)", out).group(1))
     assert report.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_five_degree_of_freedom_demo(ports, monkeypatch, tmp_path):
+    """`semservo demo --dof all`: x, y, the turn about the beam and both tilts."""
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(tmp_path / "runs"))
+    monkeypatch.setenv("SEMSERVO_GATEWAY__DATABASE", str(tmp_path / "runs" / "semservo.sqlite"))
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FPS", "100")
+    monkeypatch.delenv("SEMSERVO_FAKELAB__PRESET", raising=False)
+    done = subprocess.run([sys.executable, "-m", "semservo", "demo", "--speedup", "20", "--tolerance", "0.3",
+                           "--dof", "all"], capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = done.stdout
+    assert "focus sweep of" in out and "x, y, gamma, alpha, beta" in out
+    assert re.search(r"4\. converged after \d+ iterations", out), out
+    angles = dict(re.findall(r"(gamma|alpha|beta) ([+-][\d.]+) deg", out.split("true final angles")[1]))
+    assert abs(float(angles["gamma"])) < 0.1 and abs(float(angles["alpha"])) < 0.3 and abs(float(angles["beta"])) < 0.3

@@ -76,13 +76,13 @@ function makePlot(element, title, series, log) {
 }
 
 function resetPlots() {
-  state.series = { iteration: [], ex: [], ey: [], er: [], cost: [], vx: [], vy: [] };
+  state.series = { iteration: [], ex: [], ey: [], er: [], ea: [], eb: [], cost: [], vx: [], vy: [] };
   drawPlots();
 }
 
 function drawPlots() {
   const s = state.series;
-  state.plots.error.setData([s.iteration, s.ex, s.ey, s.er]);
+  state.plots.error.setData([s.iteration, s.ex, s.ey, s.er, s.ea, s.eb]);
   state.plots.cost.setData([s.iteration, s.cost]);
   state.plots.voltage.setData([s.iteration, s.vx, s.vy]);
   $("error-points").textContent = `${s.iteration.length} points`;
@@ -97,6 +97,8 @@ function addIteration(record) {
   s.ex.push(record.error[0] ?? null);
   s.ey.push(record.error.length > 1 ? record.error[1] : null);
   s.er.push(record.error.length > 2 ? record.error[2] : null);
+  s.ea.push(record.alpha_deg ?? null);  // the last focus sweep's tilts, degrees
+  s.eb.push(record.beta_deg ?? null);
   s.cost.push(Math.max(record.cost, 1e-9));
   s.vx.push(record.voltages ? record.voltages.x ?? null : null);
   s.vy.push(record.voltages ? record.voltages.y ?? null : null);
@@ -124,6 +126,28 @@ function acquisitionText(acquisition) {
   return parts.join(" · ");
 }
 
+// The last focus sweep: its tilts and a small depth map (one cell per kernel).
+function showTilt(tilt) {
+  if (!tilt) return;
+  $("tilt-summary").textContent = `α ${fmt(tilt.alpha_deg, 3)}° β ${fmt(tilt.beta_deg, 3)}° · ${tilt.frames} frames · ` +
+    `${tilt.kernels_used}/${tilt.kernels_total} kernels`;
+  const grid = tilt.depth_map_um || [];
+  const canvas = $("depth-map"), context = canvas.getContext("2d");
+  const rows = grid.length, cols = rows ? grid[0].length : 0;
+  if (!rows || !cols) return;
+  const values = grid.flat().filter((v) => v !== null);
+  const span = Math.max(1e-6, ...values.map(Math.abs));
+  const w = canvas.width / cols, h = canvas.height / rows;
+  grid.forEach((row, r) => row.forEach((value, c) => {
+    if (value === null) { context.fillStyle = "#888"; } else {
+      const t = value / span;  // -1 nearer (blue) .. +1 farther (red)
+      context.fillStyle = `rgb(${Math.round(128 + 127 * Math.max(t, 0))}, ${Math.round(128 - 100 * Math.abs(t))}, ` +
+        `${Math.round(128 + 127 * Math.max(-t, 0))})`;
+    }
+    context.fillRect(c * w, r * h, Math.ceil(w), Math.ceil(h));
+  }));
+}
+
 function showStatus(status) {
   const badge = $("state");
   badge.textContent = status.state;
@@ -135,6 +159,10 @@ function showStatus(status) {
   const umPerPx = status.error_px ? status.error_um / status.error_px : null;
   $("error-px").textContent = fmt(errorPx, 3);
   $("error-um").textContent = umPerPx === null || errorPx === null ? "–" : fmt(errorPx * umPerPx, 4);
+  $("gamma").textContent = fmt(status.rotation_deg, 3);
+  $("alpha").textContent = fmt(status.alpha_deg, 3);
+  $("beta").textContent = fmt(status.beta_deg, 3);
+  showTilt(status.tilt);
   $("frame-rate").textContent = fmt(status.frame_rate, 1);
   $("snr").textContent = fmt(status.snr_db, 1);
   $("latency").textContent = fmt(status.last_latency_ms, 1);
@@ -236,7 +264,8 @@ action($("resume"), "click", async () => {
 });
 
 action($("teach-live"), "click", async () => {
-  await api("POST", `/teach?frames=${Number($("teach-frames").value) || 1}`);
+  const tilts = $("teach-tilts").checked ? "&tilts=true" : "";
+  await api("POST", `/teach?frames=${Number($("teach-frames").value) || 1}${tilts}`);
   pollStatus();
 });
 
@@ -329,7 +358,8 @@ action($("refresh-runs"), "click", loadRuns);
 
 // -- start ----------------------------------------------------------------------------
 state.plots.error = makePlot($("plot-error"), "error", [
-  { label: "e_x", stroke: "#58a6ff" }, { label: "e_y", stroke: "#f0883e" }, { label: "e_rot", stroke: "#a371f7" }]);
+  { label: "e_x", stroke: "#58a6ff" }, { label: "e_y", stroke: "#f0883e" }, { label: "e_rot", stroke: "#a371f7" },
+  { label: "α (deg)", stroke: "#3fb950" }, { label: "β (deg)", stroke: "#d29922" }]);
 state.plots.cost = makePlot($("plot-cost"), "cost", [{ label: "cost", stroke: "#dfe5ec" }], true);
 state.plots.voltage = makePlot($("plot-voltage"), "voltages", [
   { label: "V_x", stroke: "#58a6ff" }, { label: "V_y", stroke: "#f0883e" }]);
