@@ -134,6 +134,37 @@ def table_one(poses: list[tuple[float, float, float]], seed: int) -> dict:
     return {"taught": [taught.alpha_deg, taught.beta_deg], "frame_time_s": frame_time, "rows": rows}
 
 
+def depth_of_field_scan(poses: list[tuple[float, float, float]], seed: int,
+                        factors=(1.0, 2.0, 4.0, 8.0)) -> list[dict]:
+    """The plane fit's error as the depth of field grows (a smaller aperture or a longer
+    working distance): the beam half-angle divided by each factor, the sweeps scaled to
+    the depth of field."""
+    rows = []
+    for factor in factors:
+        lab = Lab(seed)
+        lab.world.sem.beam_half_angle /= factor
+        depth_of_field = DEPTH_OF_FIELD_UM * factor
+        reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
+        taught = estimate_tilt(lab.sweep(Pose(), reference_sweep), reference_sweep, lab.pixel_um)
+        errors, signs, refused = [], [], 0
+        for alpha, beta, gamma in poses:
+            measured = estimate_tilt(lab.sweep(Pose(tilt_x_deg=alpha, tilt_y_deg=beta, rotation_deg=gamma),
+                                               reference_sweep), reference_sweep, lab.pixel_um)
+            if measured.confidence <= 0 or taught.confidence <= 0:
+                refused += 1
+                continue
+            pair = (measured.alpha_deg - taught.alpha_deg, measured.beta_deg - taught.beta_deg)
+            errors += [pair[0] - alpha, pair[1] - beta]
+            signs += [flag for flag in (_sign_ok(pair[0], alpha), _sign_ok(pair[1], beta)) if flag is not None]
+        errors = np.abs(errors) if errors else np.array([math.nan])
+        rows.append({"depth_of_field_um": depth_of_field, "mean": float(errors.mean()), "max": float(errors.max()),
+                     "sign_errors": int(sum(not flag for flag in signs)), "signs_checked": len(signs),
+                     "refused": refused, "poses": len(poses), "frames": len(reference_sweep)})
+        say(f"  depth of field {depth_of_field:5.1f} um: |error| mean {rows[-1]['mean']:.3f}, max "
+            f"{rows[-1]['max']:.3f} degree, {rows[-1]['sign_errors']} sign errors, {refused} refused")
+    return rows
+
+
 def _sign_ok(measured: float, true: float) -> bool | None:
     """Whether the sign is right, for true angles from 0.5 degree up (None below)."""
     return None if abs(true) < 0.5 else bool(np.sign(measured) == np.sign(true))
@@ -271,6 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", type=int, default=10, help="5-DOF runs from random poses (0: none)")
     parser.add_argument("--speedup", type=float, default=20.0, help="simulated time runs this much faster")
     parser.add_argument("--seed", type=int, default=15)
+    parser.add_argument("--dof-poses", type=int, default=10, help="poses for the depth-of-field scan (0: none)")
     args = parser.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
@@ -282,6 +314,16 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarize(table)
     print_table_one(table, summary)
     output = {"table_one": table, "summary": summary}
+    if args.dof_poses:
+        say(f"\nDepth of field: the plane fit on {args.dof_poses} of the poses as the depth of field grows "
+            "(smaller aperture)")
+        scan = depth_of_field_scan(poses[:args.dof_poses], args.seed)
+        say("\n| depth of field (um) | frames | |error| mean / max (deg) | sign errors | refused |")
+        say("| --- | --- | --- | --- | --- |")
+        for row in scan:
+            say(f"| {row['depth_of_field_um']:g} | {row['frames']} | {row['mean']:.3f} / {row['max']:.3f} | "
+                f"{row['sign_errors']} of {row['signs_checked']} | {row['refused']} of {row['poses']} |")
+        output["depth_of_field"] = scan
     if args.runs:
         initial = [(7.0, 12.0, 20.0, 3.0, -2.0)] + [
             (float(rng.uniform(-10, 10)), float(rng.uniform(-10, 10)), float(rng.uniform(-20, 20)),

@@ -128,6 +128,9 @@ class StageCore:
         self.rotation_angles: dict[str, float] | None = None  # as last read (see _rotation_state)
         self.rotation_travel: dict[str, list[float]] = {}
         self.rotation_targets: dict[str, float] = {}  # where the last commands sent each axis
+        # Until then (monotonic) the rotation stage is on its way: poll reads its angles.
+        self.rotation_moving_until = 0.0
+        self.rotation_read_at = 0.0
         self.rotation_link = "not used yet"
         self._log_file = None
         self._restore()
@@ -276,6 +279,7 @@ class StageCore:
             self._persist()
             log.warning("%s", self.state_reason)
             self._halt_rotation()  # a turn still on its way stops too
+        self._follow_rotation()
         if now - self.last_io > READBACK_S[self.watchdog.armed]:
             try:
                 measured = self._io(lambda driver: driver.read_outputs())
@@ -439,6 +443,7 @@ class StageCore:
         self.rotation_targets.update(goal)
         settles = getattr(self.rotation, "settles_in_s", None)
         settles_in_s = float(settles()) if callable(settles) else 0.0
+        self.rotation_moving_until = time.monotonic() + settles_in_s
         if owner is not None and owner == self.watchdog.owner:
             self.watchdog.last_contact = self.clock()
         self.counters["turns"] += 1
@@ -500,6 +505,18 @@ class StageCore:
                 log.error("%s", self.last_error)
         self._halt_rotation()
         return self.describe()
+
+    def _follow_rotation(self) -> None:
+        """While the rotation stage is on its way, read its angles every 0.1 s (and once
+        after it has arrived), so the state shows where it is, not where it was."""
+        moment = time.monotonic()
+        if self.rotation is None or moment > self.rotation_moving_until + 0.3 or moment - self.rotation_read_at < 0.1:
+            return
+        self.rotation_read_at = moment
+        try:
+            self.rotation_angles = self._rotation_io(self.rotation.read_angles)
+        except Refused as refusal:
+            log.warning("rotation stage: %s", refusal)
 
     def _halt_rotation(self) -> None:
         if self.rotation is None:

@@ -5,6 +5,8 @@ service. The simulated lab runs the small-depth-of-field ``tilts`` preset."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from semservo.client import Client, SemservoError
@@ -37,6 +39,18 @@ def test_a_tilt_run_needs_a_taught_sweep_and_says_so(system):
     with pytest.raises(SemservoError) as refusal:
         lab.start(dofs=["x", "y", "pitch"])
     assert refusal.value.status == 422
+    # A tilt beyond the stage's travel: refused, said, and nothing moves.
+    before = lab.stage()["rotation"]["angles_deg"]
+    with pytest.raises(SemservoError) as refusal:
+        lab.rotate(tilt_x_deg=60.0, relative=False)
+    assert refusal.value.status == 422 and refusal.value.field == "tilt_x_deg"
+    lab.rotate(tilt_y_deg=20.0)
+    with pytest.raises(SemservoError) as refusal:
+        lab.rotate(tilt_y_deg=28.0)  # to 48 degrees: beyond the +-45 of travel
+    assert refusal.value.status == 409 and refusal.value.code == "rotation_limit"
+    back = lab.rotate(tilt_y_deg=-20.0)
+    assert back["targets_deg"]["tilt_y_deg"] == pytest.approx(before["tilt_y_deg"])
+    time.sleep(1.0)  # 20 degrees at 4 degrees per simulated second, the lab 20 times faster
 
 
 def test_servoes_all_five_degrees_of_freedom_through_the_api(system):
