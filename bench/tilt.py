@@ -37,13 +37,12 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from semservo.estimation import MotionEstimator
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
-from semservo.tilt import depth_map, egi_tilt_between, estimate_tilt, plan_sweep
+from semservo.tilt import depth_map, egi_tilt_between, estimate_tilt, plan_sweep, undo_foreshortening
 
 RESULTS = Path(__file__).parent / "results"
 PAPER_POSES = [(15.0, -15.0, 70.0), (8.0, -8.0, 30.0), (3.0, 3.0, -5.0)]
@@ -72,17 +71,6 @@ class Lab:
 
     def sweep(self, pose: Pose, working_distances) -> np.ndarray:
         return np.stack([self.frame(pose, distance) for distance in working_distances])
-
-
-def untilted(frame: np.ndarray, alpha_deg: float, beta_deg: float) -> np.ndarray:
-    """The frame with a tilt's foreshortening undone about its centre (the surface seen
-    square on): image = A surface, A = [[cos b, 0], [sin a sin b, cos a]]."""
-    alpha, beta = math.radians(alpha_deg), math.radians(beta_deg)
-    forward = np.array([[math.cos(beta), 0.0], [math.sin(alpha) * math.sin(beta), math.cos(alpha)]])
-    centre = (np.array(frame.shape[::-1]) - 1) / 2
-    matrix = np.hstack([forward, (centre - forward @ centre)[:, None]])
-    return cv2.warpAffine(frame.astype(np.float32), matrix, frame.shape[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REFLECT)
 
 
 def table_one(poses: list[tuple[float, float, float]], seed: int) -> dict:
@@ -114,7 +102,7 @@ def table_one(poses: list[tuple[float, float, float]], seed: int) -> dict:
         nominal = lab.frame(pose)
         raw = rotation.estimate(nominal).rotation_deg
         measured_alpha, measured_beta = plane.alpha_deg - taught.alpha_deg, plane.beta_deg - taught.beta_deg
-        compensated = rotation.estimate(untilted(nominal, measured_alpha, measured_beta)).rotation_deg
+        compensated = rotation.estimate(undo_foreshortening(nominal, measured_alpha, measured_beta)).rotation_deg
         rows.append({
             "pose": [alpha, beta, gamma],
             "plane": [measured_alpha - alpha, measured_beta - beta],
@@ -235,14 +223,14 @@ def five_dof_runs(initial: list[tuple], folder: Path, speedup: float) -> list[di
         while lab.status()["latest_frame_seq"] is None and time.monotonic() < deadline:
             time.sleep(0.2)
         lab.teach(frames=4, tilts=True)
+        taught = lab.stage()
+        angles, positions = taught["rotation"]["angles_deg"], taught["positions_um"]
         for index, (alpha, beta, gamma, x_um, y_um) in enumerate(initial, 1):
-            stage = lab.stage()["rotation"]["angles_deg"]
-            lab.move(x_um=x_um, y_um=y_um)
-            # Turn and tilt from the taught pose, in steps the stage accepts.
+            # From the taught pose (not from where the last run ended): absolute targets.
+            lab.move(x_um=positions["x"] + x_um, y_um=positions["y"] + y_um, relative=False)
             targets = {"rotation_deg": gamma, "tilt_x_deg": alpha, "tilt_y_deg": beta}
-            for fraction in np.linspace(0, 1, 5)[1:]:
-                lab.rotate(relative=False, **{key: stage[key] + value * fraction for key, value in targets.items()})
-            time.sleep(12.0 / speedup * 10)  # let the stage arrive
+            lab.rotate(relative=False, **{key: angles[key] + value for key, value in targets.items()})
+            time.sleep(25.0 / speedup + 0.5)  # let the stage arrive (4 degrees per second at most)
             started = time.monotonic()
             run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], tolerance_px=0.3, tolerance_deg=0.05,
                             tolerance_tilt_deg=0.1, max_iterations=600, max_turn_deg=4.0)

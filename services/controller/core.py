@@ -384,6 +384,9 @@ class ControllerCore:
                 if tilt_step is not None:
                     run["tilt_settled_ns"] = settled
                     run["tilt_iterations"] += 1
+                    # A tilt about the pivot below the surface shifts the view: the planar
+                    # cost jumps by design, so divergence is judged afresh from here.
+                    run["min_cost"], run["rising"] = math.inf, 0
         except CommandError as refusal:
             self._record(record, f"refused by the stage: {refusal.code}")
             if refusal.code == "stopped":

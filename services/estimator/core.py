@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from semservo.estimation import MotionEstimator
-from semservo.tilt import TiltEstimate, depth_map, egi_tilt_between, estimate_tilt, plan_sweep
+from semservo.tilt import (TiltEstimate, depth_map, egi_tilt_between, estimate_tilt, plan_sweep,
+                           undo_foreshortening)
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import MotionEstimate
 from semservo.wire import Frame
@@ -319,7 +320,13 @@ class EstimatorCore:
             raise ValueError(f"frame {frame.header.seq} is {frame.header.shape}, the reference is "
                              f"{self.estimator.shape}; teach again after changing the scan")
         started = time.perf_counter()
-        motion = self.estimator.estimate(frame.pixels, rotation=self.measure_rotation and self.estimator.rotation)
+        pixels = frame.pixels
+        tilt = self.last_tilt if self.measure_tilts else None
+        if tilt and tilt.get("alpha_deg") is not None and max(abs(tilt["alpha_deg"]), abs(tilt["beta_deg"])) >= 0.05:
+            # Seen square on, as the reference was: a tilted view is foreshortened, which
+            # the log-polar angle reads as degrees of turn (14 at 15 degrees of tilt).
+            pixels = undo_foreshortening(pixels, tilt["alpha_deg"], tilt["beta_deg"])
+        motion = self.estimator.estimate(pixels, rotation=self.measure_rotation and self.estimator.rotation)
         elapsed_ms = (time.perf_counter() - started) * 1e3
         now = time.time_ns()
         estimate = MotionEstimate(

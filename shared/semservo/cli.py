@@ -498,7 +498,8 @@ def command_demo(args: argparse.Namespace) -> int:
             print("   turned the sample by " + ", ".join(f"{value:+g} deg {name}" for name, value in zip(
                 ("gamma", "alpha", "beta"), (args.turn, *(args.tilt if tilts else ())))))
         time.sleep(args.settle)
-        run = lab.start(tolerance_px=args.tolerance, dofs=dofs)
+        # A 5-DOF run acts on every fresh frame while it waits for each focus sweep: more iterations.
+        run = lab.start(tolerance_px=args.tolerance, dofs=dofs, **({"max_iterations": 600} if tilts else {}))
         print(f"3. positioning run {run['run_id']} started ({', '.join(dofs)}; tolerance {args.tolerance:g} px); "
               "waiting ...", flush=True)
         result = lab.wait(run["run_id"], timeout=args.timeout)
