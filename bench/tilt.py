@@ -261,14 +261,18 @@ def plot_fig8(run: dict, path: Path) -> None:
 
     moved = [r for r in run["trajectory"] if r.get("action") == "moved"]
     iterations = np.arange(len(moved))
-    figure, (velocities, costs) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    figure, (turning, tilting, costs) = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
     omega_z = [math.degrees(r["velocity"][2]) if len(r.get("velocity", [])) > 2 else 0.0 for r in moved]
-    tilt = [r.get("tilt_velocity") for r in moved]
-    velocities.plot(iterations, [math.degrees(v[0]) if v else 0.0 for v in tilt], ".-", label="omega_x (alpha)")
-    velocities.plot(iterations, [math.degrees(v[1]) if v else 0.0 for v in tilt], ".-", label="omega_y (beta)")
-    velocities.plot(iterations, omega_z, ".-", label="omega_z (gamma)")
-    velocities.set_ylabel("angular velocity (deg/s)")
-    velocities.legend()
+    turning.plot(iterations, omega_z, ".-", color="tab:green", label="omega_z (gamma), every fresh frame")
+    turning.set_ylabel("deg/s")
+    turning.legend()
+    sweeps = [(i, r["tilt_velocity"]) for i, r in enumerate(moved) if r.get("tilt_velocity")]
+    if sweeps:
+        steps, velocity = zip(*sweeps)
+        tilting.plot(steps, [math.degrees(v[0]) for v in velocity], "o-", label="omega_x (alpha), at each sweep")
+        tilting.plot(steps, [math.degrees(v[1]) for v in velocity], "s-", label="omega_y (beta), at each sweep")
+    tilting.set_ylabel("deg/s")
+    tilting.legend()
     costs.semilogy(iterations, [max(r.get("cost", 0.0), 1e-6) for r in moved], ".-", label="cost x, y, gamma (eq. 32)")
     tilt_cost = [(i, r["tilt_cost"]) for i, r in enumerate(moved) if r.get("tilt_cost") is not None]
     if tilt_cost:
@@ -333,7 +337,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{run['state']} | {run['iterations']} | {run['tilt_iterations']} | "
                 f"{error.get('tilt_x_deg', math.nan):+.3f}, {error.get('tilt_y_deg', math.nan):+.3f}, "
                 f"{error.get('rotation_deg', math.nan):+.4f} | {run['truth'].get('error_norm_px', math.nan):.2f} |")
-        output["runs"] = [{key: value for key, value in run.items() if key != "trajectory"} for run in runs]
+        output["runs"] = [{key: value for key, value in run.items() if key != "trajectory" or index == 0}
+                          for index, run in enumerate(runs)]
     (RESULTS / "tilt.json").write_text(json.dumps(output, indent=1, default=float))
     say(f"\nwrote {RESULTS / 'tilt.json'}")
     return 0

@@ -145,6 +145,20 @@ def test_click_to_move_and_an_api_error_in_words(page):
     expect(page.locator("#message-text")).to_contain_text("tolerance_px")
 
 
+def test_a_tilt_run_without_a_taught_sweep_says_what_to_do(page):
+    expect(page.locator("#tilt-panel")).to_be_visible()
+    expect(page.locator("#teach-tilts")).to_be_visible()
+    teach(page)  # the live frame, without its focus sweep
+    page.check("input[name=dof][value=alpha]")
+    page.check("input[name=dof][value=beta]")
+    page.click("#start")
+    expect(page.locator("#message")).to_be_visible()
+    expect(page.locator("#message-text")).to_contain_text("teach with tilts=true")
+    page.uncheck("input[name=dof][value=alpha]")
+    page.uncheck("input[name=dof][value=beta]")
+    page.click("#message-close")
+
+
 def test_teach_from_an_uploaded_image(page, system, tmp_path):
     import httpx
 

@@ -120,3 +120,52 @@ def test_non_finite_pixels_and_bad_pixel_sizes_are_refused():
     sweep[3, 5, 5] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         estimate_tilt(sweep, WORKING_DISTANCES_UM, PIXEL_UM)
+
+
+def test_the_papers_egi_method_recovers_a_known_tilt_between_two_sweeps():
+    from semservo.tilt import depth_map, egi_tilt_between, kernel_normals
+
+    flat = depth_map(sweep_of_plane(0.0, 0.0), WORKING_DISTANCES_UM, KERNEL)
+    tilted = depth_map(sweep_of_plane(4.0, -3.0), WORKING_DISTANCES_UM, KERNEL)
+    normals, weights = kernel_normals(tilted, KERNEL, PIXEL_UM)
+    # Each normal points towards the lens, tipped as the plane: (-sin b, sin a cos b, -cos a cos b).
+    mean = normals.mean(axis=0) / np.linalg.norm(normals.mean(axis=0))
+    expected = np.array([-np.sin(np.radians(-3.0)), np.sin(np.radians(4.0)) * np.cos(np.radians(-3.0)),
+                         -np.cos(np.radians(4.0)) * np.cos(np.radians(-3.0))])
+    assert np.degrees(np.arccos(np.clip(mean @ expected, -1, 1))) < 0.5 and (weights >= 1).all()
+    alpha, beta, peak = egi_tilt_between(flat, tilted, KERNEL, PIXEL_UM)
+    assert alpha == pytest.approx(4.0, abs=0.5) and beta == pytest.approx(-3.0, abs=0.5) and peak > 1
+    empty = np.full_like(flat, np.nan)
+    assert np.isnan(egi_tilt_between(flat, empty, KERNEL, PIXEL_UM)[0]), "no normals: no angle"
+
+
+def test_sweeps_are_planned_wide_first_then_on_the_taught_grid():
+    from semservo.tilt import plan_sweep
+
+    first = plan_sweep(0.0, 3.5, 36.0)
+    assert len(first) % 2 == 1 and first[len(first) // 2] == pytest.approx(0.0)
+    assert np.ptp(first) >= 2 * 36.0 * np.tan(np.radians(15.0))  # any tilt up to 15 degrees
+    grid = (first[0], first[1] - first[0])
+    flat, steep = (plan_sweep(0.6, 3.5, 36.0, tilt_deg=tilt, grid=grid) for tilt in ((0.0, 0.0), (10.0, 10.0)))
+    assert len(flat) < len(steep) <= len(first)
+    for sweep in (flat, steep):  # on the taught sweep's working distances
+        assert np.allclose((sweep - grid[0]) / grid[1], np.round((sweep - grid[0]) / grid[1]))
+    with pytest.raises(ValueError):
+        plan_sweep(0.0, float("nan"), 36.0)
+
+
+def test_undoing_the_foreshortening_restores_the_square_view():
+    from semservo.tilt import undo_foreshortening
+
+    scene = texture().astype(np.float32)
+    # Foreshorten rows by cos(20 degrees) (a tilt about x), then undo it.
+    size = scene.shape[0]
+    centred = np.arange(size, dtype=np.float32) - (size - 1) / 2
+    rows = (centred[:, None] / np.cos(np.radians(20.0)) + (size - 1) / 2).astype(np.float32)
+    cols = np.broadcast_to(np.arange(size, dtype=np.float32)[None, :], scene.shape)
+    tilted = cv2.remap(scene, np.ascontiguousarray(cols), np.ascontiguousarray(np.broadcast_to(rows, scene.shape)),
+                       cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    restored = undo_foreshortening(tilted, 20.0, 0.0)
+    middle = (slice(64, -64), slice(64, -64))
+    assert np.corrcoef(restored[middle].ravel(), scene[middle].ravel())[0, 1] > 0.98
+    assert np.corrcoef(tilted[middle].ravel(), scene[middle].ravel())[0, 1] < 0.8
