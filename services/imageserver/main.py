@@ -181,12 +181,14 @@ def main(argv: list[str] | None = None) -> int:
                 "source_interval_s": image.source_interval_s}
 
     def scan_settings(args: dict) -> dict:
-        """``set_scan {dwell_ns?, magnification?, working_distance_mm?}``: the frames that
-        follow, on a source that can (the simulated SEM; a lab's adapter)."""
-        values = {key: number(args[key], key) for key in ("dwell_ns", "magnification", "working_distance_mm")
+        """``set_scan {dwell_ns?, magnification?, working_distance_mm?, working_distance_um?}``:
+        the frames that follow, on a source that can (the simulated SEM: dwell,
+        magnification and its focus offset in um; a lab's adapter: what it implements)."""
+        values = {key: number(args[key], key)
+                  for key in ("dwell_ns", "magnification", "working_distance_mm", "working_distance_um")
                   if args.get(key) is not None}
         if not values:
-            raise BadRequest("set_scan needs dwell_ns, magnification or working_distance_mm")
+            raise BadRequest("set_scan needs dwell_ns, magnification, working_distance_mm or working_distance_um")
         try:
             return set_scan(source, **values)
         except NotSupported as error:

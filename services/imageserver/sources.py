@@ -274,13 +274,15 @@ class SimSource:
         return {"source": self.name, "endpoint": self.endpoint, "frames": self.frames,
                 "request": self.request.model_dump()}
 
-    def set_scan(self, *, dwell_ns: float | None = None, magnification: float | None = None) -> dict:
-        """Scan the frames that follow with this dwell or magnification."""
-        changes = {key: value for key, value in (("dwell_ns", dwell_ns), ("magnification", magnification))
-                   if value is not None}
+    def set_scan(self, *, dwell_ns: float | None = None, magnification: float | None = None,
+                 working_distance_um: float | None = None) -> dict:
+        """Scan the frames that follow with this dwell, magnification or focus (the
+        working distance's offset from the nominal one, um, larger deeper)."""
+        changes = {key: value for key, value in (("dwell_ns", dwell_ns), ("magnification", magnification),
+                                                 ("working_distance_um", working_distance_um)) if value is not None}
         self.request = ScanRequest.model_validate({**self.request.model_dump(), **changes})
         self.typical_scan_s = None  # another dwell: another scan time
-        return {key: getattr(self.request, key) for key in ("dwell_ns", "magnification")}
+        return {key: getattr(self.request, key) for key in ("dwell_ns", "magnification", "working_distance_um")}
 
     def close(self) -> None:
         self.client.close()
@@ -302,7 +304,7 @@ def adapter_source(spec: str, options: dict, fps: float):
 
 
 def set_scan(source, *, dwell_ns: float | None = None, magnification: float | None = None,
-             working_distance_mm: float | None = None) -> dict:
+             working_distance_mm: float | None = None, working_distance_um: float | None = None) -> dict:
     """Change the scan settings (and the focus, for the tilt measurement) of the frames
     that follow, on a source that can: the simulated SEM (dwell, magnification) or a
     lab's adapter (what it implements). Raises :class:`~semservo.instruments.NotSupported` saying what
@@ -313,6 +315,11 @@ def set_scan(source, *, dwell_ns: float | None = None, magnification: float | No
         if not callable(getattr(target, "set_scan", None)):
             raise NotSupported(f"the {source.name} source cannot change its scan settings")
         result.update(target.set_scan(dwell_ns=dwell_ns, magnification=magnification))
+    if working_distance_um is not None:  # the simulated SEM's focus offset
+        if not isinstance(target, SimSource):
+            raise NotSupported(f"working_distance_um is the simulated SEM's focus offset; the {source.name} source "
+                               "takes working_distance_mm")
+        result.update(target.set_scan(working_distance_um=working_distance_um))
     if working_distance_mm is not None:
         if not callable(getattr(target, "set_working_distance", None)):
             raise NotSupported(f"the {source.name} source cannot set the focus")

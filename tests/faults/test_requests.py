@@ -107,7 +107,7 @@ COMMANDS = {
                                                                                   "tilt_y_deg", "halt"],
                 "set_preset": ["preset"], "serial_link": ["plugged"]},
     "imageserver": {"info": [], "set_fps": ["fps"], "scan_once": ["dwell_ns", "magnification"],
-                    "set_scan": ["dwell_ns", "magnification", "working_distance_mm"],
+                    "set_scan": ["dwell_ns", "magnification", "working_distance_mm", "working_distance_um"],
                     "start_sweep": ["working_distances_um"], "sweep": ["sweep_id"]},
     "estimator": {"teach": ["frames", "image_b64", "path", "polygon", "mask_b64", "tilts"], "clear": [], "report": [],
                   "measure": ["rotation", "tilts"]},

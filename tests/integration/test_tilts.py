@@ -77,3 +77,36 @@ def test_servoes_all_five_degrees_of_freedom_through_the_api(system):
     # The record and the CSV carry the tilts of every iteration with a sweep.
     table = lab.http.get(f"/runs/{run['run_id']}.csv").text.splitlines()
     assert "alpha_deg" in table[0] and "beta_deg" in table[0]
+
+
+def test_the_image_server_focuses_and_sweeps_on_command(system):
+    from semservo.config import connect
+    from semservo.transport import CommandError, ControlClient
+    from services.imageserver.sweep import decode_sweep
+
+    settings = system["settings"]
+    control = ControlClient(connect("127.0.0.1", settings.imageserver.control_port), timeout_s=10, retries=1)
+    try:
+        assert control.request("set_scan", working_distance_um=2.0)["working_distance_um"] == 2.0
+        assert control.request("set_scan", working_distance_um=0.0)["working_distance_um"] == 0.0
+        for bad in ([0.0, 1.0], [0.0, 2.0, 1.0], [0.0, float("inf"), 1.0]):
+            with pytest.raises(CommandError):
+                control.request("start_sweep", working_distances_um=bad)
+        def start():
+            try:  # the estimator's last sweep of the run before may still be scanning: busy, said so
+                return control.request("start_sweep", working_distances_um=[-7.0, 0.0, 7.0])
+            except CommandError as error:
+                assert error.code == "busy", error
+                return None
+
+        started = wait_for(start, 60, "the image server free to sweep")
+        result = wait_for(lambda: (r := control.request("sweep", sweep_id=started["sweep_id"]))["state"] != "scanning"
+                          and r, 60, "the focus sweep")
+        assert result["state"] == "done" and result["pixel_size_nm"] > 0
+        frames = decode_sweep(result).astype(float)
+        assert frames.shape == (3, 512, 512)
+        # In focus in the middle of the sweep: the sharpest frame (the largest normalized variance).
+        sharpness = [frame.var() / frame.mean() for frame in frames]
+        assert sharpness[1] > max(sharpness[0], sharpness[2])
+    finally:
+        control.close()
