@@ -24,4 +24,5 @@ def scan_settings(world: World, request: ScanRequest) -> ScanSettings:
         rows=request.rows, cols=request.cols,
         working_distance_um=preset.focus_um if request.working_distance_um is None else request.working_distance_um,
         brightness=request.brightness, contrast=request.contrast, bit_depth=request.bit_depth,
+        aperture_um=request.aperture_um,
     )

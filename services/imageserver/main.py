@@ -93,6 +93,7 @@ def make_source(settings: Settings, args: argparse.Namespace):
         request = ScanRequest(dwell_ns=args.dwell_ns or config.scan_dwell_ns,
                               magnification=args.magnification or config.scan_magnification,
                               working_distance_um=config.scan_working_distance_um,
+                              aperture_um=config.scan_aperture_um,
                               brightness=config.scan_brightness, contrast=config.scan_contrast,
                               bit_depth=config.scan_bit_depth)
         # A scan takes a frame time: acquire in the background so health stays responsive.

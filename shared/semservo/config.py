@@ -97,6 +97,8 @@ class ImageServerSettings(BaseModel):
     scan_dwell_ns: PositiveFloat | None = Field(None, description="sim: dwell to request (default: the preset's)")
     scan_magnification: PositiveFloat | None = Field(None, description="sim: magnification to request")
     scan_working_distance_um: float | None = Field(None, description="sim: focus, the working distance's offset from the stage's reference surface in um, larger deeper (default: the preset's, the part's top)")
+    scan_aperture_um: float | None = Field(None, ge=5, le=2000, description="sim: objective aperture diameter, um "
+                                                                     "(default: the preset's; sets the depth of field)")
     scan_brightness: float = Field(0.0, ge=-1, le=1, description="sim: offset, fraction of full scale")
     scan_contrast: float = Field(1.0, gt=0, le=10, description="sim: gain")
     scan_bit_depth: Literal[8, 16] = Field(8, description="sim: 8- or 16-bit frames")

@@ -168,7 +168,10 @@ class ScanRequest(_Message):
 
     dwell_ns: PositiveFloat | None = Field(None, le=1e6, description="ns per pixel (1 ms at most)")
     magnification: PositiveFloat | None = Field(None, le=1e7)
-    working_distance_um: float | None = Field(None, ge=-1e5, le=1e5)
+    working_distance_um: float | None = Field(None, ge=-1e5, le=1e5, description="focus: the working distance's "
+                                              "offset from the nominal one (um, larger deeper)")
+    aperture_um: PositiveFloat | None = Field(None, ge=5, le=2000, description="objective aperture diameter (um): "
+                                              "with the working distance, the beam half-angle and depth of field")
     brightness: float = Field(0.0, ge=-1, le=1)
     contrast: float = Field(1.0, gt=0, le=10)
     rows: int = Field(512, ge=64, le=4096)

@@ -103,3 +103,21 @@ def test_depth_from_focus_recovers_the_simulated_tilts(alpha, beta):
     assert measured.confidence > 0.5
     assert measured.alpha_deg - taught.alpha_deg == pytest.approx(alpha, abs=0.15)
     assert measured.beta_deg - taught.beta_deg == pytest.approx(beta, abs=0.15)
+
+
+def test_the_aperture_sets_the_depth_of_field():
+    # A smaller aperture: a smaller beam half-angle, a deeper depth of field, so the same
+    # distance from focus blurs less.
+    world = World(PRESETS["tilts"], speedup=1000.0)
+    settings = ScanSettings(dwell_ns=2000.0, magnification=3000.0, working_distance_um=6.0)
+    sharp = ScanSettings(dwell_ns=2000.0, magnification=3000.0, working_distance_um=0.0)
+
+    def sharpness(image):
+        image = image.astype(np.float64)
+        return float((np.diff(image, axis=1) ** 2).mean() / image.var())
+
+    in_focus = sharpness(frame(world.sem, Pose(), sharp))
+    wide = sharpness(frame(world.sem, Pose(), settings))  # the preset's 400 um aperture
+    narrow = sharpness(frame(world.sem, Pose(), replace(settings, aperture_um=50.0)))
+    assert wide < narrow <= in_focus * 1.05
+    assert world.sem.half_angle(replace(settings, aperture_um=50.0)) == pytest.approx(0.005, rel=0.01)

@@ -69,6 +69,9 @@ class ScanSettings:
     # untilted stage's reference surface; larger is farther from the lens. -10 focuses on
     # the top of the micropart's 10 um bar.
     working_distance_um: float = -10.0
+    # The objective aperture's diameter (um); None: the SEM's own (its preset's). With the
+    # working distance it sets the beam half-angle, hence the depth of field.
+    aperture_um: float | None = None
     brightness: float = 0.0  # offset, fraction of full scale
     contrast: float = 1.0  # gain
     bit_depth: int = 8
@@ -119,6 +122,7 @@ class SEM:
     seed: int = 2013
     extent_um: float | None = None
     beam_half_angle: float = BEAM_HALF_ANGLE  # a larger aperture or shorter WD: less DoF
+    working_distance_mm: float = NOMINAL_WORKING_DISTANCE_MM  # nominal: an aperture becomes a half-angle here
     pivot_depth_um: float = PIVOT_DEPTH_UM  # the tilt axes' depth below the surface
     _stacks: dict = field(default_factory=dict)
     charge: np.ndarray = field(default_factory=lambda: np.zeros((64, 64), np.float32))
@@ -127,7 +131,14 @@ class SEM:
     def for_preset(cls, preset, seed: int) -> "SEM":
         """The SEM of a :class:`semservo.simulation.world.Preset`: its scene, aperture
         and working distance."""
-        return cls(preset.scene, seed, beam_half_angle=beam_half_angle(preset.aperture_um, preset.working_distance_mm))
+        return cls(preset.scene, seed, beam_half_angle=beam_half_angle(preset.aperture_um, preset.working_distance_mm),
+                   working_distance_mm=preset.working_distance_mm)
+
+    def half_angle(self, settings: ScanSettings) -> float:
+        """The beam half-angle of this scan: its aperture's, or the SEM's own."""
+        if settings.aperture_um is None:
+            return self.beam_half_angle
+        return beam_half_angle(settings.aperture_um, self.working_distance_mm + settings.working_distance_um / 1000)
 
     def _stack(self, settings: ScanSettings) -> _BlurStack:
         """The sample sampled at half the image pixel, blurred to each level (cached per
@@ -217,7 +228,7 @@ class SEM:
             height = height * (cos_a * cos_b)
         depth = surface_depth - height - along_line("z_um")
         defocus = np.abs(depth - settings.working_distance_um)
-        sigma_px = self.beam_half_angle * defocus / pixel
+        sigma_px = self.half_angle(settings) * defocus / pixel
         # Blend the two nearest blur levels linearly in variance: a mixture of two
         # Gaussian kernels has exactly the blended second moment, so the blur grows
         # smoothly (as sqrt(probe^2 + (alpha dz / P)^2)) and the focus peak is round, not
