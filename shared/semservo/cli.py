@@ -536,6 +536,22 @@ def command_demo(args: argparse.Namespace) -> int:
             launcher.stop()
 
 
+def command_reproduce(args: argparse.Namespace) -> int:
+    """The paper's experiments on the simulated lab, with the baselines (semservo.reproduce)."""
+    from semservo import reproduce
+
+    try:
+        path = reproduce.run(Path(args.out), quick=args.quick, only=args.only, fresh=args.fresh)
+    except ValueError as error:
+        print(f"reproduce: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: finished experiments are kept; run the same command to go on", file=sys.stderr)
+        return 130
+    print(f"tables beside the paper's, and figures: {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="semservo",
@@ -668,6 +684,21 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--speedup", type=float, help="when the demo starts the system: simulated time this much faster")
     demo.add_argument("--verbose", action="store_true", help="show the services' logs when the demo starts them")
     demo.set_defaults(handler=command_demo)
+
+    from semservo.reproduce import EXPERIMENTS
+
+    reproduce = commands.add_parser(
+        "reproduce", help="re-run the paper's experiments (Tables I-IV, Figs. 4, 8-11) with its baselines",
+        description="Re-run the paper's experiments on the simulated lab, semservo and the baselines the paper "
+                    "compared against (photometric visual servoing, dense optical flow, keypoints) closing the same "
+                    "loop, and write the tables beside the paper's numbers with the figures. Finished experiments "
+                    "are kept and skipped when run again (resumable); --fresh redoes them.")
+    reproduce.add_argument("--quick", action="store_true", help="a reduced run: a few minutes on 2 cores")
+    reproduce.add_argument("--only", nargs="+", choices=EXPERIMENTS, metavar="NAME",
+                           help=f"run only these: {', '.join(EXPERIMENTS)}")
+    reproduce.add_argument("--out", default="docs/reproduction", help="where the report goes (default docs/reproduction)")
+    reproduce.add_argument("--fresh", action="store_true", help="redo experiments that have results already")
+    reproduce.set_defaults(handler=command_reproduce)
 
     health = commands.add_parser("health", help="ask services for their health")
     health.add_argument("names", nargs="*", help="services (default: all)")

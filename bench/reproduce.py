@@ -1,0 +1,12 @@
+"""``./dev bench reproduce``: the same as ``semservo reproduce`` (the paper's experiments,
+with its baselines, beside its numbers); options pass through (``--quick``, ``--only``,
+``--fresh``, ``--out``)."""
+
+from __future__ import annotations
+
+import sys
+
+from semservo.cli import main
+
+if __name__ == "__main__":
+    raise SystemExit(main(["reproduce", *sys.argv[1:]]))

@@ -1,0 +1,238 @@
+"""``semservo reproduce``: the paper's experiments on the simulated lab, each table beside
+the paper's own numbers, with the baselines it compared against closing the same loop.
+
+Experiments (``--only`` takes these names):
+
+* ``fig4``: the cost e'e (eq. 32) around the desired pose, semservo's and the photometric
+  error's, as a map;
+* ``table2``: positioning error against the quality of the desired image (reference
+  dwell 4.3, 5.8, 8.6, 11.5 us/px; live frames at 360 ns/px);
+* ``table3``: accuracy and its spread over trials for the six cases, RMSE and PSNR of the
+  final against the desired image, the simulator's true error beside the image's;
+* ``table4``: time per iteration (computation, and frames) and successes out of N for
+  semservo and every baseline (:mod:`.methods`) on the six cases, the same starts;
+* ``figs9_11``: error, cost and voltages per iteration for three trials per condition
+  (from ``table3``'s trials);
+* ``table1``: the tilts (Table I) on the paper's three poses, from ``bench/tilt.py``'s
+  measurement (the 5-DOF runs of Fig. 8 are in that benchmark: they need the whole stack).
+
+Results are kept per experiment in ``<out>/results/<name>.json``: a finished experiment is
+skipped when the command runs again (``--fresh`` redoes it), so a long run can be
+interrupted and resumed. ``--quick`` runs a reduced version (fewer cases, trials and grid
+points) in a few minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from semservo.reproduce import loop, methods
+
+#: The paper's cases 1-6 (Table III, IV) as the fake lab's presets.
+CASES = ("optimal", "noisy", "high-magnification", "unstable", "high-quality-reference", "mask-reference")
+#: Table III: accuracy x, y (um), std x, y (um), RMSE, PSNR.
+PAPER_TABLE3 = {
+    "optimal": (0.11, 0.19, 0.0248, 0.0187, 1.60, 38.73), "noisy": (0.14, 0.23, 0.0108, 0.0216, 1.87, 32.70),
+    "high-magnification": (0.04, 0.11, 0.0061, 0.0053, 1.79, 33.68),
+    "unstable": (0.22, 0.37, 0.0147, 0.0286, None, None),
+    "high-quality-reference": (0.09, 0.13, 0.0089, 0.0127, None, None),
+    "mask-reference": (0.29, 0.47, 0.0497, 0.0589, None, None),
+}
+#: Table IV: ms per iteration (successes of 6; None: all 6 failed) for ours, flow, SURF, FAST.
+PAPER_TABLE4 = {
+    "optimal": ((38, 6), (29, 6), (911, 6), (73, 6)), "noisy": ((33, 6), (34, 6), (797, 4), (49, 2)),
+    "high-magnification": ((37, 6), (30, 6), (1063, 6), (65, 5)),
+    "unstable": ((38, 6), (None, 0), (None, 0), (None, 0)),
+    "high-quality-reference": ((36, 6), (34, 5), (826, 3), (71, 4)),
+    "mask-reference": ((39, 6), (33, 6), (None, 0), (None, 0)),
+}
+#: Table II: reference dwell (us/px) -> error x, y (px).
+PAPER_TABLE2 = {4.3: (0.65, 0.81), 5.8: (0.48, 0.69), 8.6: (0.33, 0.51), 11.5: (0.26, 0.39)}
+#: Table I: true (alpha, beta, gamma); the paper's measured values reach 0.82 degree off.
+PAPER_TABLE1_POSES = ((15.0, -15.0, 70.0), (8.0, -8.0, 30.0), (3.0, 3.0, -5.0))
+
+EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1")
+
+
+def starts(count: int, seed: int, field_um: float) -> list[tuple[float, float]]:
+    """Starting displacements: 8-15 % of the field (41-77 px) in a random direction, the same for
+    every method."""
+    rng = np.random.default_rng(seed)
+    radius = rng.uniform(0.08, 0.15, count) * field_um
+    angle = rng.uniform(0, 2 * np.pi, count)
+    return [(float(r * np.cos(a)), float(r * np.sin(a))) for r, a in zip(radius, angle)]
+
+
+def field_um(case: str) -> float:
+    return loop.Lab(case, 0).pixel_um * 512
+
+
+class Progress:
+    """A progress bar per experiment, with the time left (tqdm)."""
+
+    def __init__(self, name: str, total: int, quiet: bool = False):
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total, desc=f"{name:9s}", unit="trial", disable=quiet, dynamic_ncols=True,
+                        bar_format="{desc} {bar} {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}")
+
+    def step(self, note: str = "") -> None:
+        self.bar.set_postfix_str(note[:60])
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+# -- the experiments ------------------------------------------------------------------
+
+def experiment_table4(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    cases = ("optimal", "noisy", "unstable") if quick else CASES
+    trials = 1 if quick else 6
+    rows = {}
+    bar = progress(len(cases) * len(methods.METHODS) * trials)
+    for case in cases:
+        for start_index, start in enumerate(starts(trials, 4, field_um(case))):
+            for method in methods.METHODS:
+                result = loop.run_trial(case, method, start, seed=100 + start_index)
+                rows.setdefault(case, {}).setdefault(method, []).append(_summary(result))
+                bar.step(f"{case} {method}: {result['outcome']}")
+    bar.close()
+    return {"cases": list(cases), "trials": trials, "rows": rows}
+
+
+def experiment_table3(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    trials = 1 if quick else 10
+    rows = {}
+    bar = progress(len(CASES) * trials)
+    for case in CASES:
+        for index, start in enumerate(starts(trials, 3, field_um(case))):
+            result = loop.run_trial(case, "semservo", start, seed=200 + index, keep_images=True)
+            summary = _summary(result)
+            if case in ("optimal", "noisy", "high-magnification"):
+                summary["rmse"], summary["psnr_db"] = loop.rmse_psnr(result["desired"], result["final"])
+            summary["records"] = [{key: value for key, value in record.items() if key != "compute_ms"}
+                                  for record in result["records"]]
+            rows.setdefault(case, []).append(summary)
+            bar.step(f"{case}: {result['outcome']} {result['true_error_px']:.2f} px")
+    bar.close()
+    return {"trials": trials, "rows": rows}
+
+
+def experiment_table2(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    trials = 1 if quick else 5
+    rows = {}
+    bar = progress(len(PAPER_TABLE2) * trials)
+    for dwell_us in PAPER_TABLE2:
+        for index, start in enumerate(starts(trials, 2, field_um("high-quality-reference"))):
+            result = loop.run_trial("high-quality-reference", "semservo", start, seed=300 + index,
+                                    reference_dwell_ns=dwell_us * 1000)
+            rows.setdefault(str(dwell_us), []).append(_summary(result))
+            bar.step(f"{dwell_us} us/px: {result['true_error_px']:.2f} px")
+    bar.close()
+    return {"trials": trials, "rows": rows}
+
+
+def experiment_fig4(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    """e'e of semservo's measured error and of the photometric error (I - I*) for stage
+    displacements on a grid about the desired pose (the paper's Fig. 4)."""
+    from semservo.simulation.sem import Pose
+
+    lab = loop.Lab("optimal", 5)
+    reference, _ = lab.scan()
+    semservo = methods.make("semservo", reference)
+    desired = methods._normalised(reference, 2)
+    points = 9 if quick else 21
+    offsets_px = np.linspace(-60, 60, points)
+    bar = progress(points)
+    fourier, photometric = np.zeros((points, points)), np.zeros((points, points))
+    for row, dy in enumerate(offsets_px):
+        for col, dx in enumerate(offsets_px):
+            pose = Pose(x_um=dx * lab.pixel_um, y_um=dy * lab.pixel_um)
+            frame = lab.world.sem.render(lab.settings, [pose] * 512, [pose] * 512, lab.world.rng)
+            measured = semservo(frame)
+            fourier[row, col] = measured.dx ** 2 + measured.dy ** 2 if measured.ok else np.nan
+            difference = methods._normalised(frame, 2) - desired
+            photometric[row, col] = float(np.mean(difference ** 2))
+        bar.step(f"row {row + 1}")
+    bar.close()
+    return {"offsets_px": offsets_px.tolist(), "fourier": fourier.tolist(), "photometric": photometric.tolist()}
+
+
+def experiment_table1(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    import importlib.util
+    import sys
+
+    bench = Path(__file__).resolve().parents[3] / "bench" / "tilt.py"
+    if not bench.is_file():
+        return {"skipped": f"{bench} is not here (an installed package without the repository's bench/)"}
+    spec = importlib.util.spec_from_file_location("semservo_bench_tilt", bench)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    bar = progress(1)
+    table = module.table_one(list(PAPER_TABLE1_POSES), seed=15)
+    bar.step("three poses")
+    bar.close()
+    return {"rows": table["rows"], "taught": table["taught"]}
+
+
+def _summary(result: dict) -> dict:
+    last = next((r for r in reversed(result["records"]) if "error_px" in r), {})
+    return {key: result[key] for key in ("outcome", "reason", "iterations", "true_error_um", "true_error_px",
+                                         "compute_ms", "frame_time_s", "start_um", "pixel_um")} | {
+        "measured_error_px": last.get("error_px")}
+
+
+RUNNERS = {"fig4": experiment_fig4, "table2": experiment_table2, "table3": experiment_table3,
+           "table4": experiment_table4, "table1": experiment_table1}
+
+
+def run(out: Path, *, quick: bool = False, only: list[str] | None = None, fresh: bool = False,
+        quiet: bool = False, say: Callable[[str], None] = print) -> Path:
+    """Run the experiments (``only``: a subset) into ``out``; returns the report's path."""
+    from semservo.reproduce import report
+
+    unknown = set(only or ()) - set(EXPERIMENTS)
+    if unknown:
+        raise ValueError(f"unknown experiments {sorted(unknown)}; experiments: {', '.join(EXPERIMENTS)}")
+    results_dir = out / "results"
+    results_dir.mkdir(parents=True, exist_ok=True)
+    chosen = [name for name in EXPERIMENTS if not only or name in only]
+    for name in chosen:
+        if name == "figs9_11":
+            continue  # drawn from table3's trials
+        path = results_dir / f"{name}.json"
+        if path.is_file() and not fresh:
+            kept = json.loads(path.read_text())
+            if kept.get("quick") == quick:
+                say(f"{name}: kept from an earlier run ({path}); --fresh runs it again")
+                continue
+        started = time.monotonic()
+        result = RUNNERS[name](quick, lambda total, name=name: Progress(name, total, quiet))
+        result.update(quick=quick, seconds=round(time.monotonic() - started, 1),
+                      finished_at=time.strftime("%Y-%m-%d %H:%M:%S"))
+        path.write_text(json.dumps(result, default=_jsonable))
+        say(f"{name}: done in {result['seconds']:.0f} s")
+    return report.write(out, say=say)
+
+
+def load(out: Path, name: str) -> dict | None:
+    path = out / "results" / f"{name}.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _jsonable(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
