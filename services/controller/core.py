@@ -368,6 +368,8 @@ class ControllerCore:
                 record["saturated"] = True
         if turns:
             record["turn_deg"] = turns
+        if not targets and not turns:  # a tilts-only run between two sweeps: nothing to move yet
+            return self._record(record, "held: waiting for a focus sweep")
         try:
             if targets:
                 written = self.stage.request("move", {"targets": targets, "relative": True, "owner": self.owner})

@@ -484,3 +484,19 @@ def test_a_tilt_run_without_a_taught_sweep_is_refused(turning_stage, tmp_path):
     with pytest.raises(ValueError, match="teach with tilts=true"):
         core.start(RunSettings(dofs=["x", "y", "alpha"]), "ref")
     assert core.state == "idle" and stage.watchdog.owner is None
+
+
+def test_a_tilts_only_run_waits_for_its_sweeps(turning_stage, tmp_path):
+    import time
+
+    stage, world = turning_stage
+    core = ControllerCore(LocalStage(stage), estimator=TiltingEstimator(), runs_dir=tmp_path)
+    core.start(RunSettings(dofs=["alpha", "beta"], converge_frames=1), "ref")
+    now = time.time_ns()
+    waiting = core.on_estimate(estimate(1, 5.0, 5.0, scan_started_at_ns=now))  # no sweep yet: x, y are not servoed
+    assert waiting["action"] == "held: waiting for a focus sweep" and core.state == "servoing"
+    moved = core.on_estimate(with_tilt(estimate(2, 5.0, 5.0, scan_started_at_ns=now), 1, 1.0, -0.5, now))
+    assert moved["action"] == "moved" and set(moved["turn_deg"]) == {"tilt_x_deg", "tilt_y_deg"}
+    later = moved["command_settled_at_ns"] + 1
+    done = core.on_estimate(with_tilt(estimate(3, 5.0, 5.0, scan_started_at_ns=later), 2, 0.02, 0.01, later))
+    assert core.state == "converged" and done["tilt_action"] == "within tolerance", "x, y do not count here"
