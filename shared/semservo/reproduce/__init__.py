@@ -14,7 +14,9 @@ Experiments (``--only`` takes these names):
 * ``figs9_11``: error, cost and voltages per iteration for three trials per condition
   (from ``table3``'s trials);
 * ``table1``: the tilts (Table I) on the paper's three poses, from ``bench/tilt.py``'s
-  measurement (the 5-DOF runs of Fig. 8 are in that benchmark: they need the whole stack).
+  measurement;
+* ``fig8``: a 5-DOF run from (7, 12, 20) degrees (and three from random poses in the full
+  run) through the whole stack, which the launcher starts on simulated hardware.
 
 Results are kept per experiment in ``<out>/results/<name>.json``: a finished experiment is
 skipped when the command runs again (``--fresh`` redoes it), so a long run can be
@@ -57,7 +59,9 @@ PAPER_TABLE2 = {4.3: (0.65, 0.81), 5.8: (0.48, 0.69), 8.6: (0.33, 0.51), 11.5: (
 #: Table I: true (alpha, beta, gamma); the paper's measured values reach 0.82 degree off.
 PAPER_TABLE1_POSES = ((15.0, -15.0, 70.0), (8.0, -8.0, 30.0), (3.0, 3.0, -5.0))
 
-EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1")
+EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1", "fig8")
+#: Figs. 9-11 also show the calibration sample (the paper's case 7, Fig. 11): run with Table III's trials.
+FIGURE_CASES = CASES + ("repeated-pattern",)
 
 
 def starts(count: int, seed: int, field_um: float) -> list[tuple[float, float]]:
@@ -110,15 +114,16 @@ def experiment_table4(quick: bool, progress: Callable[[int], Progress]) -> dict:
 def experiment_table3(quick: bool, progress: Callable[[int], Progress]) -> dict:
     trials = 1 if quick else 10
     rows = {}
-    bar = progress(len(CASES) * trials)
-    for case in CASES:
+    bar = progress(len(FIGURE_CASES) * trials)
+    for case in FIGURE_CASES:
         for index, start in enumerate(starts(trials, 3, field_um(case))):
             result = loop.run_trial(case, "semservo", start, seed=200 + index, keep_images=True)
             summary = _summary(result)
             if case in ("optimal", "noisy", "high-magnification"):
                 summary["rmse"], summary["psnr_db"] = loop.rmse_psnr(result["desired"], result["final"])
-            summary["records"] = [{key: value for key, value in record.items() if key != "compute_ms"}
-                                  for record in result["records"]]
+            if index < 3:  # the trials Figs. 9-11 plot
+                summary["records"] = [{key: value for key, value in record.items() if key != "compute_ms"}
+                                      for record in result["records"]]
             rows.setdefault(case, []).append(summary)
             bar.step(f"{case}: {result['outcome']} {result['true_error_px']:.2f} px")
     bar.close()
@@ -183,6 +188,37 @@ def experiment_table1(quick: bool, progress: Callable[[int], Progress]) -> dict:
     return {"rows": table["rows"], "taught": table["taught"]}
 
 
+def experiment_fig8(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    """The paper's Fig. 8: a 5-DOF run from (7, 12, 20) degrees plus a translation, and
+    (full run) three more from random poses, through the whole stack (the launcher starts
+    it on simulated hardware), with ``bench/tilt.py``'s runner."""
+    import importlib.util
+    import sys
+    import tempfile
+
+    root = Path(__file__).resolve().parents[3]
+    bench = root / "bench" / "tilt.py"
+    if not bench.is_file():
+        return {"skipped": f"{bench} is not here (an installed package without the repository's bench/)"}
+    sys.path.insert(0, str(root))
+    spec = importlib.util.spec_from_file_location("semservo_bench_tilt", bench)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    rng = np.random.default_rng(8)
+    initial = [(7.0, 12.0, 20.0, 3.0, -2.0)] + [
+        (float(rng.uniform(-10, 10)), float(rng.uniform(-10, 10)), float(rng.uniform(-20, 20)),
+         float(rng.uniform(-4, 4)), float(rng.uniform(-4, 4))) for _ in range(0 if quick else 3)]
+    bar = progress(1)
+    with tempfile.TemporaryDirectory() as folder:
+        runs = module.five_dof_runs(initial, Path(folder), 20.0)
+    bar.step(f"{sum(run['state'] == 'converged' for run in runs)}/{len(runs)} converged")
+    bar.close()
+    # The first run's iterations are plotted; the others are summarized.
+    return {"runs": [run if index == 0 else {key: value for key, value in run.items() if key != "trajectory"}
+                     for index, run in enumerate(runs)]}
+
+
 def _summary(result: dict) -> dict:
     last = next((r for r in reversed(result["records"]) if "error_px" in r), {})
     return {key: result[key] for key in ("outcome", "reason", "iterations", "true_error_um", "true_error_px",
@@ -191,7 +227,7 @@ def _summary(result: dict) -> dict:
 
 
 RUNNERS = {"fig4": experiment_fig4, "table2": experiment_table2, "table3": experiment_table3,
-           "table4": experiment_table4, "table1": experiment_table1}
+           "table4": experiment_table4, "table1": experiment_table1, "fig8": experiment_fig8}
 
 
 def run(out: Path, *, quick: bool = False, only: list[str] | None = None, fresh: bool = False,
