@@ -15,6 +15,8 @@ Experiments (``--only`` takes these names):
   (from ``table3``'s trials);
 * ``table1``: the tilts (Table I) on the paper's three poses, from ``bench/tilt.py``'s
   measurement;
+* ``replay2013``: the real 2013 run (photometric servoing) replayed against our
+  photometric baseline: its recorded increments against ours, per axis;
 * ``fig8``: a 5-DOF run from (7, 12, 20) degrees (and three from random poses in the full
   run) through the whole stack, which the launcher starts on simulated hardware.
 
@@ -59,7 +61,7 @@ PAPER_TABLE2 = {4.3: (0.65, 0.81), 5.8: (0.48, 0.69), 8.6: (0.33, 0.51), 11.5: (
 #: Table I: true (alpha, beta, gamma); the paper's measured values reach 0.82 degree off.
 PAPER_TABLE1_POSES = ((15.0, -15.0, 70.0), (8.0, -8.0, 30.0), (3.0, 3.0, -5.0))
 
-EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1", "fig8")
+EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1", "fig8", "replay2013")
 #: Figs. 9-11 also show the calibration sample (the paper's case 7, Fig. 11): run with Table III's trials.
 FIGURE_CASES = CASES + ("repeated-pattern",)
 
@@ -219,6 +221,46 @@ def experiment_fig8(quick: bool, progress: Callable[[int], Progress]) -> dict:
                      for index, run in enumerate(runs)]}
 
 
+def experiment_replay2013(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    """The check the issue asks of the photometric baseline: the real 2013 run was driven
+    by photometric visual servoing, so its recorded stage increments per iteration should
+    follow what our photometric method computes from the same frames (up to a gain and
+    the axes' signs). semservo's measured error per frame goes beside, as the run's path."""
+    from semservo.config import find_recorded_run
+    from semservo.imagefiles import list_frames, read_image
+
+    folder = find_recorded_run()
+    if not (folder / "reference.png").is_file():
+        return {"skipped": f"the 2013 recording is not at {folder}"}
+    reference = read_image(folder / "reference.png")[0].astype(np.float32)
+    frames = [read_image(path)[0].astype(np.float32) for path in list_frames(folder, "frame*")]
+    recorded = {axis: np.loadtxt(folder / f"result_{axis}_voltage.txt", comments=";", usecols=(0, 1, 2, 3))
+                for axis in ("x", "y")}
+    photometric, fourier = methods.make("photometric", reference), methods.make("semservo", reference)
+    bar = progress(len(frames))
+    ours, measured = [], []
+    for frame in frames:
+        step, motion = photometric(frame), fourier(frame)
+        ours.append((step.dx, step.dy))
+        measured.append((motion.dx, motion.dy))
+        bar.step()
+    bar.close()
+    ours = np.array(ours)
+    result = {"frames": len(frames), "ours_px": ours.tolist(), "semservo_px": np.array(measured).tolist(),
+              "recorded_increment_um": {axis: table[:, 1].tolist() for axis, table in recorded.items()}}
+    # Row k+1 of the recording is the move made after frame k (about one frame of delay).
+    measured = np.array(measured)
+    for index, axis in enumerate(("x", "y")):
+        increments = recorded[axis][1:, 1]
+        count = min(len(increments), len(ours))
+        for label, start in (("", 0), ("_last", max(count - 23, 0))):
+            result[f"correlation_{axis}{label}"] = float(np.corrcoef(ours[start:count, index],
+                                                                     increments[start:count])[0, 1])
+            result[f"error_correlation_{axis}{label}"] = float(np.corrcoef(measured[start:count, index],
+                                                                           increments[start:count])[0, 1])
+    return result
+
+
 def _summary(result: dict) -> dict:
     last = next((r for r in reversed(result["records"]) if "error_px" in r), {})
     return {key: result[key] for key in ("outcome", "reason", "iterations", "true_error_um", "true_error_px",
@@ -227,7 +269,8 @@ def _summary(result: dict) -> dict:
 
 
 RUNNERS = {"fig4": experiment_fig4, "table2": experiment_table2, "table3": experiment_table3,
-           "table4": experiment_table4, "table1": experiment_table1, "fig8": experiment_fig8}
+           "table4": experiment_table4, "table1": experiment_table1, "fig8": experiment_fig8,
+           "replay2013": experiment_replay2013}
 
 
 def run(out: Path, *, quick: bool = False, only: list[str] | None = None, fresh: bool = False,
