@@ -203,7 +203,8 @@ class ControllerCore:
             if required:
                 if isinstance(error, CommandError) and error.code == "no_tilt_reference":
                     raise ValueError(f"tilts cannot be servoed: {error.message}") from None
-                raise
+                raise ValueError(f"tilts cannot be servoed: the estimator, which measures them, did not take the "
+                                 f"request ({error})") from None
             log.warning("could not set the estimator's measurements: %s", error)
 
     def _estimator_account(self) -> str:
