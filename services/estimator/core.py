@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from semservo.estimation import MotionEstimator
-from semservo.tilt import (TiltEstimate, depth_map, egi_tilt_between, estimate_tilt, plan_sweep,
+from semservo.estimation.tilt import (TiltEstimate, depth_map, egi_tilt_between, estimate_tilt, plan_sweep,
                            undo_foreshortening)
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import MotionEstimate
@@ -114,7 +114,7 @@ class EstimatorCore:
     # -- tilts (focus sweeps) ----------------------------------------------------
     def next_sweep(self) -> list[float]:
         """The working distances (um) of the next sweep: wide for the first, tracking
-        after (:func:`semservo.tilt.plan_sweep`)."""
+        after (:func:`semservo.estimation.tilt.plan_sweep`)."""
         settings, reference = self.tilt_settings, self.tilt_reference
         if self.latest is None or self.latest.header.pixel_size_nm is None:
             raise TeachError("a focus sweep needs frames with a pixel size; none has arrived")
@@ -162,7 +162,7 @@ class EstimatorCore:
                         scan_started_at_ns: int | None = None, source_interval_s=None, took_s: float | None = None,
                         ) -> dict:
         """The tilts of a sweep against the taught one's: alpha and beta (degrees, the
-        convention of :mod:`semservo.tilt`) with a confidence (0: not measured, the
+        convention of :mod:`semservo.estimation.tilt`) with a confidence (0: not measured, the
         reason given). With ``method="egi"`` the rotation between the two EGIs."""
         reference = self.tilt_reference
         if reference is None or self.reference is None or reference.reference_id != self.reference.id:

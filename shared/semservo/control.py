@@ -267,7 +267,7 @@ class ControlLaw:
 # The tilts: the theta-u rotation feature (eq. 30, 34) for alpha and beta
 
 #: The out-of-plane degrees of freedom, measured from focus sweeps (alpha about the
-#: image's x axis, beta about its y axis; :mod:`semservo.tilt`'s convention).
+#: image's x axis, beta about its y axis; :mod:`semservo.estimation.tilt`'s convention).
 TILT_DEGREES_OF_FREEDOM = ("alpha", "beta")
 
 
@@ -297,7 +297,7 @@ class TiltLaw:
     def step(self, alpha_deg: float, beta_deg: float, sampling_time_s: float) -> dict:
         """Error (rad), cost, gain, velocity (rad/s) and the stage's tilt move (degrees,
         ``{"tilt_x_deg", "tilt_y_deg"}`` for the chosen DOFs)."""
-        from semservo.tilt import tilt_rotation  # the convention lives there
+        from semservo.estimation.tilt import tilt_rotation  # the convention lives there
 
         unknown = set(self.dofs) - set(TILT_DEGREES_OF_FREEDOM)
         if unknown:

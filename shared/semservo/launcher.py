@@ -13,12 +13,16 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import random
 import signal
+import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, TextIO
 
 from semservo.config import Settings, connect
@@ -303,3 +307,113 @@ class Launcher:
                 self.say(f"{name} did not stop in {timeout_s:.0f} s; killed")
             if child.reader is not None:
                 child.reader.join(timeout=1.0)
+
+
+# -- a whole system on simulated hardware, on fresh loopback ports ---------------------
+# For the whole-stack benchmarks, ``semservo reproduce`` and the tests: each starts its own
+# system beside any other one running, so every port is chosen anew.
+
+#: Every port a service binds, by a short name, and the setting that holds it.
+PORT_SETTINGS = {
+    "frames": "SEMSERVO_IMAGESERVER__FRAMES_PORT", "control": "SEMSERVO_IMAGESERVER__CONTROL_PORT",
+    "motion": "SEMSERVO_ESTIMATOR__MOTION_PORT", "estimator_control": "SEMSERVO_ESTIMATOR__CONTROL_PORT",
+    "fakelab_control": "SEMSERVO_FAKELAB__CONTROL_PORT", "scan": "SEMSERVO_FAKELAB__SCAN_PORT",
+    "serial_tcp": "SEMSERVO_FAKELAB__SERIAL_TCP_PORT", "stage_control": "SEMSERVO_STAGE__CONTROL_PORT",
+    "controller_control": "SEMSERVO_CONTROLLER__CONTROL_PORT", "controller_status": "SEMSERVO_CONTROLLER__STATUS_PORT",
+    "gateway_http": "SEMSERVO_GATEWAY__HTTP_PORT", "gateway_control": "SEMSERVO_GATEWAY__CONTROL_PORT",
+}
+
+#: Ports already handed out by this process, never handed out twice (a service started
+#: earlier may still be letting go of its port).
+_handed_out: set[int] = set()
+_port_picker = random.Random()
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999  # Linux's default
+
+
+def free_port() -> int:
+    """A loopback port free now, chosen *below* the kernel's ephemeral range.
+
+    A port the kernel picked for us (bind to 0) lies inside the ephemeral range, so in
+    the moment between choosing it and the service binding it, any outgoing connection
+    (every ZeroMQ connect, every HTTP client) may be given it as its local port: CI once
+    lost a test to exactly that. Ports below the range are never given out that way.
+    """
+    ephemeral_low, _ = _ephemeral_range()
+    low, high = 15000, max(15000 + 2000, ephemeral_low - 1)
+    for _ in range(500):
+        port = _port_picker.randint(low, high)
+        if port in _handed_out:
+            continue
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _handed_out.add(port)
+        return port
+    raise RuntimeError(f"no free loopback port in {low}..{high}")
+
+
+def fresh_port_environment() -> dict[str, str]:
+    """SEMSERVO_* variables giving every service a fresh loopback port (the stage service
+    finds the emulated NV 40/3 on the chosen TCP port) and a fresh folder for what the
+    stage service keeps across restarts (no system inherits another's armed or stopped
+    stage). Returns the variables; the caller sets them."""
+    chosen = {name: free_port() for name in PORT_SETTINGS}
+    variables = {variable: str(chosen[name]) for name, variable in PORT_SETTINGS.items()}
+    variables["SEMSERVO_STAGE__SERIAL_URL"] = f"socket://127.0.0.1:{chosen['serial_tcp']}"
+    variables["SEMSERVO_STAGE__STATE_DIR"] = tempfile.mkdtemp(prefix="semservo-stage-")
+    return variables
+
+
+def faster_lab_environment(speedup: float, fps: float = 100.0) -> dict[str, str]:
+    """The simulated lab's clock ``speedup`` times faster, the stage's rate limit scaled
+    with it (as ``semservo up --speedup`` does), the image server as fast as ``fps``."""
+    return {"SEMSERVO_FAKELAB__SPEEDUP": str(speedup), "SEMSERVO_STAGE__MAX_RATE_V_PER_S": str(200 * speedup),
+            "SEMSERVO_IMAGESERVER__FPS": str(fps)}
+
+
+@contextlib.contextmanager
+def environment(variables: dict[str, str]):
+    """``os.environ`` with ``variables`` set (the children inherit them), restored after."""
+    saved = {name: os.environ.get(name) for name in variables}
+    os.environ.update(variables)
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+@contextlib.contextmanager
+def simulated_system(folder: Path, *, speedup: float = 20, fps: float = 100, restart: bool = False,
+                     out: TextIO | None = None, timeout_s: float = 90.0, **settings: str):
+    """The whole system on simulated hardware: the launcher, fresh loopback ports, the lab
+    ``speedup`` x faster, its records in ``folder``; ``settings`` are more SEMSERVO_*
+    variables. Yields (launcher, settings); everything is stopped afterwards, and the
+    environment is as it was."""
+    folder = Path(folder)
+    variables = {**fresh_port_environment(), **faster_lab_environment(speedup, fps),
+                 "SEMSERVO_CONTROLLER__RUNS_DIR": str(folder / "runs"),
+                 "SEMSERVO_GATEWAY__DATABASE": str(folder / "runs" / "semservo.sqlite"), **settings}
+    with environment(variables):
+        resolved = Settings()
+        log = out or (folder / "services.log").open("w")
+        launcher = Launcher(resolved, restart=restart, max_restarts=20, out=log)
+        try:
+            launcher.start(timeout_s=timeout_s)
+            yield launcher, resolved
+        finally:
+            launcher.stop()
+            if out is None:
+                log.close()

@@ -151,7 +151,7 @@ class MotionEstimate(_Message):
     estimation_ms: float = Field(ge=0, description="time spent estimating")
     latency_ms: float = Field(description="frame published -> estimate published")
     # The latest tilt measurement (focus sweep) against the reference, while tilts are
-    # measured: alpha about x, beta about y (degrees, :mod:`semservo.tilt`'s convention).
+    # measured: alpha about x, beta about y (degrees, :mod:`semservo.estimation.tilt`'s convention).
     alpha_deg: float | None = None
     beta_deg: float | None = None
     tilt_confidence: float | None = Field(None, ge=0, le=1)

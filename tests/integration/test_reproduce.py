@@ -37,3 +37,22 @@ def test_reproduce_refuses_an_unknown_experiment(tmp_path):
     done = subprocess.run([sys.executable, "-m", "semservo", "reproduce", "--only", "table9", "--out", str(tmp_path)],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "table9" in done.stderr
+
+
+def test_reproduce_table_one_from_the_library_alone(tmp_path):
+    """Table I comes from the installed library (``semservo.reproduce.tilts``), not from
+    the repository's bench folder: run from elsewhere, its three poses parsed back."""
+    out = tmp_path / "reproduction"
+    done = subprocess.run([sys.executable, "-m", "semservo", "reproduce", "--quick", "--only", "table1",
+                           "--out", str(out)], capture_output=True, text=True, timeout=110, cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    report = (out / "README.md").read_text()
+    number = r"([+-]?[\d.]+)"
+    rows = re.findall(rf"^\| {number}, {number}, {number} \| {number}, {number}, {number} \| {number}, {number}, "
+                      rf"{number} \|$", report, re.M)
+    assert [tuple(float(value) for value in row[:3]) for row in rows] == [(15, -15, 70), (8, -8, 30), (3, 3, -5)]
+    for row in rows:
+        true, measured, error = (tuple(float(value) for value in row[start:start + 3]) for start in (0, 3, 6))
+        assert all(abs(m - t - e) < 2e-3 for t, m, e in zip(true, measured, error)), row
+        assert max(abs(e) for e in error[:2]) < 0.3 and abs(error[2]) < 0.05, row  # the paper's reach 0.82
+        assert all(m * t > 0 for t, m in zip(true, measured)), "no sign flip (the paper had one at 3 degrees)"

@@ -153,7 +153,7 @@ def test_tiny_turns_are_reported_and_skipping_their_derotation_changes_nothing(f
     turned = rotated(frame, angle)
     current = turned[40 - 3:472 - 3, 40 + 2:472 + 2]  # content moved left 2, down 3
     skipped = MotionEstimator(reference).estimate(current)
-    monkeypatch.setattr(estimation, "DEROTATE_ABOVE_DEG", 0.0)
+    monkeypatch.setattr(estimation.estimator, "DEROTATE_ABOVE_DEG", 0.0)
     derotated = MotionEstimator(reference).estimate(current)
     assert skipped.rotation_deg == pytest.approx(angle, abs=0.05)  # the rotation error floor
     assert skipped.dx == pytest.approx(derotated.dx, abs=0.01)
@@ -312,7 +312,7 @@ def test_bad_reference_is_a_clear_value_error(frame):
 
 
 def test_fft_plans_are_kept_as_wisdom_on_disk(tmp_path, monkeypatch):
-    monkeypatch.setattr(estimation, "_wisdom_loaded", set())
+    monkeypatch.setattr(estimation.plans, "_wisdom_loaded", set())
     image = np.random.default_rng(0).normal(size=(72, 88))
     # The plans are already in this process's wisdom (as after any earlier test that
     # planned this shape): the file the setting names must be written all the same.

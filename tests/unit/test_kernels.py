@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from semservo import _kernels
-from semservo.estimation import _statistics, foroosh_subpixel, normalized_cross_power
+from semservo.estimation import frame_statistics, foroosh_subpixel, normalized_cross_power
 
 rng = np.random.default_rng(0)
 
@@ -46,14 +46,14 @@ def test_peak_sidelobe_and_foroosh_match_numpy():
 
 def test_frame_statistics_match_numpy_and_catch_non_finite_values():
     image = rng.random((300, 200)).astype(np.float32)
-    mean, finite, r0, down1, down2, along1, along2 = _statistics(image)
+    mean, finite, r0, down1, down2, along1, along2 = frame_statistics(image)
     centred = image[75:225].astype(np.float64) - image.mean()
     assert finite and mean == pytest.approx(image.mean(), rel=1e-6)
     assert r0 == pytest.approx(np.mean(centred**2), rel=1e-5)
     assert down1 == pytest.approx(np.mean(centred[1:] * centred[:-1]), rel=1e-4, abs=1e-6)
     assert along2 == pytest.approx(np.mean(centred[:, 2:] * centred[:, :-2]), rel=1e-4, abs=1e-6)
     image[5, 7] = np.nan
-    assert not _statistics(image)[1]
+    assert not frame_statistics(image)[1]
 
 
 def test_normalized_cross_power_kernel_matches_eq_18():

@@ -1,4 +1,4 @@
-"""Tilts from focus (semservo.tilt): the focus measure (eq. 13), the depth per kernel,
+"""Tilts from focus (semservo.estimation.tilt): the focus measure (eq. 13), the depth per kernel,
 the plane fit and its sign convention, against focus sweeps of known tilted planes."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from semservo.tilt import estimate_tilt, focus_curves, focus_peaks, normalized_variance
+from semservo.estimation.tilt import estimate_tilt, focus_curves, focus_peaks, normalized_variance
 
 SIZE, KERNEL, PIXEL_UM = 256, 32, 0.05
 WORKING_DISTANCES_UM = np.linspace(-1.5, 1.5, 13)
@@ -123,7 +123,7 @@ def test_non_finite_pixels_and_bad_pixel_sizes_are_refused():
 
 
 def test_the_papers_egi_method_recovers_a_known_tilt_between_two_sweeps():
-    from semservo.tilt import depth_map, egi_tilt_between, kernel_normals
+    from semservo.estimation.tilt import depth_map, egi_tilt_between, kernel_normals
 
     flat = depth_map(sweep_of_plane(0.0, 0.0), WORKING_DISTANCES_UM, KERNEL)
     tilted = depth_map(sweep_of_plane(4.0, -3.0), WORKING_DISTANCES_UM, KERNEL)
@@ -140,7 +140,7 @@ def test_the_papers_egi_method_recovers_a_known_tilt_between_two_sweeps():
 
 
 def test_sweeps_are_planned_wide_first_then_on_the_taught_grid():
-    from semservo.tilt import plan_sweep
+    from semservo.estimation.tilt import plan_sweep
 
     first = plan_sweep(0.0, 3.5, 36.0)
     assert len(first) % 2 == 1 and first[len(first) // 2] == pytest.approx(0.0)
@@ -155,7 +155,7 @@ def test_sweeps_are_planned_wide_first_then_on_the_taught_grid():
 
 
 def test_undoing_the_foreshortening_restores_the_square_view():
-    from semservo.tilt import undo_foreshortening
+    from semservo.estimation.tilt import undo_foreshortening
 
     scene = texture().astype(np.float32)
     # Foreshorten rows by cos(20 degrees) (a tilt about x), then undo it.
@@ -169,3 +169,14 @@ def test_undoing_the_foreshortening_restores_the_square_view():
     middle = (slice(64, -64), slice(64, -64))
     assert np.corrcoef(restored[middle].ravel(), scene[middle].ravel())[0, 1] > 0.98
     assert np.corrcoef(tilted[middle].ravel(), scene[middle].ravel())[0, 1] < 0.8
+
+
+def test_the_old_module_name_is_the_same_module():
+    """Lab scripts written against ``semservo.tilt`` keep working: the name is the tilt
+    section of the estimation package itself, not a copy."""
+    import semservo.estimation.tilt
+    import semservo.tilt
+    from semservo.tilt import estimate_tilt as old_name
+
+    assert semservo.tilt is semservo.estimation.tilt
+    assert old_name is semservo.estimation.tilt.estimate_tilt

@@ -12,7 +12,7 @@ import pytest
 from semservo.simulation.goniometer import Goniometer
 from semservo.simulation.sem import SEM, Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
-from semservo.tilt import estimate_tilt, plan_sweep
+from semservo.estimation.tilt import estimate_tilt, plan_sweep
 
 
 def test_each_axis_moves_at_its_speed_and_halts_where_it_is():

@@ -13,8 +13,8 @@ Experiments (``--only`` takes these names):
   semservo and every baseline (:mod:`.methods`) on the six cases, the same starts;
 * ``figs9_11``: error, cost and voltages per iteration for three trials per condition
   (from ``table3``'s trials);
-* ``table1``: the tilts (Table I) on the paper's three poses, from ``bench/tilt.py``'s
-  measurement;
+* ``table1``: the tilts (Table I) on the paper's three poses (:mod:`.tilts`, which
+  ``bench/tilt.py`` runs on 30 more);
 * ``replay2013``: the real 2013 run (photometric servoing) replayed against our
   photometric baseline: its recorded increments against ours, per axis;
 * ``fig8``: a 5-DOF run from (7, 12, 20) degrees (and three from random poses in the full
@@ -36,7 +36,7 @@ from typing import Callable
 
 import numpy as np
 
-from semservo.reproduce import loop, methods
+from semservo.reproduce import loop, methods, tilts
 
 #: The paper's cases 1-6 (Table III, IV) as the fake lab's presets.
 CASES = ("optimal", "noisy", "high-magnification", "unstable", "high-quality-reference", "mask-reference")
@@ -59,7 +59,7 @@ PAPER_TABLE4 = {
 #: Table II: reference dwell (us/px) -> error x, y (px).
 PAPER_TABLE2 = {4.3: (0.65, 0.81), 5.8: (0.48, 0.69), 8.6: (0.33, 0.51), 11.5: (0.26, 0.39)}
 #: Table I: true (alpha, beta, gamma); the paper's measured values reach 0.82 degree off.
-PAPER_TABLE1_POSES = ((15.0, -15.0, 70.0), (8.0, -8.0, 30.0), (3.0, 3.0, -5.0))
+PAPER_TABLE1_POSES = tuple(tilts.PAPER_POSES)
 
 EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1", "fig8", "replay2013")
 #: Figs. 9-11 also show the calibration sample (the paper's case 7, Fig. 11): run with Table III's trials.
@@ -173,48 +173,21 @@ def experiment_fig4(quick: bool, progress: Callable[[int], Progress]) -> dict:
 
 
 def experiment_table1(quick: bool, progress: Callable[[int], Progress]) -> dict:
-    import importlib.util
-    import sys
-
-    bench = Path(__file__).resolve().parents[3] / "bench" / "tilt.py"
-    if not bench.is_file():
-        return {"skipped": f"{bench} is not here (an installed package without the repository's bench/)"}
-    spec = importlib.util.spec_from_file_location("semservo_bench_tilt", bench)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    bar = progress(1)
-    table = module.table_one(list(PAPER_TABLE1_POSES), seed=15)
-    bar.step("three poses")
+    """The paper's Table I: its three poses, both tilt methods and gamma (:mod:`.tilts`)."""
+    bar = progress(len(PAPER_TABLE1_POSES))
+    table = tilts.table_one(list(PAPER_TABLE1_POSES), seed=15, say=lambda text: bar.step("pose"))
     bar.close()
     return {"rows": table["rows"], "taught": table["taught"]}
 
 
 def experiment_fig8(quick: bool, progress: Callable[[int], Progress]) -> dict:
     """The paper's Fig. 8: a 5-DOF run from (7, 12, 20) degrees plus a translation, and
-    (full run) three more from random poses, through the whole stack (the launcher starts
-    it on simulated hardware), with ``bench/tilt.py``'s runner."""
-    import importlib.util
-    import sys
-    import tempfile
-
-    root = Path(__file__).resolve().parents[3]
-    bench = root / "bench" / "tilt.py"
-    if not bench.is_file():
-        return {"skipped": f"{bench} is not here (an installed package without the repository's bench/)"}
-    sys.path.insert(0, str(root))
-    spec = importlib.util.spec_from_file_location("semservo_bench_tilt", bench)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    rng = np.random.default_rng(8)
-    initial = [(7.0, 12.0, 20.0, 3.0, -2.0)] + [
-        (float(rng.uniform(-10, 10)), float(rng.uniform(-10, 10)), float(rng.uniform(-20, 20)),
-         float(rng.uniform(-4, 4)), float(rng.uniform(-4, 4))) for _ in range(0 if quick else 3)]
-    bar = progress(1)
-    with tempfile.TemporaryDirectory() as folder:
-        runs = module.five_dof_runs(initial, Path(folder), 20.0)
-    bar.step(f"{sum(run['state'] == 'converged' for run in runs)}/{len(runs)} converged")
+    (full run) three more from random poses, through the whole stack (started here on
+    simulated hardware, on fresh loopback ports), with :func:`.tilts.five_dof_runs`."""
+    initial = [tilts.FIG8_START] + tilts.random_starts(np.random.default_rng(8), 0 if quick else 3)
+    bar = progress(len(initial))
+    runs = tilts.five_dof_runs(initial, speedup=20.0,
+                              say=lambda text: text.lstrip().startswith("run") and bar.step("run"))
     bar.close()
     # The first run's iterations are plotted; the others are summarized.
     return {"runs": [run if index == 0 else {key: value for key, value in run.items() if key != "trajectory"}

@@ -12,7 +12,7 @@ Facts from ``shared/reference/sem-imaging.md``:
   surface is turned by alpha about the image's x axis and beta about its y axis, about a
   pivot below the surface, and projected orthographically: the field is foreshortened
   by cos alpha along y and cos beta along x, shifted by the pivot's lever, and its depth
-  changes across the field (dz/dy = tan alpha, dz/dx = -tan beta, :mod:`semservo.tilt`'s
+  changes across the field (dz/dy = tan alpha, dz/dx = -tan beta, :mod:`semservo.estimation.tilt`'s
   convention), so parts of a tilted image are out of focus.
 * Raster: pixels are acquired one at a time, dwell plus dead time each, lines end with a
   fly-back. Each line, and each pixel's time within it, sees the pose the stage has at

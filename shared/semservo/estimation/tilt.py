@@ -1,0 +1,414 @@
+"""Out-of-plane tilts from focus (Marturi et al., section II-B-2): depth from focus per
+kernel (eq. 13), and the two tilts from a robust plane fit to the kernel depths.
+
+Two ways from the kernel depths to the tilts, both here, compared in ``bench/tilt.py``:
+
+* the paper's (eq. 14-17): the depths as a point cloud, each kernel's surface normal, the
+  extended Gaussian image (EGI: the normals' area-weighted density on the sphere), and
+  the rotation that best correlates the taught EGI with the current one
+  (:func:`egi_tilt_between`);
+* a least-squares plane through the kernel depths, robust to kernels whose focus peak is
+  wrong, whose two slopes are the two tilts (:func:`estimate_tilt`, the default: see
+  the benchmark for why).
+
+Small pure functions on arrays, no hidden state.
+
+Sign convention (a contract)
+----------------------------
+Image axes as :mod:`semservo.estimation`: x along columns (right), y along rows (down);
+z along the beam, away from the lens, so that (x, y, z) is right-handed and a larger z
+is a larger working distance. ``alpha_deg`` is the rotation about x and ``beta_deg`` the
+rotation about y, by the right-hand rule: with alpha > 0 the lower part of the image is
+farther from the lens (depth grows with y: dz/dy = tan alpha); with beta > 0 the right
+part is nearer (dz/dx = -tan beta / cos alpha). The surface's orientation is
+R = R_x(alpha) R_y(beta): the sample tilted by beta, then the cradle by alpha, as the
+simulated stage (:mod:`semservo.simulation.goniometer`) composes them; seen
+orthographically its depth is z = tan(alpha) y - tan(beta) x / cos(alpha), which is the
+exact inverse used here (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: A kernel whose focus curve peaks by less than this factor over its lowest value has
+#: no clear peak (flat content, or a kernel out of focus over the whole sweep): on a
+#: featureless kernel the measure is pixel noise, whose variance over 1000 pixels
+#: wanders by +-5-15 % from frame to frame; texture in and out of focus differs by
+#: several times.
+MIN_FOCUS_CONTRAST = 1.5
+#: Fewer usable kernels than this and no plane is fitted.
+MIN_KERNELS = 6
+#: Kernels whose depth is off the fitted plane by more than this many robust standard
+#: deviations (1.4826 x the median absolute residual) are left out and the plane refitted.
+OUTLIER_SIGMAS = 3.0
+
+
+@dataclass(frozen=True)
+class TiltEstimate:
+    """The two tilts (degrees, see the module's convention), how far the plane is (the
+    working distance of focus at the image centre, in the sweep's unit), and how much
+    to trust them."""
+
+    alpha_deg: float
+    beta_deg: float
+    centre_depth: float
+    #: Kernels with a clear focus peak that the plane was fitted to, of all kernels.
+    kernels_used: int
+    kernels_total: int
+    #: RMS distance of the used kernels' depths from the plane (the sweep's unit).
+    residual: float
+    confidence: float
+    #: Why the confidence is 0 (empty when it is not).
+    reason: str = ""
+
+
+def normalized_variance(patch: np.ndarray) -> float:
+    """The focus measure of one kernel (eq. 13): (1 / k^2) (1 / mu) sum (I - mu)^2, the
+    variance over the mean (0 for a kernel of mean 0 or less)."""
+    patch = np.asarray(patch, dtype=np.float64)
+    mean = float(patch.mean())
+    return float(patch.var() / mean) if mean > 0 else 0.0
+
+
+def focus_curves(sweep: np.ndarray, kernel: int) -> np.ndarray:
+    """Eq. 13 for every k x k kernel of every frame of a focus sweep (frames, rows,
+    cols): an array (frames, kernel rows, kernel cols). Edge pixels that do not fill a
+    kernel are left out."""
+    sweep = np.asarray(sweep)
+    frames, rows, cols = sweep.shape
+    kernel_rows, kernel_cols = rows // kernel, cols // kernel
+    curves = np.empty((frames, kernel_rows, kernel_cols))
+    for index in range(frames):  # one frame at a time in float32: a sweep can be large
+        frame = np.asarray(sweep[index, :kernel_rows * kernel, :kernel_cols * kernel], dtype=np.float32)
+        blocks = frame.reshape(kernel_rows, kernel, kernel_cols, kernel)
+        mean = blocks.mean(axis=(1, 3), dtype=np.float64)
+        mean_square = np.square(blocks).mean(axis=(1, 3), dtype=np.float64)
+        variance = np.maximum(mean_square - mean * mean, 0.0)
+        curves[index] = np.where(mean > 0, variance / np.where(mean > 0, mean, 1.0), 0.0)
+    return curves
+
+
+def focus_peaks(curves: np.ndarray, working_distances: np.ndarray) -> np.ndarray:
+    """Each kernel's depth: the working distance of its focus peak, to a fraction of a
+    step (a parabola through the reciprocals of the highest sample and its two
+    neighbours, on evenly spaced working distances). NaN where the curve has no clear peak: flat (the peak
+    under ``MIN_FOCUS_CONTRAST`` times the lowest value) or highest at either end of
+    the sweep (the focus lies outside it)."""
+    working_distances = np.asarray(working_distances, dtype=np.float64)
+    frames = curves.shape[0]
+    best = np.argmax(curves, axis=0)
+    highest = np.take_along_axis(curves, best[np.newaxis], axis=0)[0]
+    lowest = curves.min(axis=0)
+    inside = (best > 0) & (best < frames - 1)
+    clear = inside & (highest > MIN_FOCUS_CONTRAST * np.maximum(lowest, 1e-12))
+    index = np.clip(best, 1, frames - 2)
+    # The peak of a parabola through the reciprocals of the three values: a texture
+    # blurred by a Gaussian of width s keeps a variance ~ 1 / s^2, and the blur grows as
+    # s^2 = probe^2 + (alpha dz / P)^2, so 1 / (focus measure) is a parabola in dz. A
+    # parabola through the values themselves is pulled towards the nearest sample (it
+    # read a 1 degree tilt as 0.84 on simulated sweeps); through the reciprocals the
+    # mean error of bench/tilt.py's poses fell from 0.081 to 0.064 degree.
+    reciprocal = 1.0 / np.maximum(curves, 1e-300)
+    below = np.take_along_axis(reciprocal, (index - 1)[np.newaxis], axis=0)[0]
+    at = np.take_along_axis(reciprocal, index[np.newaxis], axis=0)[0]
+    above = np.take_along_axis(reciprocal, (index + 1)[np.newaxis], axis=0)[0]
+    curvature = above - 2 * at + below  # a minimum of the reciprocal: positive
+    offset = np.where(curvature > 0, 0.5 * (below - above) / np.where(curvature > 0, curvature, 1.0), 0.0)
+    step = (working_distances[-1] - working_distances[0]) / (frames - 1)
+    depths = working_distances[index] + np.clip(offset, -0.5, 0.5) * step
+    return np.where(clear & (curvature > 0), depths, np.nan)
+
+
+def fit_plane(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares plane depth = c + gx x + gy y through the kernels with a depth (x, y
+    the kernel centres relative to the image centre, in the sweep's unit via
+    ``pixel_size``), refitted once without the kernels off it by more than
+    ``OUTLIER_SIGMAS`` robust standard deviations. Returns ((c, gx, gy), the mask of
+    kernels used, RMS residual)."""
+    kernel_rows, kernel_cols = depths.shape
+    centre_y, centre_x = kernel_rows * kernel / 2, kernel_cols * kernel / 2
+    y = ((np.arange(kernel_rows) + 0.5) * kernel - centre_y) * pixel_size
+    x = ((np.arange(kernel_cols) + 0.5) * kernel - centre_x) * pixel_size
+    grid_y, grid_x = np.meshgrid(y, x, indexing="ij")
+    used = np.isfinite(depths)
+    coefficients = np.zeros(3)
+    for _ in range(2):
+        if used.sum() < 3:
+            break
+        design = np.column_stack([np.ones(used.sum()), grid_x[used], grid_y[used]])
+        coefficients = np.linalg.lstsq(design, depths[used], rcond=None)[0]
+        residuals = depths - (coefficients[0] + coefficients[1] * grid_x + coefficients[2] * grid_y)
+        spread = 1.4826 * np.median(np.abs(residuals[used]))
+        keep = used & (np.abs(residuals) <= OUTLIER_SIGMAS * max(spread, 1e-12))
+        if keep.sum() == used.sum():
+            break
+        used = keep
+    residuals = depths - (coefficients[0] + coefficients[1] * grid_x + coefficients[2] * grid_y)
+    rms = float(np.sqrt(np.mean(residuals[used] ** 2))) if used.any() else float("nan")
+    return coefficients, used, rms
+
+
+def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32) -> TiltEstimate:
+    """The two tilts from a focus sweep: frames of the same field at the working
+    distances ``working_distances`` (evenly spaced, increasing, same unit as
+    ``pixel_size``: e.g. um and um per pixel).
+
+    ValueError for input that cannot be a sweep (under 3 frames, a length mismatch,
+    unevenly spaced or non-finite distances, non-finite pixels, kernels that do not fit).
+    A sweep that cannot tell the tilts (too few kernels with a clear focus peak: a
+    flat, featureless scene, or a sweep that misses focus) gives confidence 0 and the
+    reason, never a made-up angle (the angles are NaN).
+    """
+    sweep = np.asarray(sweep)
+    working_distances = np.asarray(working_distances, dtype=np.float64)
+    if sweep.ndim != 3 or sweep.dtype.kind not in "uif":
+        raise ValueError(f"a focus sweep is frames x rows x cols of numbers, got shape {sweep.shape} of {sweep.dtype}")
+    if sweep.shape[0] < 3:
+        raise ValueError(f"a focus sweep needs at least 3 frames to find a peak, got {sweep.shape[0]}")
+    if working_distances.shape != (sweep.shape[0],):
+        raise ValueError(f"{sweep.shape[0]} frames but {working_distances.size} working distances")
+    steps = np.diff(working_distances)
+    if not np.isfinite(working_distances).all() or (steps <= 0).any() or np.ptp(steps) > 1e-6 * abs(steps.mean()):
+        raise ValueError("working distances must be finite, increasing and evenly spaced")
+    if not np.isfinite(sweep).all():
+        raise ValueError("the sweep contains NaN or infinite pixels")
+    if not (np.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}")
+    if kernel < 4 or min(sweep.shape[1:]) < 2 * kernel:
+        raise ValueError(f"{kernel} px kernels do not fit a {sweep.shape[2]} x {sweep.shape[1]} image twice")
+    depths = focus_peaks(focus_curves(sweep, kernel), working_distances)
+    total = depths.size
+    clear = int(np.isfinite(depths).sum())
+    if clear < MIN_KERNELS:
+        return TiltEstimate(float("nan"), float("nan"), float("nan"), clear, total, float("nan"), 0.0,
+                            f"only {clear} of {total} kernels have a clear focus peak (at least {MIN_KERNELS} "
+                            "are needed): flat content, or focus outside the sweep")
+    (centre, slope_x, slope_y), used, rms = fit_plane(depths, kernel, pixel_size)
+    alpha = float(np.degrees(np.arctan(slope_y)))
+    beta = float(np.degrees(np.arctan(-slope_x * np.cos(np.arctan(slope_y)))))
+    # Trust falls as the depths scatter about the plane by a sizeable part of a step.
+    step = float(steps.mean())
+    confidence = float(np.exp(-rms / step)) if np.isfinite(rms) else 0.0
+    return TiltEstimate(alpha, beta, float(centre), int(used.sum()), total, rms, confidence)
+
+
+# --------------------------------------------------------------------------------------
+# The paper's method: normals, extended Gaussian image, correlation over rotations
+# (eq. 14-17)
+
+#: Smoothing of the EGI (von Mises-Fisher concentration): a kernel normal's direction is
+#: uncertain by a few degrees (depth noise of ~0.1 step over one kernel's width).
+EGI_CONCENTRATION = 300.0
+#: The EGI is kept on a grid over the cap of directions within this angle of the beam
+#: (gnomonic coordinates tan(angle)): tilts beyond it are outside the stage's use.
+EGI_CAP_DEG = 35.0
+EGI_GRID = 141
+
+
+def depth_map(sweep, working_distances, kernel: int = 32) -> np.ndarray:
+    """Each kernel's depth (NaN where it has no clear focus peak): eq. 13 and the peak
+    fit, the first step of both methods."""
+    return focus_peaks(focus_curves(np.asarray(sweep), kernel), np.asarray(working_distances, dtype=np.float64))
+
+
+def kernel_normals(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The point cloud's surface normals (eq. 14): at each kernel with at least 5 depths in
+    its 3 x 3 neighbourhood, a plane fitted to them; the normal points towards the lens,
+    (gx, gy, -1) normalised for a local depth z = c + gx x + gy y. Returns (normals N x 3,
+    area weights N): a patch's area on the surface is its kernel's over |n_z|."""
+    rows, cols = depths.shape
+    spacing = kernel * pixel_size
+    normals, weights = [], []
+    offsets_y, offsets_x = np.mgrid[-1:2, -1:2]
+    for row in range(rows):
+        for col in range(cols):
+            if not np.isfinite(depths[row, col]):
+                continue
+            window = depths[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2]
+            wy = offsets_y[max(1 - row, 0):3 - max(row + 2 - rows, 0), max(1 - col, 0):3 - max(col + 2 - cols, 0)]
+            wx = offsets_x[max(1 - row, 0):3 - max(row + 2 - rows, 0), max(1 - col, 0):3 - max(col + 2 - cols, 0)]
+            usable = np.isfinite(window)
+            if usable.sum() < 5:
+                continue
+            design = np.column_stack([np.ones(usable.sum()), wx[usable] * spacing, wy[usable] * spacing])
+            _, slope_x, slope_y = np.linalg.lstsq(design, window[usable], rcond=None)[0]
+            normal = np.array([slope_x, slope_y, -1.0])
+            normal /= np.linalg.norm(normal)
+            normals.append(normal)
+            weights.append(1.0 / abs(normal[2]))
+    return np.reshape(normals, (-1, 3)), np.asarray(weights)
+
+
+def tilt_rotation(alpha_deg: float, beta_deg: float) -> np.ndarray:
+    """R = R_x(alpha) R_y(beta), the module's convention."""
+    alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
+    about_x = np.array([[1, 0, 0], [0, np.cos(alpha), -np.sin(alpha)], [0, np.sin(alpha), np.cos(alpha)]])
+    about_y = np.array([[np.cos(beta), 0, np.sin(beta)], [0, 1, 0], [-np.sin(beta), 0, np.cos(beta)]])
+    return about_x @ about_y
+
+
+def _gnomonic(directions: np.ndarray) -> np.ndarray:
+    """Directions near (0, 0, -1) as points (x / -z, y / -z) of the tangent plane."""
+    return directions[..., :2] / -directions[..., 2:3]
+
+
+def extended_gaussian_image(normals: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The EGI (eq. 15): the area-weighted density of the normals over the cap of
+    directions near the beam, smoothed by a von Mises-Fisher kernel, on a gnomonic grid
+    of ``EGI_GRID`` x ``EGI_GRID`` points over +-tan(``EGI_CAP_DEG``)."""
+    reach = np.tan(np.radians(EGI_CAP_DEG))
+    axis = np.linspace(-reach, reach, EGI_GRID)
+    plane_x, plane_y = np.meshgrid(axis, axis)
+    directions = np.stack([plane_x, plane_y, -np.ones_like(plane_x)], axis=-1)
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    density = np.zeros_like(plane_x)
+    for normal, weight in zip(normals, weights):
+        density += weight * np.exp(EGI_CONCENTRATION * (directions @ normal - 1.0))
+    return density
+
+
+def _egi_at(egi: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """The EGI interpolated (bilinearly on its gnomonic grid) at these directions; 0 off
+    the cap or facing away."""
+    reach = np.tan(np.radians(EGI_CAP_DEG))
+    facing = directions[..., 2] < -1e-6
+    plane = _gnomonic(np.where(facing[..., None], directions, np.array([0.0, 0.0, -1.0])))
+    position = (plane + reach) / (2 * reach) * (EGI_GRID - 1)
+    inside = facing & np.all((position >= 0) & (position <= EGI_GRID - 1), axis=-1)
+    position = np.clip(position, 0, EGI_GRID - 1.000001)
+    low = np.floor(position).astype(int)
+    fraction = position - low
+    col, row = low[..., 0], low[..., 1]
+    fx, fy = fraction[..., 0], fraction[..., 1]
+    value = (egi[row, col] * (1 - fx) * (1 - fy) + egi[row, col + 1] * fx * (1 - fy)
+             + egi[row + 1, col] * (1 - fx) * fy + egi[row + 1, col + 1] * fx * fy)
+    return np.where(inside, value, 0.0)
+
+
+def egi_correlation(reference_egi: np.ndarray, normals: np.ndarray, weights: np.ndarray,
+                    alpha_deg: np.ndarray, beta_deg: np.ndarray) -> np.ndarray:
+    """C(R) = sum_i w_i EGI*(R^T n_i) (eq. 16) for each tilt rotation R(alpha, beta) of the
+    arrays given: the current normals turned back by R, scored on the taught EGI."""
+    alpha, beta = np.radians(np.asarray(alpha_deg, float)), np.radians(np.asarray(beta_deg, float))
+    ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+    # R^T n for R = R_x(alpha) R_y(beta), written out for arrays of angles.
+    x, y, z = normals[:, 0], normals[:, 1], normals[:, 2]
+    shape = alpha.shape + (1,)
+    ca, sa, cb, sb = (value.reshape(shape) for value in (ca, sa, cb, sb))
+    turned_y = ca * y + sa * z
+    turned_z_about_x = -sa * y + ca * z
+    turned = np.stack([cb * x - sb * turned_z_about_x, np.broadcast_to(turned_y, turned_y.shape),
+                       sb * x + cb * turned_z_about_x], axis=-1)
+    return (_egi_at(reference_egi, turned) * weights).sum(axis=-1)
+
+
+def egi_tilt_between(reference_depths: np.ndarray, current_depths: np.ndarray, kernel: int, pixel_size: float,
+                     *, search_deg: float = 20.0, step_deg: float = 1.0) -> tuple[float, float, float]:
+    """The paper's tilt measurement (eq. 14-17): the rotation R(alpha, beta) that best
+    correlates the taught EGI with the current one, found on a grid of tilts
+    (``step_deg`` over +-``search_deg``) and refined by a parabola through the best
+    grid point and its neighbours on each axis, then a finer grid around it (a grid's
+    argmax alone is off by up to half a step). Rotation about the beam is left to the
+    image (log-polar): a plane's EGI is symmetric about its normal and cannot show it.
+
+    Returns (alpha_deg, beta_deg, peak correlation over its value at zero tilt); NaN
+    angles when either map has under ``MIN_KERNELS`` normals."""
+    reference_normals, reference_weights = kernel_normals(reference_depths, kernel, pixel_size)
+    normals, weights = kernel_normals(current_depths, kernel, pixel_size)
+    if len(reference_normals) < MIN_KERNELS or len(normals) < MIN_KERNELS:
+        return float("nan"), float("nan"), 0.0
+    reference_egi = extended_gaussian_image(reference_normals, reference_weights)
+    centre_alpha = centre_beta = 0.0
+    span, step = search_deg, step_deg
+    for _ in range(3):  # coarse grid, then two finer ones about the refined peak
+        offsets = np.arange(-span, span + step / 2, step)
+        alphas, betas = np.meshgrid(centre_alpha + offsets, centre_beta + offsets, indexing="ij")
+        scores = egi_correlation(reference_egi, normals, weights, alphas, betas)
+        row, col = np.unravel_index(np.argmax(scores), scores.shape)
+        refined = []
+        for index, line, centre in ((row, scores[:, col], alphas[row, col]), (col, scores[row, :], betas[row, col])):
+            if 0 < index < len(line) - 1:
+                curvature = line[index - 1] - 2 * line[index] + line[index + 1]
+                shift = 0.5 * (line[index - 1] - line[index + 1]) / curvature if curvature < 0 else 0.0
+                centre += float(np.clip(shift, -0.5, 0.5)) * step
+            refined.append(centre)
+        centre_alpha, centre_beta = refined
+        span, step = 2 * step, step / 5
+    peak = float(egi_correlation(reference_egi, normals, weights, np.array(centre_alpha), np.array(centre_beta)))
+    at_zero = float(egi_correlation(reference_egi, normals, weights, np.array(0.0), np.array(0.0)))
+    return centre_alpha, centre_beta, peak / max(at_zero, 1e-12)
+
+
+# --------------------------------------------------------------------------------------
+# Planning a sweep
+
+#: Steps of the sweep, in depths of field: half a depth of field for the first, wide
+#: sweep; three quarters when tracking (the peak fit spans +-1 step).
+FIRST_STEP_DOF, TRACKING_STEP_DOF = 0.5, 0.75
+#: Margin beyond the deepest and shallowest kernel, in depths of field: a focus curve
+#: needs samples on both sides of its peak and enough contrast (MIN_FOCUS_CONTRAST).
+MARGIN_DOF = 2.0
+
+
+def plan_sweep(centre: float, depth_of_field: float, field: float, *, tilt_deg: tuple[float, float] | None = None,
+               max_tilt_deg: float = 15.0, max_frames: int = 25,
+               grid: tuple[float, float] | None = None) -> np.ndarray:
+    """The working distances of the next focus sweep (same unit as ``centre``, the
+    depth expected at the image centre; ``field``, the image's width on the sample).
+
+    Without ``tilt_deg`` (the first sweep), wide enough for any tilt up to
+    ``max_tilt_deg`` on both axes, at half a depth of field per frame. Tracking (the
+    last measured tilts), only the depths the field spans at those tilts plus a margin,
+    at three quarters of a depth of field per frame: a handful of frames near each
+    kernel's focus, not a full sweep (fewer frames the flatter the view).
+
+    ``grid`` (first working distance, step) puts the sweep on the taught sweep's
+    working distances: each kernel's focus curve is then sampled at the same places as
+    when it was taught, so the peak fit's small bias (which depends on where the peak
+    falls between samples) is the same in both and cancels in the tilt difference.
+    """
+    if not (np.isfinite([centre, depth_of_field, field]).all() and depth_of_field > 0 and field > 0):
+        raise ValueError("centre, depth_of_field and field must be finite, the last two positive")
+    if tilt_deg is None:
+        spread = field * np.tan(np.radians(max_tilt_deg)) * 2
+        step = FIRST_STEP_DOF * depth_of_field
+    else:
+        alpha, beta = np.radians(np.clip(np.abs(tilt_deg), 0, 80))
+        spread = field * (np.tan(alpha) + np.tan(beta) / np.cos(alpha))
+        step = TRACKING_STEP_DOF * depth_of_field
+    span = spread + 2 * MARGIN_DOF * depth_of_field
+    if grid is not None:
+        origin, step = grid
+        if not (np.isfinite([origin, step]).all() and step > 0):
+            raise ValueError("grid must be a finite first working distance and a positive step")
+        centre = origin + round((centre - origin) / step) * step
+    frames = int(np.ceil(span / step)) + 1
+    if frames > max_frames:
+        frames, step = max_frames, span / (max_frames - 1)
+    frames += (frames + 1) % 2  # odd: one frame at the centre
+    return centre + (np.arange(frames) - frames // 2) * step
+
+
+# --------------------------------------------------------------------------------------
+# The view square on
+
+
+def undo_foreshortening(frame: np.ndarray, alpha_deg: float, beta_deg: float) -> np.ndarray:
+    """The frame as the surface would look square on, about the image centre: a surface
+    tilted by R_x(alpha) R_y(beta) is seen (orthographically) through
+    A = [[cos beta, 0], [sin alpha sin beta, cos alpha]]; this resamples the frame
+    through A (bicubic). The rotation about the beam is then measured on it: on the raw
+    frame of a surface tilted by 15 degrees the log-polar angle was off by up to 14
+    degrees (the foreshortening is an anisotropic scale), on this one by 0.03 at most
+    (``bench/tilt.py``)."""
+    import cv2
+
+    alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
+    forward = np.array([[np.cos(beta), 0.0], [np.sin(alpha) * np.sin(beta), np.cos(alpha)]])
+    centre = (np.array(frame.shape[::-1], dtype=np.float64) - 1) / 2
+    matrix = np.hstack([forward, (centre - forward @ centre)[:, None]])
+    return cv2.warpAffine(np.asarray(frame, dtype=np.float32), matrix, frame.shape[::-1],
+                          flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
