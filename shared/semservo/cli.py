@@ -28,7 +28,7 @@ import zmq
 
 from semservo import __version__, security
 from semservo.config import Settings, connect
-from semservo.launcher import SERVICES, LaunchError, Launcher, spec
+from semservo.launcher import SERVICES, LaunchError, Launcher, spec, stage_rate_for
 from semservo.monitor import FrameStats, acquisition_text
 from semservo.messages import MOTION_TOPIC, MotionEstimate
 from semservo.transport import CommandError, ControlClient, FrameSubscriber, MessageSubscriber, ServiceUnavailable
@@ -56,9 +56,7 @@ def _source_environment(args: argparse.Namespace) -> None:
     os.environ.update({key: value for key, value in overrides.items() if value})
     speedup = float(os.environ.get("SEMSERVO_FAKELAB__SPEEDUP") or 1.0)
     if speedup != 1.0 and "SEMSERVO_STAGE__MAX_RATE_V_PER_S" not in os.environ:
-        # Simulated time runs faster, so commands come faster in wall time: the rate
-        # limit is a limit per simulated second.
-        os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(200.0 * speedup)
+        os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(speedup))
 
 
 def command_up(args: argparse.Namespace) -> int:
@@ -458,7 +456,7 @@ def command_demo(args: argparse.Namespace) -> int:
     turns = args.dof in ("rotation", "all")
     if args.speedup:
         os.environ["SEMSERVO_FAKELAB__SPEEDUP"] = str(args.speedup)
-        os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(200 * args.speedup)
+        os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(args.speedup))
     if tilts:  # the tilts are seen through focus: the small-depth-of-field condition
         os.environ.setdefault("SEMSERVO_FAKELAB__PRESET", "tilts")
     settings = Settings()

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, TextIO
 
-from semservo.config import Settings, connect
+from semservo.config import Settings, StageSettings, connect
 from semservo.messages import Health
 from semservo.transport import ControlClient, ServiceUnavailable
 
@@ -373,11 +373,18 @@ def fresh_port_environment() -> dict[str, str]:
     return variables
 
 
+def stage_rate_for(speedup: float) -> float:
+    """The stage's voltage rate limit (V/s, wall time) for a lab running ``speedup`` times
+    faster: simulated time runs faster, so commands come faster in wall time, and the
+    default limit is a limit per simulated second."""
+    return StageSettings.model_fields["max_rate_v_per_s"].default * speedup
+
+
 def faster_lab_environment(speedup: float, fps: float = 100.0) -> dict[str, str]:
     """The simulated lab's clock ``speedup`` times faster, the stage's rate limit scaled
     with it (as ``semservo up --speedup`` does), the image server as fast as ``fps``."""
-    return {"SEMSERVO_FAKELAB__SPEEDUP": str(speedup), "SEMSERVO_STAGE__MAX_RATE_V_PER_S": str(200 * speedup),
-            "SEMSERVO_IMAGESERVER__FPS": str(fps)}
+    return {"SEMSERVO_FAKELAB__SPEEDUP": str(speedup),
+            "SEMSERVO_STAGE__MAX_RATE_V_PER_S": str(stage_rate_for(speedup)), "SEMSERVO_IMAGESERVER__FPS": str(fps)}
 
 
 @contextlib.contextmanager

@@ -186,8 +186,7 @@ def experiment_fig8(quick: bool, progress: Callable[[int], Progress]) -> dict:
     simulated hardware, on fresh loopback ports), with :func:`.tilts.five_dof_runs`."""
     initial = [tilts.FIG8_START] + tilts.random_starts(np.random.default_rng(8), 0 if quick else 3)
     bar = progress(len(initial))
-    runs = tilts.five_dof_runs(initial, speedup=20.0,
-                              say=lambda text: text.lstrip().startswith("run") and bar.step("run"))
+    runs = tilts.five_dof_runs(initial, speedup=20.0, say=lambda text: bar.step("run"))
     bar.close()
     # The first run's iterations are plotted; the others are summarized.
     return {"runs": [run if index == 0 else {key: value for key, value in run.items() if key != "trajectory"}

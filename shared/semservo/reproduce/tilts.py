@@ -29,17 +29,19 @@ from typing import Callable
 
 import numpy as np
 
+from semservo.config import EstimatorSettings
 from semservo.estimation import MotionEstimator
+from semservo.estimation.tilt import depth_map, egi_tilt_between, estimate_tilt, plan_sweep, undo_foreshortening
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
-from semservo.estimation.tilt import depth_map, egi_tilt_between, estimate_tilt, plan_sweep, undo_foreshortening
 
 #: Paper Table I's three poses, (alpha, beta, gamma) in degrees.
 PAPER_POSES = [(15.0, -15.0, 70.0), (8.0, -8.0, 30.0), (3.0, 3.0, -5.0)]
 #: Paper Table I: the errors it reports reach 0.82 degree, with a sign flip at 3 degrees.
 PAPER_WORST_DEG = 0.82
-#: The ``tilts`` preset's depth of field (400 um aperture at 5 mm).
-DEPTH_OF_FIELD_UM = 3.5
+#: The depth of field the sweeps are planned with: the estimator service's default, which
+#: is the ``tilts`` preset's (400 um aperture at 5 mm).
+DEPTH_OF_FIELD_UM = EstimatorSettings.model_fields["tilt_depth_of_field_um"].default
 #: Fig. 8's start: (alpha, beta, gamma) in degrees, (x, y) in um.
 FIG8_START = (7.0, 12.0, 20.0, 3.0, -2.0)
 
@@ -188,8 +190,8 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
     loopback ports, its records in ``folder`` or a temporary one): one teach (frames and a
     focus sweep) at the start pose, then per entry of ``initial`` (alpha, beta, gamma in
     degrees, x, y in um, from the taught pose) a displacement and a run servoing x, y,
-    gamma, alpha and beta. Each result carries the run's state, iterations, wall time,
-    the simulator's true final errors and the trajectory."""
+    gamma, alpha and beta; ``say`` is told once per run. Each result carries the run's
+    state, iterations, wall time, the simulator's true final errors and the trajectory."""
     from semservo.client import Client
     from semservo.launcher import simulated_system
 
@@ -227,9 +229,8 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
                     f"{y_um:+.1f}) um: {record['state']} after {record['iterations']} iterations, "
                     f"{results[-1]['wall_s']:.0f} s; true error alpha {error.get('tilt_x_deg', math.nan):+.3f}, beta "
                     f"{error.get('tilt_y_deg', math.nan):+.3f}, gamma {error.get('rotation_deg', math.nan):+.4f} deg, "
-                    f"{truth.get('error_norm_px', math.nan):.2f} px")
-                if record["state"] != "converged":
-                    say(f"    reason: {record.get('reason')}")
+                    f"{truth.get('error_norm_px', math.nan):.2f} px"
+                    + ("" if record["state"] == "converged" else f"\n    reason: {record.get('reason')}"))
         finally:
             lab.close()
     return results
