@@ -31,14 +31,16 @@ def pytest_runtest_makereport(item, call):
         item.failed_call = report.failed
 
 
-@pytest.fixture(scope="session")
+# Package scope, not session: the stack (its fake lab renders 30 frames a second) stops
+# when the browser tests are done instead of taking CPU from every test after them.
+@pytest.fixture(scope="package")
 def system(tmp_path_factory):
     folder = tmp_path_factory.mktemp("dashboard")
     with simulated_stack(folder, speedup=SPEEDUP, fps=30) as (launcher, settings):
         yield {"url": f"http://127.0.0.1:{settings.gateway.http_port}", "launcher": launcher, "settings": settings}
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def browser():
     from playwright.sync_api import sync_playwright
 
