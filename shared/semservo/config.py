@@ -166,6 +166,9 @@ class StageSettings(BaseModel):
     rotation_stage: Literal["none", "fakelab"] = Field(
         "fakelab", description="the rotation-and-tilt stage this service drives: the fake lab's simulated one, or none")
     max_turn_deg: PositiveFloat = Field(30.0, le=360, description="largest turn or tilt one command may ask (degrees)")
+    settle_s: dict[str, Annotated[float, Field(ge=0, le=60)]] = Field(
+        default_factory=dict, description="axis -> seconds the axis takes to settle after a move (default 0.01): a "
+                                          "frame scanned before then shows it moving")
 
 
 class ControllerSettings(BaseModel):
@@ -176,9 +179,23 @@ class ControllerSettings(BaseModel):
     status_port: int = Field(5581, ge=1, le=65535, description="PUB socket: status and per-iteration records")
     runs_dir: Path = Field(Path("runs"), description="where run records (JSON) are written")
     watchdog_s: PositiveFloat = Field(3.0, le=600, description="the stage holds if the controller is silent this long")
-    axis_signs: tuple[int, int] = Field((1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
-    orientation_deg: float = Field(0.0, description="camera-to-stage: stage x axis in the image, counter-clockwise")
-    rotation_sign: Literal[-1, 1] = 1
+    axis_signs: tuple[Literal[-1, 1], Literal[-1, 1]] = Field(
+        (1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
+    orientation_deg: float = Field(0.0, ge=-360, le=360, description="camera-to-stage: stage x axis in the image, "
+                                                                     "counter-clockwise")
+    rotation_sign: Literal[-1, 1] = Field(1, description="camera-to-stage: +1 if a positive turn of the rotation "
+                                                         "stage turns the content counter-clockwise")
+    tilt_signs: tuple[Literal[-1, 1], Literal[-1, 1]] = Field(
+        (1, 1), description="camera-to-stage: +1 if a positive stage tilt about x / y tilts the surface by +alpha / "
+                            "+beta (semservo.estimation.tilt's convention)")
+
+    def camera_to_stage(self):
+        """The camera-to-stage transform these settings describe: the one every part that
+        turns image motion into stage motion uses (the controller, the gateway's
+        click-to-move, ``semservo calibrate``)."""
+        from semservo.control import CameraToStage
+
+        return CameraToStage(tuple(self.axis_signs), self.orientation_deg, self.rotation_sign, tuple(self.tilt_signs))
 
 
 class GatewaySettings(BaseModel):
