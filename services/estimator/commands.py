@@ -59,7 +59,9 @@ def teach(estimator: Estimator, request: protocol.TeachRequest) -> protocol.Refe
         raise CommandError("busy", "a run is measuring the tilts (focus sweeps): stop it first")
     sweep_frames = len(core.next_sweep()) if request.tilts else 0  # refused here, before anything is taught
     if request.image_b64 is not None:
-        reference = core.teach_image(decode_upload(request.image_b64), label=request.label or "upload")
+        pixels, metadata = decode_upload(request.image_b64, with_metadata=True)
+        reference = core.teach_image(pixels, label=request.label or "upload", acquisition=metadata,
+                                     source_interval_s=request.source_interval_s)
     elif request.path is not None:
         pixels, metadata = _read_path(request.path)
         reference = core.teach_image(pixels, label=request.label or request.path, acquisition=metadata)

@@ -66,16 +66,18 @@ def acquisition_of(frame: Frame | None) -> dict[str, Any]:
     return {key: getattr(frame.header, key) for key in ACQUISITION_FIELDS if getattr(frame.header, key) is not None}
 
 
-def decode_upload(encoded: str) -> np.ndarray:
-    """Pixels of a base64-encoded PNG or TIFF upload."""
+def decode_upload(encoded: str, *, with_metadata: bool = False):
+    """Pixels of a base64-encoded PNG or TIFF upload (and, ``with_metadata``, what the
+    file says of its acquisition)."""
     try:
         raw = base64.b64decode(encoded, validate=True)
     except (ValueError, TypeError) as error:
         raise TeachError(f"image_b64 is not base64: {error}") from None
     try:
-        return read_image(raw)[0]
+        pixels, metadata = read_image(raw)
     except ImageFileError as error:
         raise TeachError(str(error)) from None
+    return (pixels, metadata) if with_metadata else pixels
 
 
 #: The smallest polygon a mask reference may be drawn from (square pixels): below this

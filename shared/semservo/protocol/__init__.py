@@ -63,6 +63,19 @@ class CommandReply(BaseModel):
     def get(self, key: str, default: Any = None) -> Any:
         return getattr(self, key, default)
 
+    def keys(self):
+        return self.model_dump().keys()
+
+    def __contains__(self, key: str) -> bool:
+        return key in type(self).model_fields or key in (self.model_extra or {})
+
+    def __eq__(self, other: Any) -> bool:
+        if isinstance(other, dict):  # a reply compares as the dictionary it was
+            return self.model_dump() == other
+        return super().__eq__(other)
+
+    __hash__ = None  # mutable, as dictionaries are
+
 
 class NoArguments(CommandRequest):
     """A command that takes nothing."""

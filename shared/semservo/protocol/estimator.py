@@ -32,6 +32,9 @@ class TeachRequest(CommandRequest):
     mask_b64: Base64 | None = Field(None, description="a binary PNG/TIFF mask of the current scan's size")
     tilts: bool = Field(False, description="also sweep the focus at the taught pose (in the background: the reply "
                                            "comes at once, `tilt_teach` in `report` says how far it is)")
+    source_interval_s: list[float] | None = Field(None, min_length=2, max_length=2,
+                                                  description="with an image: when it was scanned on the source's "
+                                                              "clock (a one-off slow scan)")
 
 
 class TiltTeach(CommandReply):
