@@ -31,7 +31,8 @@ def targets(core: Core) -> list[Target]:
 @router.post("/import", response_model=Target, status_code=201, dependencies=[Depends(require_token)],
              summary="A target from a file GET /targets/{name}/export wrote (this or another gateway's)")
 async def import_target(request: Request, core: Core,
-                        file: Annotated[UploadFile, File(description="the target's TIFF")],
+                        file: Annotated[UploadFile | str, File(description="the target's TIFF (a file GET "
+                                                                        "/targets/{name}/export wrote)")],
                         name: Annotated[str | None, Form(max_length=80, description="store it under this name "
                                                                                      "instead")] = None,
                         replace: Annotated[bool, Form()] = False) -> Target:

@@ -15,9 +15,12 @@ from services.gateway.core import reference_view
 router = APIRouter(tags=["teach"])
 
 
-async def read_upload(request: Request, upload: UploadFile, field: str) -> bytes:
+async def read_upload(request: Request, upload: UploadFile | str, field: str) -> bytes:
+    """An upload's bytes (a part sent without a file name, as text, is read the same way),
+    refused when empty or over the size limit."""
     limit = request.app.state.max_upload_bytes
-    data = await upload.read(limit + 1)
+    data = upload.encode("utf-8", "surrogateescape")[:limit + 1] if isinstance(upload, str) \
+        else await upload.read(limit + 1)
     if len(data) > limit:
         raise CommandError("too_large", f"{field}: uploads are limited to {limit} bytes", field=field)
     if not data:
@@ -26,14 +29,18 @@ async def read_upload(request: Request, upload: UploadFile, field: str) -> bytes
 
 
 @router.post("/teach", response_model=TeachResult, dependencies=[Depends(require_token)],
-             summary="Teach the reference: the live frame(s), one slow scan, an uploaded image, or a mask")
+             summary="Teach the reference: the live frame(s), one slow scan, an uploaded image, or a mask",
+             description="An `image` or `mask` is the bytes of a PNG or TIFF file (8 or 16 bit) of the current "
+                         "scan's size; a part sent as text is read the same way. What the bytes hold is checked "
+                         "beyond this schema: not a readable PNG/TIFF is 422 `unreadable_image`, another size "
+                         "422 `wrong_size`, nothing 422 `empty`, over the upload limit 413 `too_large`.")
 async def teach(
     request: Request, core: Core,
     frames: Annotated[int, Query(ge=1, le=16, description="average this many live frames")] = 1,
     dwell_ns: Annotated[float | None, Query(gt=0, le=100_000, description="scan the reference once at this "
                                             "dwell (ns/px): a slow, high-quality reference")] = None,
-    image: Annotated[UploadFile | None, File(description="PNG/TIFF reference of the current scan's size")] = None,
-    mask: Annotated[UploadFile | None, File(description="PNG/TIFF binary mask (paper case 6)")] = None,
+    image: Annotated[UploadFile | str | None, File(description="PNG/TIFF reference of the current scan's size")] = None,
+    mask: Annotated[UploadFile | str | None, File(description="PNG/TIFF binary mask (paper case 6)")] = None,
     label: Annotated[str | None, Form(max_length=200)] = None,
     tilts: Annotated[bool, Query(description="also sweep the focus at the taught pose, so a run can servo the tilts "
                                              "alpha and beta: the answer comes at once, the sweep goes on (seconds; "

@@ -268,26 +268,52 @@ class LocalPort(Generic[CoreT]):
 
 
 # -- docs -----------------------------------------------------------------------------------
-def _type_text(annotation: Any) -> str:
-    text = getattr(annotation, "__name__", None) if isinstance(annotation, type) else None
-    text = text or str(annotation).replace("typing.", "")
-    for noise in ("Annotated[", "semservo.protocol.", "semservo.messages."):
-        text = text.replace(noise, "")
-    return text.replace("NoneType", "null")
+def _schema_text(schema: dict, defs: dict) -> str:
+    """A JSON schema as a few words for a table cell: ``number (> 0, <= 1e+06) or null``."""
+    if "$ref" in schema:
+        return schema["$ref"].rsplit("/", 1)[-1]
+    if "anyOf" in schema:
+        return " or ".join(dict.fromkeys(_schema_text(part, defs) for part in schema["anyOf"]))
+    if "enum" in schema:
+        return " / ".join(json.dumps(value) for value in schema["enum"])
+    if "const" in schema:
+        return json.dumps(schema["const"])
+    kind = schema.get("type", "any")
+    if kind == "array":
+        kind = f"list of {_schema_text(schema.get('items', {}), defs)}"
+    elif kind == "object":
+        values = schema.get("additionalProperties")
+        kind = f"object of {_schema_text(values, defs)}" if isinstance(values, dict) else "object"
+    bounds = [f"{sign} {schema[key]:g}" for key, sign in (("exclusiveMinimum", ">"), ("minimum", ">="),
+                                                         ("exclusiveMaximum", "<"), ("maximum", "<="))
+              if key in schema]
+    if schema.get("minItems") is not None and schema.get("minItems") == schema.get("maxItems"):
+        bounds.append(f"{schema['minItems']} items")
+    else:
+        bounds += [f"{what} {schema[key]} items" for key, what in (("minItems", "at least"), ("maxItems", "at most"))
+                   if key in schema]
+    return kind + (f" ({', '.join(bounds)})" if bounds else "")
 
 
 def fields_text(model: type[BaseModel]) -> str:
     """``name: type = default`` of a model's fields, for the docs."""
     if model is NoArguments:
         return "-"
+    schema = model.model_json_schema()
+    defs = schema.get("$defs", {})
     parts = []
     for name, info in model.model_fields.items():
-        annotation = _type_text(info.annotation)
+        text = _schema_text(schema.get("properties", {}).get(name, {}), defs)
         default = "" if info.is_required() else f" = {json.dumps(info.get_default(call_default_factory=True), default=str)}"
-        parts.append(f"`{name}: {annotation}{default}`")
-    extra = model.model_config.get("extra")
-    return ", ".join(parts) + (" (and the service's own fields)" if extra == "allow" else "") if parts else \
-        "the service's own description" if extra == "allow" else "-"
+        parts.append(f"`{name}`: {text}{default}")
+    open_ended = model.model_config.get("extra") == "allow"
+    if not parts:
+        return "the service's own description" if open_ended else "-"
+    return "; ".join(parts) + (" (and the service's own fields)" if open_ended else "")
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
 
 
 def markdown(command_sets: list[CommandSet] | None = None) -> str:
@@ -304,8 +330,8 @@ def markdown(command_sets: list[CommandSet] | None = None) -> str:
         for command in commands:
             if command.name == "health":
                 continue
-            lines.append(f"| `{command.name}` | {fields_text(command.request)} | `{command.reply.__name__}`: "
-                         f"{fields_text(command.reply)} | {command.summary} |")
+            lines.append(f"| `{command.name}` | {_cell(fields_text(command.request))} | `{command.reply.__name__}`: "
+                         f"{_cell(fields_text(command.reply))} | {_cell(command.summary)} |")
         lines.append("")
     lines.append("Every service also answers `health` → `Health {service, state, pid, uptime_s, counters, "
                  "last_error, details}`.")
