@@ -376,6 +376,7 @@ def test_runs_survive_a_gateway_restart_and_a_run_it_missed_is_recorded(system):
     lab.move(x_um=2.0)
     lab.wait(lab.start(tolerance_px=0.2)["run_id"], timeout=90)
     before = lab.runs()
+    stored = lab.save_target("before the restart", replace=True)
     # The gateway goes down; a run starts and ends without it (a script on the
     # controller's own socket).
     gateway = launcher.children["gateway"].process
@@ -402,6 +403,8 @@ def test_runs_survive_a_gateway_restart_and_a_run_it_missed_is_recorded(system):
     assert record["trajectory"] and record["state"] == before[0]["state"]
     recorded = lab.run(missed)
     assert recorded["state"] == "converged" and recorded["trajectory"] and recorded["stage_commands"]
+    kept = lab.target("before the restart")  # stored targets survive a restart too
+    assert kept == stored and lab.http.get(kept.thumbnail_url).status_code == 200
 
 
 def _taught_or_none(lab: Client):
