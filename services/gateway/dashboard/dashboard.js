@@ -211,7 +211,8 @@ function makePlot(box, series, { log = false } = {}) {
   const width = box.clientWidth > 0 ? box.clientWidth : 300;
   const axis = { stroke: "#8c96a3", font: AXIS_FONT, grid: { stroke: "#2d343e", width: 1 }, ticks: { stroke: "#2d343e" } };
   const yAxis = { ...axis, size: axisSize };
-  if (log) Object.assign(yAxis, { splits: logSplits, values: logValues });
+  // Every split drawn as logValues says (uPlot's own log filter would drop labels again).
+  if (log) Object.assign(yAxis, { splits: logSplits, values: logValues, filter: (self, splits) => splits });
   const plot = new uPlot({
     width, height: plotHeight(width),
     scales: { x: { time: false }, y: log ? { distr: 3, log: 10 } : {} },
