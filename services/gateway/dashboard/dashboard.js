@@ -300,19 +300,28 @@ function scheduleDraw() {  // iterations may come faster than a plot should redr
 // Show a run in the plots: its whole record now, then its iterations as they come.
 async function plotRun(runId) {
   if (state.plot.runId !== runId) {
-    state.plot = { runId, dofs: runId === state.runId && state.runDofs.length ? state.runDofs : null, records: new Map() };
+    state.plot = { runId, dofs: runId === state.runId && state.runDofs.length ? state.runDofs : null,
+                   records: new Map(), loaded: false, loading: 0 };
     scheduleDraw();
   }
-  const run = await api("GET", `/runs/${encodeURIComponent(runId)}`);
-  if (state.plot.runId !== runId) return run;  // another run was chosen meanwhile
-  state.plot.dofs = (run.dofs && run.dofs.length ? run.dofs : (run.settings || {}).dofs || ["x", "y"]).map(canonicalDof);
-  for (const record of run.trajectory) state.plot.records.set(record.seq ?? `i${record.iteration}`, record);
-  scheduleDraw();
-  return run;
+  const plot = state.plot;
+  plot.loading += 1;
+  try {
+    const run = await api("GET", `/runs/${encodeURIComponent(runId)}`);
+    if (state.plot !== plot) return run;  // another run was chosen meanwhile
+    plot.dofs = (run.dofs && run.dofs.length ? run.dofs : (run.settings || {}).dofs || ["x", "y"]).map(canonicalDof);
+    for (const record of run.trajectory) plot.records.set(record.seq ?? `i${record.iteration}`, record);
+    plot.loaded = true;
+    scheduleDraw();
+    return run;
+  } finally {
+    plot.loading -= 1;
+  }
 }
 
 function addIteration(runId, record) {
-  if (state.plot.runId !== runId) plotRun(runId).catch(() => {});
+  // Another run than the one plotted: a new run is plotted when the status names it.
+  if (state.plot.runId !== runId) return;
   state.plot.records.set(record.seq ?? `i${record.iteration}`, record);
   scheduleDraw();
 }
@@ -338,11 +347,16 @@ function depthColour(t) {
 }
 
 // The last focus sweep: its tilts, a small depth map (one cell per kernel), its scale.
-function showTilt(tilt, tiltTeach) {
+// Before a run's first sweep, what the taught pose's sweep said (the estimator keeps no
+// depth map of it).
+function showTilt(tilt, tiltTeach, taught) {
   if (!tilt) {
     $("depth").hidden = true;
-    $("tilt-summary").textContent = tiltTeach && tiltTeach.state === "sweeping" ? "sweeping the focus…"
-      : "no focus sweep yet: teach with tilts";
+    if (tiltTeach && tiltTeach.state === "sweeping") $("tilt-summary").textContent = "sweeping the focus…";
+    else if (taught) {
+      $("tilt-summary").textContent = `taught plane α ${fmt(taught.alpha_deg, 3)}° β ${fmt(taught.beta_deg, 3)}° · ` +
+        `${taught.frames} frames · ${taught.kernels_used} kernels; the depth map comes with a tilt run's sweeps`;
+    } else $("tilt-summary").textContent = "no focus sweep yet: teach with tilts";
     return;
   }
   $("tilt-summary").textContent = `α ${fmt(tilt.alpha_deg, 3)}° β ${fmt(tilt.beta_deg, 3)}° · ${tilt.frames} frames · ` +
@@ -427,7 +441,7 @@ function showStatus(status) {
   $("alpha").textContent = fmt(status.alpha_deg, 3);
   $("beta").textContent = fmt(status.beta_deg, 3);
   const reference = status.reference;
-  showTilt(status.tilt, reference && reference.tilt_teach);
+  showTilt(status.tilt, reference && reference.tilt_teach, reference && reference.tilt);
   showTiltTeach(reference && reference.tilt_teach, reference && reference.tilt);
   $("frame-rate").textContent = fmt(status.frame_rate, 1);
   $("snr").textContent = fmt(status.snr_db, 1);
@@ -483,20 +497,24 @@ function showStatus(status) {
     showImage("reference", null, "no reference taught");
   }
 
+  // A new run is plotted; a run whose record was not there yet (just started) is asked again.
   const newRun = status.run_id && status.run_id !== state.runId;
   state.runId = status.run_id;
-  if (newRun || (status.run_id && state.plot.runId === null)) {
-    plotRun(status.run_id).then((run) => {
-      if (status.state === "servoing") showRunSettings(run);
-    }).catch(() => {});
+  const plot = state.plot;
+  if (newRun || (status.run_id && (plot.runId === null || (plot.runId === status.run_id && !plot.loaded
+      && !plot.loading)))) {
+    plotRun(status.run_id).catch(() => {});
   }
   const servoing = status.state === "servoing";
   $("position-note").textContent = servoing && status.run_id ? `run ${status.run_id}'s settings` : "";
-  if (servoing && state.settingsShownFor !== status.run_id && !newRun) {
-    state.settingsShownFor = status.run_id;
-    api("GET", `/runs/${encodeURIComponent(status.run_id)}`).then(showRunSettings).catch(() => {});
+  if (servoing && state.settingsShownFor !== status.run_id && state.settingsLoading !== status.run_id) {
+    const runId = status.run_id;
+    state.settingsLoading = runId;
+    api("GET", `/runs/${encodeURIComponent(runId)}`).then((run) => {
+      showRunSettings(run);
+      state.settingsShownFor = runId;
+    }).catch(() => {}).finally(() => { if (state.settingsLoading === runId) state.settingsLoading = null; });
   }
-  if (newRun && servoing) state.settingsShownFor = status.run_id;
 }
 
 async function pollStatus() {
