@@ -4,13 +4,14 @@ refusal said in words."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from playwright.sync_api import expect
 
 pytestmark = pytest.mark.integration
 
 NAME = "bond pad 3"
-CONVERGED_S = 90_000
 
 
 def test_stored_targets_from_the_dashboard(open_page, lab, tmp_path):
@@ -56,13 +57,16 @@ def test_stored_targets_from_the_dashboard(open_page, lab, tmp_path):
         page.set_input_files("#target-import", str(bad))
         expect(page.locator("#message-text")).to_contain_text("not a semservo target file")
 
-        # Go: the stored pose, its reference, a run that converges there.
-        lab.move(x_um=3.0, y_um=2.0)
+        # Go: the stored pose, its reference, a run towards it (the client's tests follow
+        # such a run to its end).
         before = page.inner_text("#run-id")
         item.locator("button.go").click()
         expect(page.locator("#run-id")).not_to_have_text(before, timeout=10_000)
         expect(page.locator("#reference-id")).to_contain_text(f"(target {NAME})")
-        expect(page.locator("#state")).to_have_text("converged", timeout=CONVERGED_S)
+        expect(page.locator("#state")).to_have_text(re.compile("servoing|converged"))
+        assert lab.run(page.inner_text("#run-id")).reference_id == lab.reference().id
     finally:
+        lab.stop("the test has seen enough")
+        lab.resume()
         if any(target.name == NAME for target in lab.targets()):
             lab.delete_target(NAME)
