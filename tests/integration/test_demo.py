@@ -22,7 +22,7 @@ def test_the_demo_starts_the_system_positions_and_reports(ports, monkeypatch, tm
     assert done.returncode == 0, done.stdout + done.stderr
     out = done.stdout
     assert "starting one on simulated hardware" in out
-    assert re.search(r"4\. converged after \d+ iterations in [\d.]+ s", out), out
+    assert re.search(r"4\. converged after \d+ iterations \(\d+ fresh frames\) in [\d.]+ s", out), out
     true_px = float(re.search(r"true final error \(simulator\) ([\d.]+) px", out).group(1))
     assert true_px < 0.5
     # What convergence was judged on, said beside the truth (a truth above the tolerance
