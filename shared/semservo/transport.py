@@ -38,9 +38,24 @@ log = logging.getLogger(__name__)
 TRANSPORT_CAP_FACTOR = 4
 
 
+#: ZMTP heartbeats on every PUB/SUB connection: a peer silent this long after a ping is
+#: dropped and, on the connecting side, dialled again (its name resolved again). Without
+#: them a connection across a cut network (a LAN cable pulled between the two PCs, a
+#: container's network disconnected) stays "established" for ever: a subscriber, which
+#: never sends, would wait for frames that can no longer come after the network is back.
+HEARTBEAT_INTERVAL_MS = 1000
+HEARTBEAT_TIMEOUT_MS = 4000
+
+
+def _keep_alive(socket: zmq.Socket) -> None:
+    socket.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_INTERVAL_MS)
+    socket.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+
+
 def _limit_socket(socket: zmq.Socket, max_message_bytes: int) -> None:
     socket.setsockopt(zmq.MAXMSGSIZE, TRANSPORT_CAP_FACTOR * max_message_bytes)
     socket.setsockopt(zmq.LINGER, 0)
+    _keep_alive(socket)
 
 
 class FramePublisher:
@@ -51,6 +66,7 @@ class FramePublisher:
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.SNDHWM, send_hwm)
         self.socket.setsockopt(zmq.LINGER, 0)
+        _keep_alive(self.socket)
         self.socket.bind(endpoint)
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
@@ -145,6 +161,7 @@ class MessagePublisher:
         self.topic = topic
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
+        _keep_alive(self.socket)
         self.socket.bind(endpoint)
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
