@@ -222,6 +222,10 @@ class ControllerCore:
             return "the estimator has no reference (restarted, or cleared)"
         if reference.get("id") != self.run["reference_id"]:
             return f"the estimator now has reference {reference.get('id')} (taught again, or restarted)"
+        latest, last = report.get("latest_frame_seq"), report.get("last_estimate") or {}
+        if latest is not None and latest == last.get("seq"):  # its newest frame is one it has estimated
+            return (f"frames stopped: no frame has reached the estimator since frame {latest} (is the image server "
+                    f"reachable? semservo health imageserver)")
         return "the estimator has the reference but publishes nothing (are frames arriving?)"
 
     def _within(self, dx_px: float, dy_px: float, rotation_deg: float) -> bool:

@@ -203,12 +203,15 @@ def foreign(seq: int, *, scan_started_at_ns: int) -> MotionEstimate:
 class Estimator:
     """The estimator's port, saying what it has (or nothing: restarted)."""
 
-    def __init__(self, reference_id: str | None):
+    def __init__(self, reference_id: str | None, latest_frame_seq: int | None = None, estimated_seq: int | None = None):
         self.reference_id = reference_id
+        self.latest_frame_seq, self.estimated_seq = latest_frame_seq, estimated_seq
 
     def request(self, command: str, args: dict | None = None) -> dict:
         if command == "report":
-            return {"reference": {"id": self.reference_id} if self.reference_id else None}
+            return {"reference": {"id": self.reference_id} if self.reference_id else None,
+                    "latest_frame_seq": self.latest_frame_seq,
+                    "last_estimate": None if self.estimated_seq is None else {"seq": self.estimated_seq}}
         return {}
 
 
@@ -226,7 +229,10 @@ def test_a_run_fails_at_once_when_its_reference_is_taught_again(stage, tmp_path)
 
 @pytest.mark.parametrize("estimator, says", [(Estimator(None), "no reference (restarted"),
                                              (Estimator("newer"), "now has reference newer"),
-                                             (Estimator("ref"), "publishes nothing")])
+                                             (Estimator("ref"), "publishes nothing"),
+                                             (Estimator("ref", 41, 40), "publishes nothing"),
+                                             (Estimator("ref", 40, 40), "frames stopped: no frame has reached "
+                                                                        "the estimator since frame 40")])
 def test_a_run_without_estimates_fails_within_the_timeout_saying_why(stage, tmp_path, estimator, says):
     clock = FakeClock()
     core = ControllerCore(LocalStage(stage), estimator=estimator, runs_dir=tmp_path, clock=clock)
