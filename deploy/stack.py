@@ -443,12 +443,22 @@ class Stack:
     def container(self, service: str) -> str:
         return f"{self.project}-{service}-1"
 
-    def network(self, name: str) -> str:
+    def _named(self, kind: str, name: str) -> str:
+        """The engine's name of this project's network or volume NAME: compose prefixes
+        the project with "_", podman-compose (Docker's names asked for) with "-"."""
+        listed = self.engine.run(kind, "ls", "--filter", f"label=com.docker.compose.project={self.project}",
+                                 "--format", "{{.Name}}", check=False).stdout.decode().split()
+        for found in listed:
+            if found in (f"{self.project}_{name}", f"{self.project}-{name}"):
+                return found
         return f"{self.project}_{name}"
+
+    def network(self, name: str) -> str:
+        return self._named("network", name)
 
     @property
     def volume(self) -> str:
-        return f"{self.project}_runs"
+        return self._named("volume", "runs")
 
     # compose
     def compose_env(self) -> dict[str, str]:
