@@ -307,6 +307,26 @@ def test_a_restarted_stage_comes_back_held_with_its_command_log(link, tmp_path):
     third.shutdown()
 
 
+def test_a_stop_holds_across_an_orderly_restart(link, tmp_path):
+    _, pty = link
+    first = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert first.connect()
+    first.stop("operator: the sample is loose")
+    first.shutdown()  # orderly (compose down): the operator's stop is not forgotten
+
+    second = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert second.connect()
+    assert second.state == "stopped" and second.state_reason == "operator: the sample is loose (before a restart)"
+    with pytest.raises(Refused):
+        second.move({"x": 0.5}, relative=True)
+    second.resume()
+    second.shutdown()
+
+    third = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert third.connect() and third.state == "ready"
+    third.shutdown()
+
+
 def test_outputs_the_stage_did_not_command_stop_it(link, tmp_path):
     world, pty = link
     clock = FakeClock()
