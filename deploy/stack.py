@@ -278,11 +278,33 @@ def requirements() -> list[str]:
     return list(PYPROJECT["project"]["dependencies"])
 
 
+def _build_requires() -> list[str]:
+    return list(PYPROJECT["build-system"]["requires"])
+
+
+def wheelhouse_key() -> str:
+    return _digest(RECIPE_VERSION, TARGET_PYTHON, _machine(), *requirements(), *_build_requires())
+
+
+def deps_tag() -> str:
+    """The dependencies image's tag: the base, the pins (the wheelhouse) and its recipe."""
+    dockerfile = ROOT / "deploy" / "offline-deps.Dockerfile"
+    return f"semservo-deps:{_digest(base_tag(), wheelhouse_key(), dockerfile.read_bytes())}"
+
+
+def offline_key() -> str:
+    return source_key(deps_tag(), (ROOT / "deploy" / "offline.Dockerfile").read_text())
+
+
+def online_key() -> str:
+    return source_key("online", (ROOT / "deploy" / "Dockerfile").read_text())
+
+
 def wheelhouse() -> Path:
     """The pinned dependencies (and the build backend) as wheels for the image's Python,
     downloaded on the host once per set of pins. Kept in the cache, keyed by the pins."""
-    build_requires = list(PYPROJECT["build-system"]["requires"])
-    key = _digest(RECIPE_VERSION, TARGET_PYTHON, _machine(), *requirements(), *build_requires)
+    build_requires = _build_requires()
+    key = wheelhouse_key()
     folder = cache_dir() / "wheelhouse" / key
     if (folder / "requirements.txt").is_file():
         return folder
@@ -305,7 +327,7 @@ def wheelhouse() -> Path:
 
 def build_deps(engine: Engine, base: str, wheels: Path) -> str:
     dockerfile = ROOT / "deploy" / "offline-deps.Dockerfile"
-    tag = f"semservo-deps:{_digest(base, wheels.name, dockerfile.read_bytes())}"
+    tag = deps_tag()
     if engine.has_image(tag):
         return tag
     started = time.monotonic()
@@ -347,7 +369,7 @@ def build_offline(engine: Engine) -> None:
     base = build_base(engine)
     wheels = wheelhouse()
     deps = build_deps(engine, base, wheels)
-    key = source_key(deps, (ROOT / "deploy" / "offline.Dockerfile").read_text())
+    key = offline_key()
     if (engine.image_labels(IMAGE) or {}).get(SOURCE_LABEL) == key:
         return
     started = time.monotonic()
@@ -362,7 +384,7 @@ def build_offline(engine: Engine) -> None:
 
 
 def build_online(engine: Engine) -> None:
-    key = source_key("online", (ROOT / "deploy" / "Dockerfile").read_text())
+    key = online_key()
     if (engine.image_labels(IMAGE) or {}).get(SOURCE_LABEL) == key:
         return
     started = time.monotonic()
@@ -389,11 +411,14 @@ def build(engine: Engine, mode: str | None = None) -> str:
     if mode not in ("auto", "online", "offline"):
         raise StackError(f"SEMSERVO_BUILD must be auto, online or offline, not {mode!r}")
     if mode == "auto":
-        labels = engine.image_labels(IMAGE) or {}
-        offline_key = labels.get(SOURCE_LABEL)
+        built_from = (engine.image_labels(IMAGE) or {}).get(SOURCE_LABEL)
+        if built_from == offline_key():
+            return "offline, up to date"
+        if built_from == online_key():
+            return "online, up to date"
         mode = "online" if registry_answers() else "offline"
-        if offline_key is None:
-            say(f"no {IMAGE} yet: building it {mode} ({'a registry answers' if mode == 'online' else 'no registry answers'})")
+        say(f"{IMAGE} is {'missing' if built_from is None else 'out of date'}: building it {mode} "
+            f"({'a registry answers' if mode == 'online' else 'no registry answers'})")
     if mode == "online":
         try:
             build_online(engine)
@@ -494,7 +519,9 @@ class Stack:
             service = labels.get("com.docker.compose.service")
             state = info.get("State", {})
             health = state.get("Health") or state.get("Healthcheck") or {}
-            found[service] = {"name": info.get("Name", "").lstrip("/"), "status": state.get("Status"),
+            found[service] = {"id": info.get("Id"), "name": info.get("Name", "").lstrip("/"),
+                              "status": state.get("Status"),
+                              "image": str(info.get("Image", "")).removeprefix("sha256:"),
                               "running": state.get("Running"), "pid": state.get("Pid"),
                               "restarts": info.get("RestartCount", 0), "health": health.get("Status")}
         return found
@@ -537,7 +564,10 @@ class Stack:
         if self.engine.name == "podman":
             result = self.engine.run("healthcheck", "run", name, check=False, timeout=60)
         else:
-            result = self.engine.run("exec", name, "semservo", "health", service, check=False, timeout=60)
+            test = json.loads(self.engine.run("inspect", "--format", "{{json .Config.Healthcheck.Test}}", name,
+                                              check=False).stdout or b"null") or ["CMD", "semservo", "health", service]
+            command = test[1:] if test[0] == "CMD" else ["sh", "-c", test[1]]
+            result = self.engine.run("exec", name, *command, check=False, timeout=60)
         output = ((result.stdout or b"") + (result.stderr or b"")).decode(errors="replace").strip()
         return result.returncode == 0, output
 
@@ -583,15 +613,32 @@ class Stack:
             time.sleep(0.5)
 
     # lifecycle
+    def image_id(self) -> str | None:
+        result = self.engine.run("image", "inspect", "--format", "{{.Id}}", IMAGE, check=False)
+        return result.stdout.decode().strip().removeprefix("sha256:") or None if result.returncode == 0 else None
+
+    def _configuration(self) -> str:
+        """What the running containers were made from: the compose file and the port."""
+        return _digest(COMPOSE_FILE.read_bytes(), self.http_publish)
+
     def up(self, *, build_mode: str | None = None, timeout_s: float = 180.0) -> dict:
-        timings: dict[str, float] = {}
-        if self.running():
-            say(f"project {self.project} is already up; checking its health")
+        """Build what is missing, start the stack with fresh keys and token (unless it is
+        up already, from this image and this compose file), wait until every service is
+        healthy and frames reach the gateway."""
+        timings: dict[str, float | str] = {}
+        started = time.monotonic()
+        timings["build_path"] = build(self.engine, build_mode)
+        timings["build_s"] = time.monotonic() - started
+        state_file = self.folder / "stack.json"
+        saved = json.loads(state_file.read_text()) if state_file.is_file() else {}
+        present = self.containers()
+        current = self.running() and saved.get("configuration") == self._configuration() and \
+            {info["image"] for info in present.values()} == {self.image_id()}
+        if current:
+            say(f"project {self.project} is up already, from this image and compose file")
         else:
-            started = time.monotonic()
-            timings["build_path"] = build(self.engine, build_mode)
-            timings["build_s"] = time.monotonic() - started
-            if self.containers():  # a stack left half up (or stopped): start over
+            if present:  # stopped, half up, or made from an older image or compose file: start over
+                say(f"project {self.project} has containers from before: replacing them")
                 self.compose("down", "--remove-orphans")
             self.fresh_credentials()
             started = time.monotonic()
@@ -602,8 +649,9 @@ class Stack:
         self.wait_frames()
         timings["frames_s"] = time.monotonic() - started
         state = {"engine": self.engine.name, "project": self.project, "url": self.url,
-                 "token_file": str(self.token_file), "keys_dir": str(self.keys_dir), "timings": timings}
-        (self.folder / "stack.json").write_text(json.dumps(state, indent=2) + "\n")
+                 "token_file": str(self.token_file), "keys_dir": str(self.keys_dir),
+                 "configuration": self._configuration(), "timings": timings}
+        state_file.write_text(json.dumps(state, indent=2) + "\n")
         return state
 
     def down(self, *, volumes: bool = False) -> None:
@@ -616,10 +664,10 @@ class Stack:
 # -- the command line ----------------------------------------------------------------------
 def _print_up(stack: Stack, state: dict) -> None:
     timings = state["timings"]
-    built = (f"image {IMAGE} ready in {timings['build_s']:.0f} s ({timings['build_path']}), "
-             if "build_s" in timings else "")
-    print(f"semservo is up as containers ({stack.engine.name}, project {stack.project}): {built}"
-          f"every service healthy and frames flowing after {timings['frames_s']:.0f} s")
+    started = f"started in {timings['create_s']:.0f} s, " if "create_s" in timings else ""
+    print(f"semservo is up as containers ({stack.engine.name}, project {stack.project}): image {IMAGE} "
+          f"({timings['build_path']}) ready in {timings['build_s']:.0f} s, {started}every service healthy and "
+          f"frames at the gateway {timings['frames_s']:.0f} s later")
     print(f"  gateway      {stack.url}    (dashboard {stack.url}/ , API {stack.url}/docs)")
     print(f"  token        {stack.token_file}    (export SEMSERVO_API_TOKEN=$(cat {stack.token_file}))")
     print(f"  CURVE keys   {stack.keys_dir}")
