@@ -38,18 +38,24 @@ log = logging.getLogger(__name__)
 TRANSPORT_CAP_FACTOR = 4
 
 
-#: ZMTP heartbeats on every PUB/SUB connection: a peer silent this long after a ping is
-#: dropped and, on the connecting side, dialled again (its name resolved again). Without
-#: them a connection across a cut network (a LAN cable pulled between the two PCs, a
-#: container's network disconnected) stays "established" for ever: a subscriber, which
-#: never sends, would wait for frames that can no longer come after the network is back.
-HEARTBEAT_INTERVAL_MS = 1000
-HEARTBEAT_TIMEOUT_MS = 4000
+#: TCP keepalive on every subscriber's connection: a connection silent this long (idle,
+#: then unanswered probes) is dropped and dialled again, the publisher's name resolved
+#: again. Without it a connection across a cut network (a LAN cable pulled between the
+#: two PCs, a container's network disconnected) stays "established" for ever: a
+#: subscriber, which never sends, would wait for frames that can no longer come after the
+#: network is back. Not ZMTP heartbeats: libzmq 4.3 aborts (``Assertion failed:
+#: _input_stopped``, zeromq/libzmq#3937) when a heartbeat times out on a subscriber whose
+#: queue is full, and a busy subscriber's queue is full by design (latest frame only).
+KEEPALIVE_IDLE_S = 2
+KEEPALIVE_INTERVAL_S = 1
+KEEPALIVE_PROBES = 3
 
 
 def _keep_alive(socket: zmq.Socket) -> None:
-    socket.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_INTERVAL_MS)
-    socket.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+    socket.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_IDLE, KEEPALIVE_IDLE_S)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_INTVL, KEEPALIVE_INTERVAL_S)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_CNT, KEEPALIVE_PROBES)
 
 
 def _limit_socket(socket: zmq.Socket, max_message_bytes: int) -> None:
@@ -66,7 +72,6 @@ class FramePublisher:
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.SNDHWM, send_hwm)
         self.socket.setsockopt(zmq.LINGER, 0)
-        _keep_alive(self.socket)
         self.socket.bind(endpoint)
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
@@ -161,7 +166,6 @@ class MessagePublisher:
         self.topic = topic
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
-        _keep_alive(self.socket)
         self.socket.bind(endpoint)
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
