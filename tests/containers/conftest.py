@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import json
 import os
 import socket
 import subprocess
@@ -135,6 +136,32 @@ def system(tmp_path_factory):
         yield system
     finally:
         system.dev_compose("down", "--volumes", timeout=300)
+
+
+ARTIFACTS = ROOT / "test-artifacts" / "containers"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.when == "call":
+        item.failed_call = report.failed
+
+
+@pytest.fixture(autouse=True)
+def logs_on_failure(request, system):
+    """A failing test leaves each container's state and log tail in
+    test-artifacts/containers/TEST/: CI keeps no engine to ask afterwards."""
+    yield
+    if not getattr(request.node, "failed_call", False):
+        return
+    folder = ARTIFACTS / request.node.name
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "containers.json").write_text(json.dumps(system.stack.containers(), indent=2))
+    for service in stack_module.SERVICES:
+        result = system.engine.run("logs", "--tail", "300", system.stack.container(service), check=False)
+        (folder / f"{service}.log").write_bytes(result.stdout + result.stderr)
 
 
 @pytest.fixture

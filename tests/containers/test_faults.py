@@ -78,6 +78,7 @@ def test_the_network_between_the_two_pcs_cut_mid_run(system, lab):
         system.engine.run("network", "connect", "--alias", "imageserver", work, imageserver)
         connected = True
         system.wait_frames(lab, after_seq=status["latest_frame_seq"])
+        system.stack.wait_healthy(120)  # as an operator checks before the next run
         again = system.displace_and_start(lab, offset=(4.0, -3.0), tolerance_px=0.2)
         assert lab.wait(again["run_id"], timeout=240)["state"] == "converged"
     finally:

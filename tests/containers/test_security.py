@@ -10,7 +10,7 @@ from tests.containers.conftest import stack_module, unauthorized
 
 PEERS = {f"SEMSERVO_{name.upper()}__HOST": name
          for name in ("fakelab", "imageserver", "estimator", "stage", "controller", "gateway")}
-PROBE = ("semservo frames --count 1 --timeout 4; echo frames=$?; "
+PROBE = ("semservo frames --count 1 --timeout 3; echo frames=$?; "
          "semservo health imageserver stage controller fakelab; echo health=$?")
 
 
@@ -18,7 +18,7 @@ def _probe(system, keys: str) -> str:
     """The probe in a fresh container on the microscope and work networks: no keys,
     keys it makes itself, or the deployment's keys mounted."""
     env = [argument for name, host in PEERS.items() for argument in ("-e", f"{name}={host}")]
-    env += ["-e", "SEMSERVO_REQUEST_TIMEOUT_S=2"]
+    env += ["-e", "SEMSERVO_REQUEST_TIMEOUT_S=1"]
     mounts, script = [], PROBE
     if keys == "own":
         script = "semservo keys /tmp/keys >/dev/null && export SEMSERVO_CURVE_KEYS_DIR=/tmp/keys; " + PROBE
