@@ -18,6 +18,7 @@ import yaml
 from semservo.cli import build_parser
 from semservo.config import Settings
 from semservo.launcher import SERVICES, spec
+from semservo.security import require_keys_off_loopback
 
 ROOT = Path(__file__).resolve().parents[2]
 WORK_PC = {"estimator", "controller", "stage", "gateway"}
@@ -97,8 +98,6 @@ def test_only_the_gateways_http_port_is_published(compose, monkeypatch):
 
 def test_every_container_uses_curve_keys(compose, monkeypatch):
     """Containers bind 0.0.0.0: each one must carry the CURVE keys, or it refuses to start."""
-    from semservo.security import require_keys_off_loopback
-
     for name, service in compose["services"].items():
         settings = container_settings(service, monkeypatch)
         assert settings.curve_keys_dir == Path("/keys"), name
@@ -141,3 +140,22 @@ def test_a_missing_engine_is_one_line_saying_what_to_install(tmp_path):
     assert result.returncode == 1
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "install podman" in lines[0] and "Docker" in lines[0], result.stderr
+
+
+def test_the_two_pc_compose_files_split_the_services(monkeypatch):
+    """deploy/pc1-microscope.yml and deploy/pc2-work.yml: every service but the fake lab,
+    each once, with the keys, a healthcheck and settings the model accepts."""
+    pc1 = yaml.safe_load((ROOT / "deploy" / "pc1-microscope.yml").read_text())["services"]
+    pc2 = yaml.safe_load((ROOT / "deploy" / "pc2-work.yml").read_text())["services"]
+    assert set(pc1) == {"imageserver"} and set(pc2) == WORK_PC
+    for name, service in {**pc1, **pc2}.items():
+        assert service["command"] == ["semservo", "service", name]
+        assert service["healthcheck"]["test"][-3:] == ["semservo", "health", name]
+        settings = container_settings(service, monkeypatch)
+        require_keys_off_loopback(settings)
+        assert settings.curve_keys_dir == Path("/keys")
+    assert {"5550:5550", "5551:5551"} == set(pc1["imageserver"]["ports"])
+    stage = container_settings(pc2["stage"], monkeypatch).stage
+    assert stage.serial_url == "/dev/nv40" and stage.rotation_stage == "none"
+    assert pc2["stage"]["devices"][0].endswith(":/dev/nv40")
+    assert container_settings(pc2["estimator"], monkeypatch).imageserver.host.startswith("${SEMSERVO_PC1")
