@@ -28,9 +28,17 @@ from semservo.client import Client
 
 ROOT = Path(__file__).resolve().parents[2]
 
-# Building the image on a fresh machine (Debian base, wheelhouse, dependencies) takes
-# minutes and counts in the first test; a cached build seconds.
-pytestmark = pytest.mark.timeout(900)
+#: Building the image on a fresh machine (Debian base, wheelhouse, dependencies) takes
+#: minutes and counts in the first test's setup; a cached build seconds. Each test's own
+#: waits are bounded well below this.
+TIMEOUT_S = 900
+
+
+def pytest_collection_modifyitems(config, items):
+    here = Path(__file__).parent
+    for item in items:
+        if here in Path(item.fspath).parents:
+            item.add_marker(pytest.mark.timeout(TIMEOUT_S))
 
 
 def _load_stack_module():
@@ -128,13 +136,13 @@ def system(tmp_path_factory):
            "SEMSERVO_ENGINE": engine.name}
     stack = stack_module.Stack(engine, project=project, folder=folder, http_publish=env["SEMSERVO_HTTP_PUBLISH"])
     system = System(stack, env)
-    up = system.dev_compose("up")
-    # What ./dev compose up promises to print: the gateway's URL and where the token is.
-    assert stack.url in up.stdout and str(stack.token_file) in up.stdout, up.stdout
-    print(up.stdout, up.stderr, file=sys.stderr)
     try:
+        up = system.dev_compose("up")
+        # What ./dev compose up promises to print: the gateway's URL and where the token is.
+        assert stack.url in up.stdout and str(stack.token_file) in up.stdout, up.stdout
+        print(up.stdout, up.stderr, file=sys.stderr)
         yield system
-    finally:
+    finally:  # also when up failed or timed out half-way: nothing is left running
         system.dev_compose("down", "--volumes", timeout=300)
 
 
@@ -162,6 +170,19 @@ def logs_on_failure(request, system):
     for service in stack_module.SERVICES:
         result = system.engine.run("logs", "--tail", "300", system.stack.container(service), check=False)
         (folder / f"{service}.log").write_bytes(result.stdout + result.stderr)
+
+
+@pytest.fixture(autouse=True)
+def no_silent_restarts(request, system):
+    """The restart policy hides a crash: a container restarted during a test that did not
+    kill it fails that test (a test that kills one says so: ``restarts_expected``)."""
+    before = {service: (info["id"], info["restarts"]) for service, info in system.stack.containers().items()}
+    yield
+    expected = getattr(request.function, "restarts_expected", set())
+    restarted = {service: info["restarts"] - before[service][1] for service, info in system.stack.containers().items()
+                 if service in before and info["id"] == before[service][0] and service not in expected
+                 and info["restarts"] != before[service][1]}
+    assert not restarted, f"containers restarted during the test (crashed?): {restarted}; see ./dev compose logs"
 
 
 @pytest.fixture

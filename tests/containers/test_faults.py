@@ -50,6 +50,9 @@ def test_the_stage_process_killed_mid_run(system, lab):
     assert any(e["text"].startswith("set,") for e in lab.run(run["run_id"])["stage_commands"])
 
 
+test_the_stage_process_killed_mid_run.restarts_expected = {"stage"}
+
+
 def test_the_network_between_the_two_pcs_cut_mid_run(system, lab):
     """The image server (PC 1) loses the work network (PC 2): frames stop crossing."""
     work, imageserver = system.stack.network("work"), system.stack.container("imageserver")
