@@ -190,6 +190,11 @@ class ControllerCore:
             return "the estimator has no reference (restarted, or cleared)"
         if report.reference.id != self.run.reference_id:
             return f"the estimator now has reference {report.reference.id} (taught again, or restarted)"
+        last = report.last_estimate or {}
+        if report.latest_frame_seq is not None and report.latest_frame_seq == last.get("seq"):
+            # Its newest frame is one it has already estimated: no frame has reached it since.
+            return (f"frames stopped: no frame has reached the estimator since frame {report.latest_frame_seq} (is "
+                    f"the image server reachable? semservo health imageserver)")
         return "the estimator has the reference but publishes nothing (are frames arriving?)"
 
     def _finish(self, state: ControllerState, reason: str, *, recovered: bool = False,

@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     plugged = threading.Event()
     plugged.set()
     pty = None if args.no_pty else PseudoTerminalLink(make_emulator, plugged).start()
-    tcp = TcpLink(make_emulator, settings.bind_host, config.serial_tcp_port, plugged).start()
+    tcp = TcpLink(make_emulator, config.serial_bind_host or settings.bind_host, config.serial_tcp_port, plugged).start()
     runtime = ServiceRuntime("fakelab", settings, settings.bind(config.control_port))
     scanner = ScanServer(world, settings.bind(config.scan_port), runtime.context, settings.max_message_bytes,
                          runtime.counters).start()

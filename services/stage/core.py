@@ -196,9 +196,14 @@ class StageCore:
 
     def shutdown(self) -> None:
         """An orderly end: nothing is left armed by a run (its controller stopped first),
-        so the next process starts ready; the link and the log file are closed."""
+        so the next process starts ready, unless the stage was stopped (an operator, an
+        uncommanded change): a stop holds until someone resumes, across an orderly
+        restart too (``docker compose down`` and ``up``). The link and the log file are closed."""
         if not self.watchdog.armed and self._state_path is not None:
-            self._state_path.unlink(missing_ok=True)
+            if self.state == "stopped":
+                self._persist()
+            else:
+                self._state_path.unlink(missing_ok=True)
         self.close()
         if self._log_file is not None:
             self._log_file.close()

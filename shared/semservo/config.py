@@ -126,6 +126,9 @@ class FakelabSettings(BaseModel):
     control_port: int = Field(5590, ge=1, le=65535, description="REP socket for commands, health, true pose")
     scan_port: int = Field(5591, ge=1, le=65535, description="REP socket the image server asks for frames")
     serial_tcp_port: int = Field(5592, ge=1, le=65535, description="the NV 40/3 on TCP (socket://)")
+    serial_bind_host: str | None = Field(
+        None, description="interface the NV 40/3's TCP port binds to (default: bind_host); in containers its "
+                          "address on the serial network alone, so only the stage service reaches the amplifier")
     preset: str = Field("optimal", description="one of the paper's conditions (semservo.simulation.world.PRESETS)")
     speedup: PositiveFloat = Field(1.0, le=1000, description="simulated time runs this many times faster")
     seed: int = 2013

@@ -39,9 +39,30 @@ log = logging.getLogger(__name__)
 TRANSPORT_CAP_FACTOR = 4
 
 
+#: TCP keepalive on every subscriber's connection: a connection silent this long (idle,
+#: then unanswered probes) is dropped and dialled again, the publisher's name resolved
+#: again. Without it a connection across a cut network (a LAN cable pulled between the
+#: two PCs, a container's network disconnected) stays "established" for ever: a
+#: subscriber, which never sends, would wait for frames that can no longer come after the
+#: network is back. Not ZMTP heartbeats: libzmq 4.3 aborts (``Assertion failed:
+#: _input_stopped``, zeromq/libzmq#3937) when a heartbeat times out on a subscriber whose
+#: queue is full, and a busy subscriber's queue is full by design (latest frame only).
+KEEPALIVE_IDLE_S = 2
+KEEPALIVE_INTERVAL_S = 1
+KEEPALIVE_PROBES = 3
+
+
+def _keep_alive(socket: zmq.Socket) -> None:
+    socket.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_IDLE, KEEPALIVE_IDLE_S)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_INTVL, KEEPALIVE_INTERVAL_S)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_CNT, KEEPALIVE_PROBES)
+
+
 def _limit_socket(socket: zmq.Socket, max_message_bytes: int) -> None:
     socket.setsockopt(zmq.MAXMSGSIZE, TRANSPORT_CAP_FACTOR * max_message_bytes)
     socket.setsockopt(zmq.LINGER, 0)
+    _keep_alive(socket)
 
 
 class FramePublisher:

@@ -145,15 +145,19 @@ def report(reference_id: str | None) -> estimator_protocol.Report:
 class FakeEstimator:
     """The estimator's port: what it has taught, and what it was asked to measure."""
 
-    def __init__(self, reference_id: str | None = "ref"):
+    def __init__(self, reference_id: str | None = "ref", latest_frame_seq: int | None = None,
+                 estimated_seq: int | None = None):
         self.reference_id = reference_id
+        self.latest_frame_seq, self.estimated_seq = latest_frame_seq, estimated_seq
         self.asked = []
 
     def call(self, command, request=None, /, **fields):
         request = command.build(request, **fields)
         self.asked.append((command.name, request.model_dump()))
         if command is estimator_protocol.REPORT:
-            return report(self.reference_id)
+            return report(self.reference_id).model_copy(update={
+                "latest_frame_seq": self.latest_frame_seq,
+                "last_estimate": None if self.estimated_seq is None else {"seq": self.estimated_seq}})
         if command is estimator_protocol.MEASURE:
             return estimator_protocol.MeasureReply(rotation=bool(request.rotation), tilts=bool(request.tilts))
         raise AssertionError(f"unexpected {command.name}")
@@ -258,7 +262,10 @@ def test_a_run_fails_at_once_when_its_reference_is_taught_again(stage, tmp_path)
 
 @pytest.mark.parametrize("estimator, says", [(FakeEstimator(None), "no reference (restarted"),
                                              (FakeEstimator("newer"), "now has reference newer"),
-                                             (FakeEstimator("ref"), "publishes nothing")])
+                                             (FakeEstimator("ref"), "publishes nothing"),
+                                             (FakeEstimator("ref", 41, 40), "publishes nothing"),
+                                             (FakeEstimator("ref", 40, 40), "frames stopped: no frame has "
+                                                                            "reached the estimator since frame 40")])
 def test_a_run_without_estimates_fails_within_the_timeout_saying_why(stage, tmp_path, estimator, says):
     clock = FakeClock()
     core = ControllerCore(LocalStage(stage), estimator=estimator, runs_dir=tmp_path, clock=clock)
@@ -327,6 +334,26 @@ def test_a_restarted_stage_comes_back_held_with_its_command_log(link, tmp_path):
     assert second.state == "ready"
     second.disarm("controller-new")
     second.shutdown()  # orderly, nothing armed: the next start is ready
+
+    third = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert third.connect() and third.state == "ready"
+    third.shutdown()
+
+
+def test_a_stop_holds_across_an_orderly_restart(link, tmp_path):
+    _, pty = link
+    first = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert first.connect()
+    first.stop("operator: the sample is loose")
+    first.shutdown()  # orderly (compose down): the operator's stop is not forgotten
+
+    second = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert second.connect()
+    assert second.state == "stopped" and second.state_reason == "operator: the sample is loose (before a restart)"
+    with pytest.raises(Refused):
+        second.move({"x": 0.5}, relative=True)
+    second.resume()
+    second.shutdown()
 
     third = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
     assert third.connect() and third.state == "ready"
