@@ -553,6 +553,15 @@ def command_demo(args: argparse.Namespace) -> int:
         print(f"1. taught reference {reference.id} (mean of {args.frames} live frames"
               + (f"; focus sweep of {reference.tilt['frames']} frames, {reference.tilt['kernels_used']} kernels "
                  "in focus somewhere)" if tilts else ")"))
+        stage = lab.stage()
+        if stage.state == "stopped":
+            if not args.resume:
+                print(f"demo: the stage is stopped ({stage.reason}). An operator's stop holds, across restarts too, "
+                      f"until someone resumes it: the dashboard's Resume, POST {url}/stage/resume, or "
+                      "`semservo demo --resume`.", file=sys.stderr)
+                return 1
+            lab.resume()
+            print("   the stage was stopped; resumed (--resume)")
         lab.move(x_um=args.offset[0], y_um=args.offset[1])
         print(f"2. displaced the stage by ({args.offset[0]:+g}, {args.offset[1]:+g}) um, as an operator's joystick would")
         dofs = ["x", "y"]
@@ -777,6 +786,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--timeout", type=float, default=300.0, help="give up on the run after this many seconds")
     demo.add_argument("--speedup", type=float, help="when the demo starts the system: simulated time this much faster")
     demo.add_argument("--verbose", action="store_true", help="show the services' logs when the demo starts them")
+    demo.add_argument("--resume", action="store_true", help="let a stage an operator stopped move again first (a "
+                                                            "stop holds until someone resumes, across restarts too)")
     demo.set_defaults(handler=command_demo)
 
     from semservo.reproduce import EXPERIMENTS
