@@ -297,11 +297,15 @@ class StageCore:
         self._follow_rotation()
         if now - self.last_io > READBACK_S[self.watchdog.armed]:
             try:
-                measured = self._io(lambda driver: driver.read_outputs())
+                measured = self._io(self._read_back)
             except Refused:
                 return 0.05
             self._compare(measured)
         return 0.05 if self.watchdog.armed else 0.2
+
+    def _read_back(self, driver):
+        """What the driver says it outputs now (a motion driver: where its axes are)."""
+        return driver.read_outputs()
 
     def _compare(self, measured) -> None:
         """Outputs this service did not command: stop, say what changed, follow them."""
