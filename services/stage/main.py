@@ -16,7 +16,9 @@ from semservo.logs import configure
 from semservo.service import ServiceRuntime
 from semservo.transport import ControlClient
 from services.stage.commands import handlers
+from semservo.instruments import PHYSICAL, driver_kind
 from services.stage.core import StageCore, StageLimits, driver_class, models_from
+from services.stage.physical import physical_core
 from services.stage.rotation import FakelabRotationStage
 
 log = logging.getLogger("stage")
@@ -28,9 +30,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Own the NV 40/3's serial link: moves through the displacement-voltage model, "
                     "soft limits, step and rate limits, a watchdog and a stop that always works.",
     )
-    parser.add_argument("--url", help="pyserial URL of the amplifier (default: settings, the fake lab's TCP port)")
-    parser.add_argument("--driver", help="stage driver: nv40 (default), simulated, an entry point or "
-                                         "package.module:ClassName")
+    parser.add_argument("--url", help="the driver's link: pyserial URL of the amplifier (default: settings, the fake "
+                                      "lab's TCP port), openfibsem://MANUFACTURER@HOST for openfibsem")
+    parser.add_argument("--driver", help="stage driver: nv40 (default), simulated, openfibsem, simulated-positioner, "
+                                         "an entry point or package.module:ClassName")
     return parser
 
 
@@ -48,10 +51,13 @@ def main(argv: list[str] | None = None) -> int:
         rotation = FakelabRotationStage(ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port),
                                                       timeout_s=min(settings.request_timeout_s, 1.0), retries=1,
                                                       context=runtime.context))
-    core = StageCore(args.url or config.serial_url, limits=limits, channels=dict(config.axes),
-                     models=models_from(config.model_files, config.axes), state_dir=config.state_dir,
-                     open_driver=driver_class(args.driver or config.driver).open, rotation=rotation,
-                     settle_s=dict(config.settle_s))
+    driver = driver_class(args.driver or config.driver)
+    if driver_kind(driver) == PHYSICAL:  # micrometres and degrees: a closed-loop stage, a microscope's stage and beam
+        core = physical_core(args.url or config.serial_url, driver, config, limits, rotation)
+    else:
+        core = StageCore(args.url or config.serial_url, limits=limits, channels=dict(config.axes),
+                         models=models_from(config.model_files, config.axes), state_dir=config.state_dir,
+                         open_driver=driver.open, rotation=rotation, settle_s=dict(config.settle_s))
     core.connect()
 
     handlers.bind(runtime.control, core)

@@ -167,10 +167,13 @@ class StageSettings(BaseModel):
 
     host: str = Field("127.0.0.1", description="address other services connect to")
     control_port: int = Field(5570, ge=1, le=65535, description="REP socket for moves, stop, state, health")
-    driver: str = Field("nv40", description="stage driver: nv40, simulated (in-process, no hardware), an entry "
-                                            "point of semservo.stage_drivers or package.module:ClassName")
+    driver: str = Field("nv40", description="stage driver: nv40, simulated (in-process, no hardware), "
+                                            "openfibsem (a microscope's stage and beam shift, semservo[openfibsem]), "
+                                            "simulated-positioner, an entry point of semservo.stage_drivers or "
+                                            "package.module:ClassName")
     serial_url: str = Field("socket://127.0.0.1:5592",
-                            description="pyserial URL: /dev/ttyUSB0, a pseudo-terminal path or socket://host:port")
+                            description="the driver's link: a pyserial URL (/dev/ttyUSB0, a pseudo-terminal path or "
+                                        "socket://host:port); openfibsem://MANUFACTURER@HOST for openfibsem")
     axes: dict[str, int] = Field(default_factory=lambda: {"x": 0, "y": 1}, description="axis name -> NV 40/3 channel")
     model_files: dict[str, str] = Field(default_factory=dict,
                                         description="axis -> displacement model JSON (stage_model.save_model); default TRITOR")
@@ -188,6 +191,21 @@ class StageSettings(BaseModel):
     settle_s: dict[str, Annotated[float, Field(ge=0, le=60)]] = Field(
         default_factory=dict, description="axis -> seconds the axis takes to settle after a move (default 0.01): a "
                                           "frame scanned before then shows it moving")
+    # A motion driver in physical units (a closed-loop stage, a microscope's stage and beam
+    # shift through OpenFIBSEM): the same rules, per axis, in micrometres and degrees.
+    max_step_um: PositiveFloat = Field(10.0, le=10_000, description="physical axes: largest displacement one "
+                                                                    "command may ask (um; degrees: max_turn_deg)")
+    max_steps: dict[str, PositiveFloat] = Field(default_factory=dict, description="physical axes: axis -> its own "
+                                                                                  "largest step (um or degrees)")
+    travel: dict[str, tuple[float, float]] = Field(
+        default_factory=dict, description="physical axes: axis -> [min, max], the lab's travel (the device's "
+                                          "coordinates), within the device's own")
+    readback_tolerance: dict[str, PositiveFloat] = Field(
+        default_factory=dict, description="physical axes: axis -> read-back change that counts as a move nobody "
+                                          "commanded (default 0.2 um stage, 0.01 um beam, 0.01 degree)")
+    arrival_tolerance: dict[str, PositiveFloat] = Field(
+        default_factory=dict, description="physical axes: axis -> farthest from its goal a move may arrive "
+                                          "(default 0.5 um stage, 0.01 um beam, 0.05 degree)")
 
 
 class ControllerSettings(BaseModel):

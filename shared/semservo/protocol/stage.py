@@ -5,7 +5,14 @@ A refused command is a :class:`~semservo.errors.CommandError` whose code names t
 ``link_lost``, ``not_applied``, ``bad_axis``, ``owned`` (a run's controller has the
 stage armed), ``model_jump`` (the displacement model asks for far more voltage than the
 move can need), ``rotation_limit``, ``no_rotation_stage``, ``rotation_link_lost``,
-``device_refused``.
+``device_refused`` (the device's own refusal, in its words), ``no_voltages`` (a motion
+driver in physical units has no voltages to set).
+
+Two kinds of driver sit behind the same commands (``state``'s ``kind``): ``voltage``, an
+amplifier's channels through each axis's displacement-voltage model (the NV 40/3), and
+``physical``, axes that take micrometres and degrees themselves and report where they
+are (a closed-loop stage, a microscope's stage and beam shift through OpenFIBSEM:
+``state``'s ``axes``).
 """
 
 from __future__ import annotations
@@ -28,7 +35,8 @@ Owner = Annotated[str, Field(min_length=1, max_length=100)]
 
 class MoveRequest(CommandRequest):
     targets: dict[AxisName, float] = Field(min_length=1, max_length=8, description="axis -> um: where to, or by how "
-                                                                                   "much when relative")
+                                                                                   "much when relative (x, y; a "
+                                                                                   "beam shift: beam_x, beam_y)")
     relative: bool = False
     owner: Owner | None = None
 
@@ -117,6 +125,16 @@ class RotationStage(CommandReply):
     link: str
 
 
+class AxisState(CommandReply):
+    """One axis of a motion driver in physical units (``kind`` ``physical``)."""
+
+    unit: Literal["um", "deg"]
+    moves: Literal["stage", "beam"] = Field(description="the stage (the sample) or the beam (a beam shift)")
+    position: float | None = Field(description="as last read back, in the device's coordinates")
+    travel: list[float] = Field(description="[min, max]: the device's own, narrowed by the lab's")
+    max_step: float = Field(description="the largest displacement one command may ask")
+
+
 class StageState(CommandReply):
     """What the stage service says of itself (``state``, and every other command's
     context: ``GET /stage``)."""
@@ -133,6 +151,10 @@ class StageState(CommandReply):
     models: dict[str, str] = Field(description="each axis's displacement-voltage model")
     settle_s: dict[str, float] = Field(default_factory=dict, description="each axis's settling time after a move")
     rotation: RotationStage | None = Field(description="the rotation-and-tilt stage; null when the lab has none")
+    kind: Literal["voltage", "physical"] = Field("voltage", description="the driver's: voltage (an amplifier's "
+                                                                        "channels) or physical (um and degrees)")
+    axes: dict[str, AxisState] = Field(default_factory=dict, description="a physical driver's axes (x, y, beam_x, "
+                                                                         "beam_y, ...)")
     last_error: str | None
     moves: int
     turns: int
@@ -144,10 +166,12 @@ class StageState(CommandReply):
 
 STATE = COMMANDS.add("state", NoArguments, StageState, "link, state, voltages, positions, limits, watchdog, the "
                                                        "rotation stage as last read")
-MOVE = COMMANDS.add("move", MoveRequest, MoveReply, "move axes to or by micrometres through each axis's "
-                                                    "displacement-voltage model; refused whole, never clipped")
-ROTATE = COMMANDS.add("rotate", RotateRequest, RotateReply, "turn or tilt the rotation-and-tilt stage (degrees), "
-                                                            "relative to where the last command sent each axis")
+MOVE = COMMANDS.add("move", MoveRequest, MoveReply, "move axes to or by micrometres (through each axis's "
+                                                    "displacement-voltage model on an amplifier); refused whole, "
+                                                    "never clipped")
+ROTATE = COMMANDS.add("rotate", RotateRequest, RotateReply, "turn or tilt the rotation-and-tilt stage (or a "
+                                                            "physical driver's degree axes), relative to where the "
+                                                            "last command sent each axis")
 SET_VOLTAGES = COMMANDS.add("set_voltages", SetVoltagesRequest, MoveReply, "raw voltages (calibration), under the "
                                                                            "limits of a move")
 ARM = COMMANDS.add("arm", ArmRequest, StageState, "a run claims the stage: moves for its owner only, held if it is "
