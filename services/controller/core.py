@@ -47,6 +47,7 @@ from semservo.protocol.controller import ControllerState, ControllerStatus, RunS
 from services.controller.run import (
     IterationRecord, Run, Tilts, Verdict, admit, decide, gate, judge, measure, sampling_time, tilt_step,
 )
+from services.controller.split import BeamAxes, split
 
 log = logging.getLogger("controller")
 
@@ -95,6 +96,9 @@ class ControllerCore:
         settings = settings.model_copy(update={"dofs": dofs})
         self._check_measurable(dofs, reference)
         self._check_movable(dofs)
+        if settings.beam_shift_within_um > 0 and BeamAxes.of(self.stage.call(stage_protocol.STATE)) is None:
+            raise BadRequest("beam_shift_within_um needs a beam shift beside the stage (axes beam_x and beam_y of a "
+                             "driver in physical units, such as openfibsem); this stage has none: leave it at 0")
         tilt_dofs = tuple(dof for dof in dofs if dof in ("alpha", "beta"))
         self._estimator_measures(rotation="rotation" in dofs, tilts=bool(tilt_dofs) or None,
                                  required="rotation" in dofs or bool(tilt_dofs))
@@ -112,7 +116,8 @@ class ControllerCore:
             settings=settings, started_at_ns=now_ns, stage_at_start=stage_state.model_dump(mode="json"),
             law=ControlLaw(planar, gain, self.camera, integral_time_s=settings.integral_time_s),
             tilts=Tilts(TiltLaw(tilt_dofs, gain, self.camera), settled_ns=now_ns) if tilt_dofs else None,
-            last_command_ns=now_ns, recent=deque())
+            last_command_ns=now_ns, recent=deque(),
+            beam=BeamAxes.of(stage_state) if settings.beam_shift_within_um > 0 else None)
         self.state, self.reason = "servoing", ""
         self.last_heartbeat = self.last_estimate_at = self.clock()
         self._open_journal()
@@ -291,8 +296,12 @@ class ControllerCore:
         refusal recorded) when the stage refused or did not answer."""
         try:
             if decision.targets:
-                written = self.stage.call(stage_protocol.MOVE, targets=decision.targets, relative=True,
+                # The stage's axes, or the beam's for the last micrometres (services.controller.split).
+                record.targets = split(decision.targets, run.beam, run.settings.beam_shift_within_um)
+                written = self.stage.call(stage_protocol.MOVE, targets=record.targets, relative=True,
                                           owner=self.owner)
+                if run.beam is not None:
+                    run.beam.follow(written.positions_um)
                 record.command_written_at_ns = written.written_at_ns
                 record.command_settled_at_ns = written.settled_at_ns
                 record.voltages, record.positions_um = written.voltages, written.positions_um

@@ -74,6 +74,7 @@ class IterationRecord:
     move: dict[str, float] | None = None
     saturated: bool | None = None
     turn_deg: dict[str, float] | None = None
+    targets: dict[str, float] | None = None  # the axes that made the move (the stage's, or the beam's)
     command_written_at_ns: int | None = None
     command_settled_at_ns: int | None = None
     voltages: dict[str, float] | None = None
@@ -167,6 +168,7 @@ class Run:
     fresh_frames: int = 0  # fresh, confident estimates used
     recent: deque = field(default_factory=deque)  # the last converge_frames fresh (dx, dy, rotation)
     progress: Progress = field(default_factory=Progress)
+    beam: object | None = None  # the stage's beam shift (services.controller.split.BeamAxes), when a run may use it
 
     @property
     def dofs(self) -> list[str]:
