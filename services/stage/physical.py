@@ -165,6 +165,15 @@ class PhysicalStageCore(StageCore):
     def _voltages_text(self) -> str:
         return ", ".join(f"{axis} {value:.4f} {self.axes[axis].unit}" for axis, value in self.where.items())
 
+    def rebase(self) -> dict[str, float]:
+        """Take where the axes are now as where they were left, without calling it a move
+        nobody commanded: for a lab script that moves its microscope itself between runs
+        (:class:`semservo.openfibsem.Positioner`). Refused while a run has the stage armed."""
+        if self.watchdog.armed:
+            raise Refused("owned", f"a run ({self.watchdog.owner}) has the stage armed")
+        self.where.update(self._io(self._read_back))
+        return dict(self.where)
+
     # -- commands ----------------------------------------------------------------------
     def positions(self) -> dict[str, float]:
         return {axis: value for axis, value in self.where.items() if self.axes[axis].unit == "um"}

@@ -1,0 +1,130 @@
+"""OpenFIBSEM's DemoMicroscope, seeing a sample: its frames rendered by semservo's
+simulated SEM (:mod:`semservo.simulation.sem`) at the demo's own stage position and beam
+shift, so a closed loop through fibsem's calls can be run, and judged by the truth.
+
+The DemoMicroscope moves its stage and its beam shift as told, but its frames do not
+follow them (each is noise with a label). :class:`SimulatedDemoFrames` replaces its
+frame generator: each ``acquire_image`` scans the simulated sample (the micro-part of the
+paper's *optimal* condition by default) over the field the image settings ask for
+(``hfw`` / resolution is the pixel size, as the demo's metadata says), at the pose the
+demo's stage and beam shift give it, plus the simulated lab's drift and vibration on a
+simulated clock that advances by each scan's time.
+
+The physics is written here, apart from :mod:`semservo.openfibsem.units` (what the
+driver assumes), so a sign the two disagree on shows as a run that diverges:
+
+* the stage carries the sample: its x moves the content along the image's x, and the
+  view's y (fibsem's own inverse of ``stable_move``'s pre-tilt correction, from the
+  stage's y and z) moves it up the image;
+* the beam shift moves the scanned field, so the content moves the other way (+x: the
+  content moves left; +y, up in fibsem's image: the content moves down).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from semservo.config import SCREEN_WIDTH_PX, SCREEN_WIDTH_UM
+from semservo.simulation.sem import SEM, Pose, ScanSettings
+from semservo.simulation.world import PRESETS, Disturbances
+
+
+@dataclass
+class Scan:
+    """One rendered frame: its interval on the simulated clock (s) and the scan."""
+
+    start_s: float
+    end_s: float
+    settings: ScanSettings
+
+
+class SimulatedDemoFrames:
+    """Installs itself on a ``DemoMicroscope``: its frames become simulated SEM scans of
+    a sample carried by its stage, seen through its beam shift.
+
+    ``clock`` is the simulated time (s); pass it to the image source
+    (:class:`semservo.openfibsem.OpenFibsemSource`'s ``clock``) so each frame's
+    ``source_interval_s`` is its scan, as the fake lab's are. :meth:`true_pose` is the
+    truth a run is judged by.
+    """
+
+    def __init__(self, microscope, *, preset: str = "optimal", seed: int = 2013, disturbances: bool = True):
+        from fibsem.structures import BeamType
+
+        self.microscope = microscope
+        self.preset = PRESETS[preset]
+        self.sem = SEM.for_preset(self.preset, seed)
+        self.rng = np.random.default_rng(seed)
+        self.disturbances = Disturbances() if disturbances else Disturbances((0.0, 0.0), ())
+        self.electron = BeamType.ELECTRON
+        self.t = 0.0
+        self.scans: list[Scan] = []
+        from semservo.openfibsem.session import at_working_height
+
+        at_working_height(microscope)  # a demo's stage starts at the floor of its z range
+        position = microscope.get_stage_position()
+        self.origin = (float(position.x), float(position.y), float(position.z))
+        self._requested = None
+        original = microscope.acquire_image
+
+        def acquire_image(image_settings=None, beam_type=None):
+            # The demo does not hand its frame generator the scan it was asked for: keep it.
+            self._requested = image_settings or microscope.get_imaging_settings(beam_type)
+            return original(image_settings=image_settings, beam_type=beam_type)
+
+        microscope.acquire_image = acquire_image
+        microscope.use_image_sequence = True
+        microscope._generate_next_image = self._render
+
+    def clock(self) -> float:
+        """Simulated seconds (advanced by each scan)."""
+        return self.t
+
+    def content_um(self) -> tuple[float, float]:
+        """How far the demo's stage and beam shift have moved the content from where it
+        was at install, in um (x right, y down as displayed)."""
+        position = self.microscope.get_stage_position()
+        x0, y0, z0 = self.origin
+        view_up_m = float(self.microscope._inverse_y_corrected_stage_movement(
+            dy=float(position.y) - y0, dz=float(position.z) - z0, beam_type=self.electron))
+        shift = self.microscope.get_beam_shift(self.electron)
+        right_m = (float(position.x) - x0) - float(shift.x)
+        down_m = -view_up_m + float(shift.y)
+        return right_m * 1e6, down_m * 1e6
+
+    def pose(self, t: float, content_um: tuple[float, float]) -> Pose:
+        """The pose at ``t`` of content moved by ``content_um`` (drift and vibration added)."""
+        drift_x, drift_y = self.disturbances.offset(t)
+        return Pose(x_um=content_um[0] + drift_x, y_um=content_um[1] + drift_y)
+
+    def true_pose(self, start_s: float, end_s: float) -> np.ndarray:
+        """The content's mean pose (um) over a scan interval: what a frame shows."""
+        x_um, y_um = self.content_um()
+        drift = np.mean([self.disturbances.offset(t) for t in np.linspace(start_s, end_s, 32)], axis=0)
+        return np.array([x_um, y_um]) + drift
+
+    def scan_settings(self, rows: int, cols: int) -> ScanSettings:
+        requested = self._requested
+        hfw_m = float(requested.hfw)
+        # P = D / G (eq. 43) for the pixel size hfw / columns, as the demo's metadata says.
+        magnification = SCREEN_WIDTH_UM * 1e-6 * SCREEN_WIDTH_PX / hfw_m
+        return ScanSettings(dwell_ns=float(requested.dwell_time) * 1e9, magnification=magnification, rows=rows,
+                            cols=cols, working_distance_um=self.preset.focus_um)
+
+    def _render(self, beam_type, output_shape, dtype) -> np.ndarray:
+        rows, cols = output_shape
+        settings = self.scan_settings(rows, cols)
+        start = self.t
+        line = settings.line_time_s
+        active = cols * (settings.dwell_ns + settings.pixel_dead_ns) * 1e-9
+        # fibsem's calls block: the stage and the beam stand still while the demo scans.
+        content = self.content_um()
+        line_start = [self.pose(start + row * line, content) for row in range(rows)]
+        line_end = [self.pose(start + row * line + active, content) for row in range(rows)]
+        pixels = self.sem.render(settings, line_start, line_end, self.rng)
+        self.t = start + settings.frame_time_s
+        self.scans.append(Scan(start, self.t, settings))
+        self.t += 1e-3  # the next scan starts a moment later
+        return pixels.astype(dtype, copy=False)
