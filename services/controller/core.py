@@ -297,7 +297,8 @@ class ControllerCore:
         try:
             if decision.targets:
                 # The stage's axes, or the beam's for the last micrometres (services.controller.split).
-                record.targets = split(decision.targets, run.beam, run.settings.beam_shift_within_um)
+                error_um = record.error_px * record.pixel_size_nm / 1000 if record.pixel_size_nm else None
+                record.targets = split(decision.targets, run.beam, run.settings.beam_shift_within_um, error_um)
                 written = self.stage.call(stage_protocol.MOVE, targets=record.targets, relative=True,
                                           owner=self.owner)
                 if run.beam is not None:

@@ -4,17 +4,17 @@ A stage whose driver works in physical units may have a beam shift beside it (``
 ``axes``: ``beam_x``, ``beam_y``, ``moves: beam``), which moves the content as ``x``, ``y``
 do (:class:`semservo.instruments.Axis`) over a small travel, with no mechanics: no
 backlash, no settling, no wear. A run's ``beam_shift_within_um`` (a
-:class:`~semservo.protocol.controller.RunSettings` field) splits the work: a move of at
-most that many micrometres goes to the beam, when the beam has room for it; a larger one,
-or one the beam has no room for, to the stage. So the stage makes the long approach and
-the beam the last micrometres, and a run that holds (``hold``) corrects drift with the
-beam until it nears the end of its travel, then with the stage. 0 (the default): the
+:class:`~semservo.protocol.controller.RunSettings` field) splits the work: once the
+error (the distance to the target, as the frame measures it) is at most that many
+micrometres, the beam makes the moves, while it has room for them; farther, or when the
+beam has no room left, the stage does. So the stage makes the long approach and the
+beam the last micrometres, and a run that holds (``hold``) corrects drift with the beam
+until it nears the end of its travel, then with the stage. 0 (the default): the
 stage makes every move, as on an amplifier (whose driver has no beam axes).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 #: The beam keeps this fraction of its travel in reserve at each end: a move that would
@@ -58,12 +58,13 @@ class BeamAxes:
         self.position.update({name: positions_um[name] for name in self.position if name in positions_um})
 
 
-def split(targets: dict[str, float], beam: BeamAxes | None, within_um: float) -> dict[str, float]:
+def split(targets: dict[str, float], beam: BeamAxes | None, within_um: float,
+          error_um: float | None) -> dict[str, float]:
     """The axes that make the planar move ``targets`` (um, ``x``, ``y``, relative): the
-    beam's (``beam_x``, ``beam_y``) when the move is at most ``within_um`` and the beam
-    has room for it, else the stage's. Pure apart from reading ``beam``."""
-    if beam is None or within_um <= 0 or not targets:
+    beam's (``beam_x``, ``beam_y``) when the error ``error_um`` is at most ``within_um``
+    and the beam has room for the move, else the stage's. Pure apart from reading ``beam``."""
+    if beam is None or within_um <= 0 or not targets or error_um is None:
         return dict(targets)
-    if math.hypot(*targets.values()) > within_um or not beam.has_room(targets):
+    if not (error_um <= within_um and beam.has_room(targets)):
         return dict(targets)
     return {BEAM_AXIS[axis]: step for axis, step in targets.items()}

@@ -59,8 +59,8 @@ class RunSettings(BaseModel):
     lost_after: Count = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
     max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per iteration (saturation)")
     beam_shift_within_um: float = Field(
-        0.0, ge=0, le=1000, description="moves up to this many um go to the beam shift (beam_x, beam_y) when the stage "
-                                        "has one with room for them, the rest to the stage: the beam makes the last "
+        0.0, ge=0, le=1000, description="once the error is at most this many um, the beam shift (beam_x, beam_y) makes "
+                                        "the moves while it has room, the stage the rest: the beam makes the last "
                                         "micrometres and holds against drift (0: the stage makes every move)")
     integral_time_s: float | None = Field(
         10.0, gt=0, le=1000,
