@@ -81,7 +81,7 @@ SERVICES: tuple[ServiceSpec, ...] = (
         control=lambda s: connect(s.stage.host, s.stage.control_port),
         endpoints=lambda s: {
             "control (REP)": connect(s.stage.host, s.stage.control_port),
-            "NV 40/3 serial": s.stage.serial_url,
+            ("NV 40/3 serial" if s.stage.driver == "nv40" else f"stage driver ({s.stage.driver})"): s.stage.serial_url,
         },
         summary="the NV 40/3 on RS-232: limits, watchdog, stop",
     ),

@@ -31,6 +31,10 @@ from semservo.simulation.sem import SEM, Pose, ScanSettings
 from semservo.simulation.world import PRESETS, Disturbances
 
 
+#: Blur stacks of the simulated sample, per (preset, seed): shared by every demo of a process.
+_STACKS: dict[tuple[str, int], dict] = {}
+
+
 @dataclass
 class Scan:
     """One rendered frame: its interval on the simulated clock (s) and the scan."""
@@ -56,6 +60,9 @@ class SimulatedDemoFrames:
         self.microscope = microscope
         self.preset = PRESETS[preset]
         self.sem = SEM.for_preset(self.preset, seed)
+        # The sample rasterized and blurred once per process (seconds of work; read only).
+        self.stack_key = (preset, seed)
+        self.sem._stacks = dict(_STACKS.get(self.stack_key, {}))
         self.rng = np.random.default_rng(seed)
         self.disturbances = Disturbances() if disturbances else Disturbances((0.0, 0.0), ())
         self.electron = BeamType.ELECTRON
@@ -77,6 +84,8 @@ class SimulatedDemoFrames:
         microscope.acquire_image = acquire_image
         microscope.use_image_sequence = True
         microscope._generate_next_image = self._render
+        # The image source finds the simulated clock here (its frames' source_interval_s).
+        microscope.semservo_clock = self.clock
 
     def clock(self) -> float:
         """Simulated seconds (advanced by each scan)."""
@@ -124,6 +133,7 @@ class SimulatedDemoFrames:
         line_start = [self.pose(start + row * line, content) for row in range(rows)]
         line_end = [self.pose(start + row * line + active, content) for row in range(rows)]
         pixels = self.sem.render(settings, line_start, line_end, self.rng)
+        _STACKS[self.stack_key] = self.sem._stacks
         self.t = start + settings.frame_time_s
         self.scans.append(Scan(start, self.t, settings))
         self.t += 1e-3  # the next scan starts a moment later

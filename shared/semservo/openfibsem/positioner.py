@@ -46,14 +46,15 @@ class Positioner:
     transform (default: the image's axes, as :mod:`semservo.openfibsem.units` maps
     them). ``max_step_um``, ``travel``, ``beam_limit_um``, ``stage_move``: the stage's
     rules and the driver's options. ``runs_dir``: where run records go (none: kept in
-    memory only). ``clock``: the image source's clock (a simulated one in the tests).
+    memory only). ``clock``: a simulated microscope's own clock (the tests'; none for a
+    microscope).
     """
 
     def __init__(self, microscope: Any, *, resolution: tuple[int, int] = (512, 512), dwell_ns: float = 1000.0,
                  hfw_um: float = 100.0, beam: str = "electron", camera: CameraToStage | None = None,
                  max_step_um: float = 10.0, travel: dict[str, tuple[float, float]] | None = None,
                  beam_limit_um: float | None = None, stage_move: str = "stable", runs_dir: Path | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] | None = None):
         self.source = OpenFibsemSource(microscope=microscope, resolution=resolution, dwell_ns=dwell_ns,
                                        hfw_um=hfw_um, beam=beam, clock=clock)
         self.driver = OpenFibsemMotion(microscope, beam=beam, stage_move=stage_move, beam_limit_um=beam_limit_um)

@@ -11,6 +11,8 @@ and y), ``beam_limit_um`` (the beam shift's travel where the SDK does not report
 
 from __future__ import annotations
 
+import logging
+import os
 import tempfile
 import threading
 from dataclasses import dataclass, field
@@ -31,7 +33,23 @@ def require_fibsem():
         import fibsem.structures
     except ImportError as error:
         raise ImportError(f"{INSTALL_HINT} ({error})") from None
+    quiet_fibsem_logs()
     return fibsem
+
+
+class _FibsemChatter(logging.Filter):
+    """fibsem logs through the root logger (``logging.info``): its info lines (one per
+    image acquired) would drown a service's log. Its warnings and errors pass."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno >= logging.WARNING or f"{os.sep}fibsem{os.sep}" not in record.pathname
+
+
+def quiet_fibsem_logs() -> None:
+    """Keep fibsem's warnings and errors in the log, not its info lines (once)."""
+    root = logging.getLogger()
+    if not any(isinstance(existing, _FibsemChatter) for existing in root.filters):
+        root.addFilter(_FibsemChatter())
 
 
 @dataclass(frozen=True)

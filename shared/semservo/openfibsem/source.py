@@ -29,7 +29,7 @@ class OpenFibsemSource(ImageSourceAdapter):
     def __init__(self, *, manufacturer: str = "Demo", host: str = "localhost", config: str | None = None,
                  resolution: tuple[int, int] | list[int] = (512, 512), dwell_ns: float = 1000.0,
                  hfw_um: float = 100.0, beam: str = "electron", microscope: Any = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] | None = None):
         super().__init__(manufacturer=manufacturer, host=host, config=config, resolution=list(resolution),
                          dwell_ns=dwell_ns, hfw_um=hfw_um, beam=beam)
         session.require_fibsem()
@@ -43,10 +43,11 @@ class OpenFibsemSource(ImageSourceAdapter):
         self.resolution = (columns, rows)
         self.dwell_ns, self.hfw_um = float(dwell_ns), float(hfw_um)
         self.beam = session.beam_type(beam)
-        #: The source's clock (seconds): each frame's ``source_interval_s`` is its scan on
-        #: it (the wall clock for a microscope; a simulated clock in the tests).
-        self.clock = clock
+        #: A clock of the source's own (seconds; a simulated microscope's): each frame's
+        #: ``source_interval_s`` is then its scan on it. None (a microscope): the frames'
+        #: wall-clock times say it all.
         self.microscope = microscope if microscope is not None else session.connect(manufacturer, host, config)
+        self.clock = clock or getattr(self.microscope, "semservo_clock", None)  # a SimulatedDemoFrames' clock
         self.scans = 0
 
     def image_settings(self):
@@ -58,18 +59,18 @@ class OpenFibsemSource(ImageSourceAdapter):
 
     def acquire(self) -> AcquiredImage:
         settings = self.image_settings()
-        started_ns, started_s = time.time_ns(), self.clock()
+        started_ns, started_s = time.time_ns(), self.clock() if self.clock else None
         try:
             image = self.microscope.acquire_image(image_settings=settings)
         except Exception as error:  # noqa: BLE001 - the SDK fails its own ways; the image server retries
             raise SourceUnavailable(f"acquire_image failed: {type(error).__name__}: {error}") from None
-        ended_s = self.clock()
+        interval = (started_s, self.clock()) if self.clock else None
         self.scans += 1
         pixels = np.asarray(image.data)
         if pixels.dtype not in (np.uint8, np.uint16, np.float32):
             pixels = pixels.astype(np.float32)  # frames carry uint8, uint16 or float32
         return AcquiredImage(pixels=pixels, acquired_at_ns=time.time_ns(), scan_started_at_ns=started_ns,
-                             source_interval_s=(started_s, ended_s), label=f"{self.beam.name.lower()} {self.scans}",
+                             source_interval_s=interval, label=f"{self.beam.name.lower()} {self.scans}",
                              **metadata_of(image, settings))
 
     def set_scan(self, *, dwell_ns: float | None = None, magnification: float | None = None) -> dict:
@@ -105,7 +106,7 @@ def metadata_of(image: Any, settings: Any = None) -> dict:
         fields["pixel_size_nm"] = float(pixel.x) * 1e9
     used = getattr(metadata, "image_settings", None) or settings
     if used is not None and getattr(used, "dwell_time", None):
-        fields["dwell_ns"] = float(used.dwell_time) * 1e9
+        fields["dwell_ns"] = round(float(used.dwell_time) * 1e9, 6)  # metres and seconds back: no float dust
     state = getattr(metadata, "microscope_state", None)
     beam_type = getattr(used, "beam_type", None)
     beam_state = None

@@ -43,13 +43,14 @@ def _checked(value: float, what: str) -> float:
 
 def to_metres(x_um: float, y_um: float, signs: tuple[int, int]) -> tuple[float, float]:
     """fibsem's (dx, dy) in metres for semservo's displacement (x, y) in micrometres."""
-    return (signs[0] * _checked(x_um, "x") * METRES_PER_UM, signs[1] * _checked(y_um, "y") * METRES_PER_UM)
+    # + 0.0: a zero is +0 whatever its sign (the command log reads "dy=0", not "dy=-0").
+    return (signs[0] * _checked(x_um, "x") * METRES_PER_UM + 0.0, signs[1] * _checked(y_um, "y") * METRES_PER_UM + 0.0)
 
 
 def to_micrometres(x_m: float, y_m: float, signs: tuple[int, int]) -> tuple[float, float]:
     """semservo's (x, y) in micrometres for fibsem's (x, y) in metres: the inverse of
     :func:`to_metres` (a sign is its own inverse)."""
-    return (signs[0] * float(x_m) / METRES_PER_UM, signs[1] * float(y_m) / METRES_PER_UM)
+    return (signs[0] * float(x_m) / METRES_PER_UM + 0.0, signs[1] * float(y_m) / METRES_PER_UM + 0.0)
 
 
 def stage_move_m(x_um: float, y_um: float, signs: tuple[int, int] = STAGE_SIGNS) -> tuple[float, float]:
