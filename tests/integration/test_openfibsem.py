@@ -10,9 +10,11 @@ import importlib.metadata
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -237,3 +239,61 @@ def test_a_lab_script_positions_with_semservo_in_at_most_ten_lines():
     assert result.returncode == 0, result.stdout + result.stderr
     assert re.search(r"^converged: mean error of the last 3 fresh frames 0\.\d+ px", result.stdout, flags=re.M), \
         result.stdout
+
+
+def test_semservo_up_runs_on_the_openfibsem_adapter_and_the_demo_microscope(ports, tmp_path, monkeypatch):
+    """The README's command, as docs/instruments.md gives it for OpenFIBSEM: frames from
+    the adapter with the image's metadata, the stage service on the motion driver (stage
+    and beam shift, in micrometres), a jog through the gateway's stage service."""
+    from semservo.config import Settings, connect
+    from semservo.protocol import ServicePort
+    from semservo.protocol import stage as stage_protocol
+    from semservo.transport import ControlClient
+
+    for name, value in {"FIBSEM_SIM_NO_DELAY": "1", "SEMSERVO_IMAGESERVER__ADAPTER": "openfibsem",
+                        "SEMSERVO_IMAGESERVER__ADAPTER_OPTIONS": '{"manufacturer": "Demo", "hfw_um": 100, '
+                                                                 '"dwell_ns": 100}',
+                        "SEMSERVO_IMAGESERVER__FPS": "5", "SEMSERVO_STAGE__DRIVER": "openfibsem",
+                        "SEMSERVO_STAGE__SERIAL_URL": "openfibsem://Demo@localhost",
+                        "SEMSERVO_STAGE__ROTATION_STAGE": "none",
+                        "SEMSERVO_CONTROLLER__RUNS_DIR": str(tmp_path / "runs"),
+                        "SEMSERVO_GATEWAY__DATABASE": str(tmp_path / "runs" / "semservo.sqlite")}.items():
+        monkeypatch.setenv(name, value)
+    launcher = subprocess.Popen([sys.executable, "-m", "semservo", "up", "--source", "adapter"], cwd=REPO,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    seen = []
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            line = launcher.stdout.readline()
+            if not line:
+                break
+            seen.append(line)
+            if "frames flowing" in line:
+                break
+        output = "".join(seen)
+        assert "frames flowing" in output, output
+        assert re.search(r"512x512 uint8, 195\.3 nm/px, 100 ns/px, WD 4 mm, 2 kV, ETD SecondaryElectrons, "
+                         r"source openfibsem", output), output
+        assert "stage driver (openfibsem)" in output and "openfibsem://Demo@localhost" in output
+        settings = Settings()
+        stage = ServicePort(ControlClient(connect("127.0.0.1", settings.stage.control_port), timeout_s=10, retries=1))
+        try:
+            state = stage.call(stage_protocol.STATE)
+            assert state.kind == "physical" and state.link == "connected" and state.device == "Demo DemoMicroscope"
+            assert {axis: info.moves for axis, info in state.axes.items()} == \
+                {"x": "stage", "y": "stage", "beam_x": "beam", "beam_y": "beam"}
+            moved = stage.call(stage_protocol.MOVE, targets={"x": 2.0, "beam_y": -0.5}, relative=True)
+            assert moved.positions_um == pytest.approx({"x": 2.0, "y": 0.0, "beam_x": 0.0, "beam_y": -0.5}, abs=1e-9)
+            assert any(entry.text.startswith("stable_move(dx=2e-06") for entry in stage.call(stage_protocol.LOG).entries)
+        finally:
+            stage.close()
+    finally:
+        os.killpg(launcher.pid, signal.SIGINT)
+        try:
+            rest, _ = launcher.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            launcher.kill()
+            rest = launcher.communicate()[0]
+    assert launcher.returncode == 0, "".join(seen) + rest
+    assert "imageserver stopped (exit code 0)" in rest and "stage stopped (exit code 0)" in rest
