@@ -24,8 +24,8 @@ import pytest
 os.environ.setdefault("FIBSEM_SIM_NO_DELAY", "1")  # the demo's one-second sleep per stage move
 
 from fibsem import utils  # noqa: E402 - after the demo is told not to sleep
-from fibsem.alignment import AlignmentSubsystem, _apply_shift  # noqa: E402
-from fibsem.structures import BeamType  # noqa: E402
+from fibsem.alignment import AlignmentSubsystem, _apply_shift, beam_shift_alignment_v2  # noqa: E402
+from fibsem.structures import BeamType, ImageSettings  # noqa: E402
 
 from semservo.errors import CommandError  # noqa: E402
 from semservo.instruments import DeviceError, load_plugin, IMAGE_SOURCE_GROUP  # noqa: E402
@@ -74,8 +74,9 @@ def _installed(name: str) -> bool:
 
 
 def test_units_and_signs_are_converted_once_and_back():
-    assert units.stage_move_m(2.0, 3.0) == (2e-6, -3e-6)  # fibsem's image y points up
-    assert units.beam_shift_m(2.0, 3.0) == (-2e-6, 3e-6)  # the beam moves the field, not the sample
+    # fibsem's alignment corrects a content shift (dx, dy) by stable_move(dx, -dy) or beam_shift(-dx, dy)
+    assert units.stage_move_m(2.0, 3.0) == (-2e-6, 3e-6)
+    assert units.beam_shift_m(2.0, 3.0) == (2e-6, -3e-6)
     for signs in (units.STAGE_SIGNS, units.BEAM_SIGNS, (1, 1)):
         metres = units.to_metres(1.25, -0.5, signs)
         assert units.to_micrometres(*metres, signs) == pytest.approx((1.25, -0.5))
@@ -105,10 +106,29 @@ def test_the_signs_agree_with_fibsems_own_alignment_and_with_the_simulated_demo(
         driver.move_by({beam_axis: 1.0})
         assert np.array(frames.content_um()) - start == pytest.approx(2 * np.array(content), abs=1e-6)
     positions = driver.read_positions()
-    # x, y from where the driver found the stage; the beam shift absolute (fibsem's alignment left it at 3, 2)
-    assert positions == pytest.approx({"x": 1.0, "y": 1.0, "beam_x": 4.0, "beam_y": 3.0}, abs=1e-6)
-    assert any(entry.text.startswith("stable_move(dx=1e-06, dy=0") for entry in driver.log)
-    assert any(entry.text.startswith("beam_shift(dx=-1e-06, dy=0") for entry in driver.log)
+    # x, y from where the driver found the stage; the beam shift absolute: fibsem's alignment left it where the
+    # content moved by (-3, -2) um, then beam_x and beam_y moved it by +1 each
+    assert positions == pytest.approx({"x": 1.0, "y": 1.0, "beam_x": -2.0, "beam_y": -1.0}, abs=1e-6)
+    assert any(entry.text.startswith("stable_move(dx=-1e-06, dy=0,") for entry in driver.log)
+    assert any(entry.text.startswith("beam_shift(dx=1e-06, dy=0,") for entry in driver.log)
+
+
+def test_fibsems_own_alignment_undoes_what_semservos_driver_did_on_the_simulated_demo():
+    """Apart from semservo's conversion: fibsem measures with its own cross-correlation
+    and corrects with its own signs. It undoes a move of semservo's driver in one step,
+    so the driver, the simulated demo and fibsem agree on which way is which."""
+    microscope = demo_microscope()
+    frames = SimulatedDemoFrames(microscope, disturbances=False)
+    settings = ImageSettings(resolution=(512, 512), dwell_time=720e-9, hfw=HFW_UM * 1e-6, beam_type=ELECTRON)
+    reference = microscope.acquire_image(image_settings=settings)
+    driver = OpenFibsemMotion(microscope)
+    for move, subsystem in (({"x": 3.0, "y": -2.0}, AlignmentSubsystem.STAGE),
+                            ({"beam_x": -1.5, "beam_y": 2.5}, AlignmentSubsystem.BEAM_SHIFT)):
+        driver.move_by(move)
+        assert np.array(frames.content_um()) == pytest.approx(list(move.values()), abs=1e-9)
+        beam_shift_alignment_v2(microscope, reference, subsystem=subsystem)
+        # within a pixel (0.18 um): fibsem's default cross-correlation finds whole pixels
+        assert np.hypot(*frames.content_um()) < 0.18, (move, frames.content_um())
 
 
 def test_the_image_source_takes_its_scan_from_the_settings_and_its_metadata_from_the_image():
@@ -154,7 +174,7 @@ def test_the_adapter_refuses_what_the_microscope_refuses_in_its_words(demo, tmp_
     microscope.move_stage_absolute(FibsemStagePosition(x=0.1 - 2e-6))
     with pytest.raises(DeviceError, match=r"the stage's x would go to 0\.100001 m, outside its range "
                                           r"RangeLimit\(min=-0\.1, max=0\.1\)"):
-        OpenFibsemMotion(microscope).move_by({"x": 3.0})
+        OpenFibsemMotion(microscope).move_by({"x": -3.0})  # the content left: the stage towards +x
 
     # What the SDK itself raises reaches the stage's refusal in its words.
     def refuse(**_move):
@@ -167,7 +187,7 @@ def test_the_adapter_refuses_what_the_microscope_refuses_in_its_words(demo, tmp_
     with pytest.raises(CommandError) as refused:
         core.move({"x": -1.0}, relative=True)
     assert refused.value.code == "device_refused"
-    assert "stable_move(dx=-1e-06, dy=0, beam_type=ELECTRON): RuntimeError: Stage is not homed" in refused.value.message
+    assert "stable_move(dx=1e-06, dy=0, beam_type=ELECTRON): RuntimeError: Stage is not homed" in refused.value.message
     with pytest.raises(CommandError) as refused:  # the lab's narrower beam travel: refused before the microscope
         core.move({"beam_x": 2.5})
     assert refused.value.code == "travel_limit"
@@ -285,7 +305,7 @@ def test_semservo_up_runs_on_the_openfibsem_adapter_and_the_demo_microscope(port
                 {"x": "stage", "y": "stage", "beam_x": "beam", "beam_y": "beam"}
             moved = stage.call(stage_protocol.MOVE, targets={"x": 2.0, "beam_y": -0.5}, relative=True)
             assert moved.positions_um == pytest.approx({"x": 2.0, "y": 0.0, "beam_x": 0.0, "beam_y": -0.5}, abs=1e-9)
-            assert any(entry.text.startswith("stable_move(dx=2e-06") for entry in stage.call(stage_protocol.LOG).entries)
+            assert any(entry.text.startswith("stable_move(dx=-2e-06") for entry in stage.call(stage_protocol.LOG).entries)
         finally:
             stage.close()
     finally:

@@ -13,11 +13,15 @@ simulated clock that advances by each scan's time.
 The physics is written here, apart from :mod:`semservo.openfibsem.units` (what the
 driver assumes), so a sign the two disagree on shows as a run that diverges:
 
-* the stage carries the sample: its x moves the content along the image's x, and the
-  view's y (fibsem's own inverse of ``stable_move``'s pre-tilt correction, from the
-  stage's y and z) moves it up the image;
-* the beam shift moves the scanned field, so the content moves the other way (+x: the
-  content moves left; +y, up in fibsem's image: the content moves down).
+* ``stable_move(dx, dy)`` moves the field of view over the sample by dx to the right
+  and dy up (the view's y: fibsem's own inverse of its pre-tilt correction, from the
+  stage's y and z), so the content moves by (-dx, +dy), x right and y down;
+* ``beam_shift(dx, dy)`` moves the content by (+dx, -dy).
+
+These are the signs OpenFIBSEM's own alignment acts on (``fibsem.alignment``: a content
+displacement (dx right, dy down) is corrected by ``stable_move(dx, -dy)`` or
+``beam_shift(-dx, dy)``); its alignment converges on this demo (``bench/openfibsem.py``),
+which checks them apart from semservo's conversion.
 """
 
 from __future__ import annotations
@@ -99,8 +103,8 @@ class SimulatedDemoFrames:
         view_up_m = float(self.microscope._inverse_y_corrected_stage_movement(
             dy=float(position.y) - y0, dz=float(position.z) - z0, beam_type=self.electron))
         shift = self.microscope.get_beam_shift(self.electron)
-        right_m = (float(position.x) - x0) - float(shift.x)
-        down_m = -view_up_m + float(shift.y)
+        right_m = -(float(position.x) - x0) + float(shift.x)
+        down_m = view_up_m - float(shift.y)
         return right_m * 1e6, down_m * 1e6
 
     def pose(self, t: float, content_um: tuple[float, float]) -> Pose:

@@ -1,24 +1,23 @@
 """Units and signs between semservo and OpenFIBSEM, in one place.
 
-semservo moves in **micrometres in the image plane**, x to the right and y down as the
-image is displayed (:mod:`semservo.estimation`'s convention, the controller's
-camera-to-stage transform), and a beam axis moves the content the way the stage axis of
-the same letter does (:class:`semservo.instruments.Axis`). OpenFIBSEM works in **metres**
-(and radians for the stage's r and t), with the image's y pointing **up**:
+semservo moves in **micrometres in the image plane**, by how far the image's content
+moves, x to the right and y down as displayed (:mod:`semservo.estimation`'s convention,
+the controller's camera-to-stage transform); a beam axis moves the content the way the
+stage axis of the same letter does (:class:`semservo.instruments.Axis`). OpenFIBSEM
+works in **metres** (radians for the stage's r and t), and its two image-plane motions
+are ``stable_move(dx, dy, beam_type)`` (the stage, y corrected for the pre-tilt and tilt:
+the stage's y and z move together) and ``beam_shift(dx, dy, beam_type)``.
 
-* ``stable_move(dx, dy, beam_type)`` moves the stage so that the view moves by (dx, dy)
-  in the image plane, y up (fibsem corrects y for the shuttle's pre-tilt and the stage's
-  tilt: the stage's y and z move together);
-* ``beam_shift(dx, dy, beam_type)`` shifts the scanned field: the content moves the
-  other way than for a stage move. fibsem's own alignment corrects one measured shift
-  with ``stable_move(dx, -dy)`` or with ``beam_shift(-dx, dy)``
-  (``fibsem.alignment._apply_shift``, 0.5.3): opposite signs on both axes.
-
-So, for a content motion in semservo's axes: the stage's x is fibsem's x and its y is
-fibsem's -y (:data:`STAGE_SIGNS`); the beam shift's x is fibsem's -x and its y fibsem's y
-(:data:`BEAM_SIGNS`). A microscope whose scan is rotated or mirrored shows it in the jog
-check of ``docs/instruments.md`` and is set with ``SEMSERVO_CONTROLLER__AXIS_SIGNS`` (and
-these signs, per driver, with the URL's ``stage_signs`` / ``beam_signs``).
+Their signs are OpenFIBSEM's own, as its alignment uses them on Thermo Fisher and TESCAN
+microscopes (``fibsem.alignment``, 0.5.3): it measures the content's displacement
+(dx to the right, dy down, ``shift_from_crosscorrelation``) and corrects it with
+``stable_move(dx, -dy)`` or with ``beam_shift(-dx, dy)`` (``_apply_shift``). So
+``stable_move(a, b)`` moves the content by (-a, +b), and ``beam_shift(a, b)`` by (+a, -b):
+to move it by semservo's (x, y), ``stable_move(-x, y)`` (:data:`STAGE_SIGNS`) or
+``beam_shift(x, -y)`` (:data:`BEAM_SIGNS`). A microscope whose scan is rotated or
+mirrored shows it in the jog check of ``docs/instruments.md``; set it with
+``SEMSERVO_CONTROLLER__AXIS_SIGNS`` (both paths), or per driver with the URL's
+``stage_signs`` / ``beam_signs``.
 """
 
 from __future__ import annotations
@@ -28,10 +27,10 @@ import math
 #: Metres in a micrometre.
 METRES_PER_UM = 1e-6
 
-#: semservo's stage x, y (um, image plane, y down) -> ``stable_move``'s dx, dy (y up).
-STAGE_SIGNS: tuple[int, int] = (1, -1)
-#: semservo's beam_x, beam_y (um, the content's motion as for the stage) -> ``beam_shift``'s dx, dy.
-BEAM_SIGNS: tuple[int, int] = (-1, 1)
+#: semservo's stage x, y (um the content moves, x right, y down) -> ``stable_move``'s dx, dy.
+STAGE_SIGNS: tuple[int, int] = (-1, 1)
+#: semservo's beam_x, beam_y (um the content moves, as for the stage) -> ``beam_shift``'s dx, dy.
+BEAM_SIGNS: tuple[int, int] = (1, -1)
 
 
 def _checked(value: float, what: str) -> float:
