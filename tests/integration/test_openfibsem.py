@@ -196,8 +196,8 @@ def test_the_adapter_refuses_what_the_microscope_refuses_in_its_words(demo, tmp_
 
 
 def true_error_px(frames: SimulatedDemoFrames, taught: np.ndarray, pixel_um: float) -> np.ndarray:
-    last = frames.scans[-3:]
-    return (frames.true_pose(last[0].start_s, last[-1].end_s) - taught) / pixel_um
+    """Where the run left the content: its last scan against the taught pose."""
+    return (frames.true_pose(frames.scans[-1:]) - taught) / pixel_um
 
 
 def test_a_closed_loop_through_fibsems_calls_converges_by_stage_then_by_beam_shift(demo):
@@ -206,7 +206,7 @@ def test_a_closed_loop_through_fibsems_calls_converges_by_stage_then_by_beam_shi
     reference = positioner.teach(frames=4)
     pixel_um = reference["pixel_size_nm"] / 1000
     assert pixel_um == pytest.approx(212.3 / 1200, rel=1e-6)
-    taught = frames.true_pose(frames.scans[-4].start_s, frames.scans[-1].end_s)
+    taught = frames.true_pose(frames.scans[-4:])
 
     # The stage path: the lab jogs the stage with fibsem's own call; semservo brings it back.
     microscope.stable_move(dx=14e-6, dy=-9e-6, beam_type=ELECTRON)

@@ -41,11 +41,13 @@ _STACKS: dict[tuple[str, int], dict] = {}
 
 @dataclass
 class Scan:
-    """One rendered frame: its interval on the simulated clock (s) and the scan."""
+    """One rendered frame: its interval on the simulated clock (s), the scan, and how far
+    the stage and beam had moved the content (um, x right, y down; drift aside)."""
 
     start_s: float
     end_s: float
     settings: ScanSettings
+    content_um: tuple[float, float] = (0.0, 0.0)
 
 
 class SimulatedDemoFrames:
@@ -58,7 +60,8 @@ class SimulatedDemoFrames:
     truth a run is judged by.
     """
 
-    def __init__(self, microscope, *, preset: str = "optimal", seed: int = 2013, disturbances: bool = True):
+    def __init__(self, microscope, *, preset: str = "optimal", seed: int = 2013, disturbances: bool = True,
+                 stage_play_um: float = 0.0):
         from fibsem.structures import BeamType
 
         self.microscope = microscope
@@ -86,6 +89,20 @@ class SimulatedDemoFrames:
             return original(image_settings=image_settings, beam_type=beam_type)
 
         microscope.acquire_image = acquire_image
+        # A stage is not exact: each move lands within its play (a Gaussian, per axis, in
+        # the image plane) while its encoders read where it was sent. 0: exact, as the demo.
+        self.stage_play_um = float(stage_play_um)
+        self.landing_error_um = np.zeros(2)
+        self.play_rng = np.random.default_rng(seed + 1)
+        move_relative = microscope.move_stage_relative
+
+        def move_stage_relative(position):
+            moved = move_relative(position)
+            if self.stage_play_um > 0 and any(getattr(position, axis) for axis in ("x", "y", "z")):
+                self.landing_error_um += self.play_rng.normal(0.0, self.stage_play_um, 2)
+            return moved
+
+        microscope.move_stage_relative = move_stage_relative
         microscope.use_image_sequence = True
         microscope._generate_next_image = self._render
         # The image source finds the simulated clock here (its frames' source_interval_s).
@@ -105,18 +122,20 @@ class SimulatedDemoFrames:
         shift = self.microscope.get_beam_shift(self.electron)
         right_m = -(float(position.x) - x0) + float(shift.x)
         down_m = view_up_m - float(shift.y)
-        return right_m * 1e6, down_m * 1e6
+        return right_m * 1e6 + self.landing_error_um[0], down_m * 1e6 + self.landing_error_um[1]
 
     def pose(self, t: float, content_um: tuple[float, float]) -> Pose:
         """The pose at ``t`` of content moved by ``content_um`` (drift and vibration added)."""
         drift_x, drift_y = self.disturbances.offset(t)
         return Pose(x_um=content_um[0] + drift_x, y_um=content_um[1] + drift_y)
 
-    def true_pose(self, start_s: float, end_s: float) -> np.ndarray:
-        """The content's mean pose (um) over a scan interval: what a frame shows."""
-        x_um, y_um = self.content_um()
-        drift = np.mean([self.disturbances.offset(t) for t in np.linspace(start_s, end_s, 32)], axis=0)
-        return np.array([x_um, y_um]) + drift
+    def true_pose(self, scans: list[Scan]) -> np.ndarray:
+        """The content's mean pose (um) over these scans: what their frames show (the
+        stage and beam where each scan saw them, the drift and vibration over it)."""
+        poses = [np.array(scan.content_um) + np.mean([self.disturbances.offset(t)
+                                                      for t in np.linspace(scan.start_s, scan.end_s, 32)], axis=0)
+                 for scan in scans]
+        return np.mean(poses, axis=0)
 
     def scan_settings(self, rows: int, cols: int) -> ScanSettings:
         requested = self._requested
@@ -139,6 +158,6 @@ class SimulatedDemoFrames:
         pixels = self.sem.render(settings, line_start, line_end, self.rng)
         _STACKS[self.stack_key] = self.sem._stacks
         self.t = start + settings.frame_time_s
-        self.scans.append(Scan(start, self.t, settings))
+        self.scans.append(Scan(start, self.t, settings, content))
         self.t += 1e-3  # the next scan starts a moment later
         return pixels.astype(dtype, copy=False)
