@@ -24,8 +24,9 @@ from pydantic import Field
 from semservo.protocol import CommandReply, CommandRequest, CommandSet, NoArguments
 
 COMMANDS = CommandSet("stage", "Owns every axis: the piezo amplifier (NV 40/3 on RS-232 by default, or any "
-                               "`StageDriver`) and the rotation-and-tilt stage, their limits, the watchdog and the "
-                               "stop. REP `:5570`.")
+                               "`StageDriver`) or axes in micrometres and degrees (a `MotionDriver`: a closed-loop "
+                               "stage, a microscope's stage and beam shift through OpenFIBSEM), the rotation-and-tilt "
+                               "stage, their limits, the watchdog and the stop. REP `:5570`.")
 
 #: An axis name (``x``, ``y``; ``rotation_deg``, ``tilt_x_deg``, ``tilt_y_deg`` for turns).
 AxisName = Annotated[str, Field(min_length=1, max_length=32)]
