@@ -13,7 +13,6 @@ import re
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -29,7 +28,7 @@ from fibsem.structures import BeamType, ImageSettings  # noqa: E402
 
 from semservo.errors import CommandError  # noqa: E402
 from semservo.instruments import DeviceError, load_plugin, IMAGE_SOURCE_GROUP  # noqa: E402
-from semservo.openfibsem import OpenFibsemMotion, OpenFibsemSource, Positioner, SimulatedDemoFrames, units  # noqa: E402
+from semservo.openfibsem import OpenFibsemMotion, OpenFibsemSource, Positioner, SimulatedDemoFrames, session, units  # noqa: E402,E501
 from services.stage.physical import PhysicalLimits, PhysicalStageCore  # noqa: E402
 
 pytestmark = pytest.mark.integration
@@ -40,16 +39,33 @@ HFW_UM = 212.3 / 1200 * 512
 ELECTRON = BeamType.ELECTRON
 
 
-def demo_microscope():
-    microscope, _settings = utils.setup_session(session_path=tempfile.mkdtemp(prefix="semservo-test-"),
-                                                manufacturer="Demo", ip_address="localhost", setup_logging=False)
+def demo_microscope(folder: Path):
+    microscope, _settings = utils.setup_session(session_path=str(folder), manufacturer="Demo",
+                                                ip_address="localhost", setup_logging=False)
     return microscope
 
 
 @pytest.fixture
-def demo():
-    microscope = demo_microscope()
+def demo(tmp_path):
+    microscope = demo_microscope(tmp_path)
     return microscope, SimulatedDemoFrames(microscope)
+
+
+def test_a_microscope_is_named_by_its_url_and_connected_once_per_process():
+    address = session.Address.parse("openfibsem://Thermo@10.0.0.1?beam=ion&beam_limit_um=5")
+    assert (address.manufacturer, address.host, address.options) == ("Thermo", "10.0.0.1",
+                                                                     {"beam": "ion", "beam_limit_um": "5"})
+    with pytest.raises(ValueError, match="unknown option"):
+        session.Address.parse("openfibsem://Demo@localhost?speed=fast")
+    with pytest.raises(DeviceError, match="openfibsem://MANUFACTURER@HOST"):
+        OpenFibsemMotion.open("socket://127.0.0.1:5592")
+    with pytest.raises(DeviceError, match="stage_move must be stable or relative"):
+        OpenFibsemMotion.open("openfibsem://Demo@localhost?stage_move=sideways")
+    driver = OpenFibsemMotion.open("openfibsem://Demo@localhost?beam_limit_um=3")
+    again = OpenFibsemMotion.open("openfibsem://Demo@localhost?beam_limit_um=3")
+    assert driver.microscope is again.microscope and again.origin == driver.origin  # a reconnect reads the same
+    assert driver.identify()["model"] == "Demo DemoMicroscope" and driver.axes()["beam_x"].travel == (-3.0, 3.0)
+    assert float(driver.microscope.get_stage_position().z) == pytest.approx(session.DEMO_WORKING_HEIGHT_M)
 
 
 def test_one_opencv_in_the_environment_the_one_semservo_pins():
@@ -113,11 +129,11 @@ def test_the_signs_agree_with_fibsems_own_alignment_and_with_the_simulated_demo(
     assert any(entry.text.startswith("beam_shift(dx=1e-06, dy=0,") for entry in driver.log)
 
 
-def test_fibsems_own_alignment_undoes_what_semservos_driver_did_on_the_simulated_demo():
+def test_fibsems_own_alignment_undoes_what_semservos_driver_did_on_the_simulated_demo(tmp_path):
     """Apart from semservo's conversion: fibsem measures with its own cross-correlation
     and corrects with its own signs. It undoes a move of semservo's driver in one step,
     so the driver, the simulated demo and fibsem agree on which way is which."""
-    microscope = demo_microscope()
+    microscope = demo_microscope(tmp_path)
     frames = SimulatedDemoFrames(microscope, disturbances=False)
     settings = ImageSettings(resolution=(512, 512), dwell_time=720e-9, hfw=HFW_UM * 1e-6, beam_type=ELECTRON)
     reference = microscope.acquire_image(image_settings=settings)
@@ -132,8 +148,8 @@ def test_fibsems_own_alignment_undoes_what_semservos_driver_did_on_the_simulated
         assert np.hypot(*frames.content_um()) < 0.18, (move, frames.content_um())
 
 
-def test_the_image_source_takes_its_scan_from_the_settings_and_its_metadata_from_the_image():
-    microscope = demo_microscope()
+def test_the_image_source_takes_its_scan_from_the_settings_and_its_metadata_from_the_image(tmp_path):
+    microscope = demo_microscope(tmp_path)
     source = load_plugin("openfibsem", IMAGE_SOURCE_GROUP)(microscope=microscope, resolution=[384, 256],
                                                            dwell_ns=250, hfw_um=76.8)
     assert isinstance(source, OpenFibsemSource)
