@@ -65,7 +65,7 @@ class Positioner:
         self.estimator = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
         # A scan may take seconds: the stage's watchdog must outlast one, and the
         # controller feeds it between scans.
-        frame_s = dwell_ns * 1e-9 * resolution[0] * resolution[1]
+        frame_s = self.frame_s = dwell_ns * 1e-9 * resolution[0] * resolution[1]
         self.controller = ControllerCore(LocalPort(stage_handlers, self.stage),
                                          estimator=LocalPort(estimator_handlers, Estimator(self.estimator)),
                                          camera=camera or CameraToStage(), runs_dir=runs_dir,
@@ -98,6 +98,9 @@ class Positioner:
         if reference is None:
             raise CommandError("no_reference", "teach a view first (Positioner.teach)")
         self.stage.rebase()  # the script may have moved the microscope itself since the last run
+        # A run fails when no estimate comes for estimate_timeout_s: here one comes per
+        # scan, so give a slow scan (or a busy computer) its time.
+        settings.setdefault("estimate_timeout_s", min(600.0, max(30.0, 10 * self.frame_s)))
         self.controller.start(RunSettings(dofs=["x", "y"], **settings), reference)
         deadline = time.monotonic() + timeout_s
         try:
@@ -110,9 +113,11 @@ class Positioner:
                 if wait_s > 0:
                     time.sleep(wait_s)
                 estimate = self.estimator.process(self.frame())
-                self.controller.tick()  # the watchdog's heartbeat, before the stage looks at it
                 if estimate is not None:
                     self.controller.on_estimate(estimate)
+                # After the estimate: a slow scan is not a silent estimator. Then the
+                # watchdog's heartbeat, before the stage looks at it.
+                self.controller.tick()
                 self.stage.poll()
         except BaseException:
             self.controller.stop("the positioning loop was interrupted")
