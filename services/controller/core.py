@@ -97,8 +97,10 @@ class ControllerCore:
         self._check_measurable(dofs, reference)
         self._check_movable(dofs)
         if settings.beam_shift_within_um > 0 and BeamAxes.of(self.stage.call(stage_protocol.STATE)) is None:
-            raise BadRequest("beam_shift_within_um needs a beam shift beside the stage (axes beam_x and beam_y of a "
-                             "driver in physical units, such as openfibsem); this stage has none: leave it at 0")
+            # A valid request this instrument cannot do (409: the system's state says no).
+            raise CommandError("no_beam_shift", "beam_shift_within_um needs a beam shift beside the stage (axes "
+                                                "beam_x and beam_y of a driver in physical units, such as openfibsem); "
+                                                "this stage has none: leave it at 0")
         tilt_dofs = tuple(dof for dof in dofs if dof in ("alpha", "beta"))
         self._estimator_measures(rotation="rotation" in dofs, tilts=bool(tilt_dofs) or None,
                                  required="rotation" in dofs or bool(tilt_dofs))

@@ -249,7 +249,7 @@ def test_a_closed_loop_through_fibsems_calls_converges_by_stage_then_by_beam_shi
 
 
 def test_a_run_asking_for_the_beam_on_a_stage_without_one_is_refused_before_it_moves():
-    from semservo.errors import BadRequest
+    from semservo.errors import http_status
     from semservo.protocol import LocalPort
     from semservo.simulation.amplifier import SimulatedAmplifier
     from services.controller.core import ControllerCore
@@ -260,8 +260,9 @@ def test_a_run_asking_for_the_beam_on_a_stage_without_one_is_refused_before_it_m
     stage = StageCore("sim://no-beam", open_driver=SimulatedAmplifier.open)
     stage.connect()
     controller = ControllerCore(LocalPort(handlers, stage))
-    with pytest.raises(BadRequest, match="beam_shift_within_um needs a beam shift beside the stage"):
+    with pytest.raises(CommandError, match="beam_shift_within_um needs a beam shift beside the stage") as refused:
         controller.start(RunSettings(beam_shift_within_um=1.0), {"id": "r", "pixel_size_nm": 100.0})
+    assert refused.value.code == "no_beam_shift" and http_status(refused.value.code) == 409  # valid, not possible here
     assert not stage.watchdog.armed
 
 
