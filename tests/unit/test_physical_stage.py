@@ -179,3 +179,19 @@ def test_degree_axes_turn_through_rotate_and_an_axis_without_travel_is_refused_a
     assert refused.value.code == "step_limit"
     state = LocalPort(handlers, core).call(protocol.STATE)
     assert state.rotation.travel_deg == {"rotation_deg": [-180.0, 180.0], "tilt_x_deg": [-10.0, 10.0]}
+
+
+def test_the_stage_settings_make_the_physical_core(monkeypatch, tmp_path):
+    from semservo.config import Settings
+    from services.stage.core import StageLimits
+    from services.stage.physical import physical_core
+
+    monkeypatch.setenv("SEMSERVO_STAGE__TRAVEL", '{"x": [-40, 40]}')
+    monkeypatch.setenv("SEMSERVO_STAGE__MAX_STEPS", '{"beam_x": 1}')
+    monkeypatch.setenv("SEMSERVO_STAGE__MAX_STEP_UM", "2")
+    monkeypatch.setenv("SEMSERVO_STAGE__STATE_DIR", str(tmp_path))
+    core = physical_core(f"sim://{uuid.uuid4().hex}", SimulatedPositioner, Settings().stage, StageLimits())
+    assert core.connect()
+    axes = core.describe()["axes"]
+    assert axes["x"]["travel"] == [-40.0, 40.0] and axes["y"]["travel"] == [-50.0, 50.0]  # the lab's, the device's
+    assert (axes["x"]["max_step"], axes["beam_x"]["max_step"], axes["beam_y"]["max_step"]) == (2.0, 1.0, 2.0)
