@@ -322,3 +322,41 @@ def test_fft_plans_are_kept_as_wisdom_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("SEMSERVO_FFTW_WISDOM", str(path))
     MotionEstimator(image, rotation=False)
     assert path.is_file() and path.stat().st_size > 0
+
+
+def test_the_package_exports_what_lab_scripts_use_and_motion_keeps_its_documented_fields():
+    # README: Motion(dx, dy, rotation_deg, confidence, snr_db), in that order.
+    import dataclasses
+
+    from semservo.estimation import Motion
+
+    assert [field.name for field in dataclasses.fields(Motion)][:5] == ["dx", "dy", "rotation_deg", "confidence",
+                                                                        "snr_db"]
+    for name in estimation.__all__:
+        assert hasattr(estimation, name), name
+    assert {"MotionEstimator", "Motion", "estimate_snr_db", "rotate_about_centre", "mask_reference",
+            "polygon_mask", "as_image"} <= set(estimation.__all__)
+
+
+def test_the_angle_refinement_parabola_finds_its_top_or_says_there_is_none():
+    from semservo.estimation.rotation import probe_top
+
+    # Correlations of a parabola peaking 0.25 probe above the middle, losing 1 % a probe.
+    def correlation(probe: float) -> float:
+        return 1.0 - 0.01 * (probe - 0.25) ** 2
+
+    top = probe_top(correlation(-1), correlation(0), correlation(1))
+    assert top.offset == pytest.approx(0.25)
+    assert top.sharpness == pytest.approx(0.01, rel=1e-6)
+    assert probe_top(0.9, 0.9, 0.9) is None  # flat: every turn looks alike
+    assert probe_top(0.5, 0.7, 0.8) is None  # still rising: the top lies beyond the probes
+    assert probe_top(0.9, 0.8, 0.9) is None  # a valley
+
+
+def test_the_estimator_needs_no_private_call_before_any_public_one(frame):
+    """Every public method works on a fresh estimator (the angle's refinement used to be
+    public but worked only after a private call had halved the frame)."""
+    public = [name for name in dir(MotionEstimator) if not name.startswith("_")]
+    assert set(public) == {"estimate", "min_confidence"}
+    motion = MotionEstimator(frame[:256, :256]).estimate(rotated(frame[:256, :256], 2.0))
+    assert motion.rotation_deg == pytest.approx(2.0, abs=0.05)

@@ -4,9 +4,11 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-from semservo import _kernels
+from semservo.estimation import _kernels
 from semservo.estimation.common import MIN_SIZE
 
 #: Below this SNR (dB) a frame is filtered with the 5 x 5 Gaussian (section II-D); None:
@@ -32,14 +34,32 @@ def estimate_snr_db(image: np.ndarray) -> float:
     return snr_from_statistics(frame_statistics(image))
 
 
-def frame_statistics(image: np.ndarray) -> tuple:
+class FrameStatistics(NamedTuple):
+    """One pass over a frame (:func:`frame_statistics`): its mean and finiteness (whole
+    frame), and the autocorrelation of the mean-free frame at lags 0, 1 and 2 down the
+    rows and along them (central rows), which the SNR is computed from."""
+
+    mean: float
+    finite: bool
+    zero_lag: float
+    down1: float
+    down2: float
+    along1: float
+    along2: float
+
+
+def frame_statistics(image: np.ndarray) -> FrameStatistics:
+    """:class:`FrameStatistics` of a contiguous float32 ``image`` (one fused pass); the
+    autocorrelation over the central half of the rows when the image is tall enough."""
     rows = image.shape[0]
     first, last = (rows // 4, rows - rows // 4) if rows >= 4 * MIN_SIZE else (0, rows)
-    return _kernels.frame_statistics(image, first, last)
+    return FrameStatistics(*_kernels.frame_statistics(image, first, last))
 
 
-def snr_from_statistics(statistics: tuple) -> float:
-    _, _, zero_lag, down1, down2, along1, along2 = statistics
+def snr_from_statistics(statistics: FrameStatistics) -> float:
+    """The SNR in dB (:func:`estimate_snr_db`) from a frame's statistics."""
+    zero_lag, down1, down2, along1, along2 = (statistics.zero_lag, statistics.down1, statistics.down2,
+                                              statistics.along1, statistics.along2)
     if zero_lag <= 0:
         return float("-inf")
     signal = ((4 * down1 - down2) / 3 + (4 * along1 - along2) / 3) / 2

@@ -2,8 +2,10 @@
 
 Each is one pass over the data where numpy would make several (and allocate between
 them); the FFTs themselves stay with FFTW. They are private helpers of
-:mod:`semservo.estimation`, which documents what they compute and cites the paper.
-Compiled code is cached on disk (``cache=True``), so only the first run pays the JIT.
+:mod:`semservo.estimation` (this package), whose modules document what they compute
+and cite the paper. Compiled code is cached on disk (``cache=True``: numba keeps it in
+this package's ``__pycache__``; under ``NUMBA_CACHE_DIR`` when that is set, or numba's
+user-wide cache when the package is not writable), so only the first run pays the JIT.
 """
 
 from __future__ import annotations
