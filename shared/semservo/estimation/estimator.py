@@ -15,16 +15,16 @@ import numpy as np
 
 from semservo.estimation.common import Motion, as_image
 from semservo.estimation.masks import mask_reference
-from semservo.estimation.resolutions import FullResolution, HalfResolution, QuarterResolution, Search
+from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search
 from semservo.estimation.rotation import (
-    ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_sharpness, probe_top,
-    rotate_about_centre,
+    ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_match,
+    confidence_from_sharpness, overlap_windows, probe_top, rotate_about_centre,
 )
 from semservo.estimation.snr import (
     DEFAULT_SNR_THRESHOLD_DB, FrameStatistics, estimate_snr_db, frame_statistics, gaussian_lowpass,
-    snr_from_statistics,
+    noise_variance, snr_from_statistics,
 )
-from semservo.estimation.translation import Shift, confidence_from_psr
+from semservo.estimation.translation import BandFit, Shift, confidence_from_psr
 
 #: Turns smaller than this are not undone before measuring translation (they are still
 #: reported): a rotation about the image centre adds no net shift, and undoing a turn
@@ -33,6 +33,15 @@ from semservo.estimation.translation import Shift, confidence_from_psr
 #: skipping a 0.1 degree turn moves the shift by up to 0.06 px, a 0.05 degree turn by
 #: about 0.02 px.
 DEROTATE_ABOVE_DEG = 0.05
+#: The search's peak for theta over that for theta + 180 (or the reverse) below which
+#: the log-polar angle is in doubt (see ``MotionEstimator._estimate_with_rotation``): for
+#: the right angle it was 3.4-40 on real scenes turned by up to 20 degrees and moved by
+#: up to a quarter of the field (once 1.2, on a hole's disc), for a wrong one 1.0-1.9.
+UNDECIDED_BELOW = 2.0
+#: Views moved by more than this fraction of the frame's side (along rows or columns)
+#: have their turn refined again under windows over the scene both images share
+#: (``MotionEstimator._refine_on_overlap``).
+OVERLAP_ABOVE = 0.04
 
 
 class Refined(NamedTuple):
@@ -43,16 +52,32 @@ class Refined(NamedTuple):
     angle: float
     sharpness: float
     shift: Shift
+    #: The normalized correlation at the top (0 when there is none).
+    correlation: float = 0.0
+    #: That correlation over the one two noisy views of one scene would reach.
+    match: float = 0.0
 
 
 class Turn(NamedTuple):
-    """One candidate angle carried through: refined, with the whole-pixel search that
-    started its refinement (whose peak gives the confidence)."""
+    """One candidate angle carried through: refined, with the angle the search turned the
+    frame back by and the whole-pixel search that started the refinement (whose peak
+    gives the confidence)."""
 
     angle: float
     sharpness: float
     shift: Shift
+    searched_angle: float
     search: Search
+    correlation: float = 0.0
+    #: The search's peaks for theta and theta + 180 (which decided between them).
+    heights: HalfTurnHeights | None = None
+    match: float = 0.0
+
+
+def _turned(x: float, y: float, theta: float) -> tuple[float, float]:
+    """Where a turn by ``theta`` (radians, counter-clockwise as displayed) about the
+    origin moves the point (x, y), minus the point: (dx, dy)."""
+    return (x * np.cos(theta) + y * np.sin(theta) - x, -x * np.sin(theta) + y * np.cos(theta) - y)
 
 
 def _motion(shift: Shift, angle: float, derotated: bool, search: Search, snr_db: float, filtered: bool,
@@ -138,9 +163,14 @@ class MotionEstimator:
         # cheaper FFTs, and the filter lifts the SNR); full resolution is needed only
         # for the sub-pixel fit (precision="full"), which needs no inverse FFT.
         self._half = HalfResolution.of(self._full, window, band, mask_band if mask is not None else None)
-        self._quarter = QuarterResolution.of(self._half, fft_effort)
         self._log_polar = LogPolarReference.of(self._full, angles, fft_effort) if rotation else None
         self._probes = ProbeReferences.of(self._full, self._half) if rotation else None
+        # The reference's pixel noise, for how well a frame can match it at best.
+        self._reference_half_noise = noise_variance(frame_statistics(self._full.reference)) / 4
+        self._reference_signal_fraction = {
+            filtered: self._half.band_signal_fraction(self._half.fit_reference_conjugate, self._half.moved_window(0, 0),
+                                                      self._reference_half_noise, filtered)
+            for filtered in (False, True)}
 
     def estimate(self, image, *, rotation: bool | None = None) -> Motion:
         """Motion of ``image`` against the reference. ValueError for bad input.
@@ -179,7 +209,7 @@ class MotionEstimator:
         if rotation and not self.rotation:
             raise ValueError("this estimator was made without rotation (rotation=False)")
         if self.rotation and rotation is not False:
-            return self._estimate_with_rotation(image, mean, snr_db, filtered)
+            return self._estimate_with_rotation(image, mean, snr_db, filtered, noise_variance(statistics))
         if self.precision == "full":
             spectrum = self._full.spectrum(image, mean)
             search = self._half.search_full(spectrum)
@@ -215,14 +245,26 @@ class MotionEstimator:
         return Shift(fit.dy, fit.dx)
 
     # -- rotation, then translation ---------------------------------------------------
-    def _estimate_with_rotation(self, image: np.ndarray, mean: float, snr_db: float, filtered: bool) -> Motion:
+    def _estimate_with_rotation(self, image: np.ndarray, mean: float, snr_db: float, filtered: bool,
+                                noise: float) -> Motion:
         spectrum = self._full.spectrum(image, mean)
         small_image = self._half.factor == 1
         angle = self._log_polar.angle(spectrum, small_turns=small_image)
         if small_image:
             return self._estimate_small_with_rotation(image, mean, angle, snr_db, filtered)
-        self._probes.load(image)
+        self._probes.load(image, noise)
         turn = self._turn_from(mean, spectrum, angle, filtered)
+        if turn.heights.decisive < UNDECIDED_BELOW:
+            # Neither theta nor theta + 180 matches clearly: the log-polar peak may be the
+            # wrong angle (on a sparse scene whose view moved far, its second or third
+            # peak was the turn), or the search may not tell theta from theta + 180.
+            # So the next peaks are tried too, each as it is and turned by 180 degrees,
+            # and judged by how well the image correlates at its refined angle; when the
+            # view moved far, on the scene both images show (the searches' peaks weigh
+            # what only one of them shows, which misled them).
+            candidates = [angle] + self._log_polar.candidates(ANGLE_CANDIDATES)[1:]
+            return self._fit_turned(image, mean, spectrum, self._best_of(mean, spectrum, candidates, filtered),
+                                    snr_db, filtered)
         if turn.sharpness == 0.0:
             # No top near the log-polar peak: the magnitude spectrum's strongest peak can
             # be the scene's axis-aligned edges or the window's (a turn near 90 degrees
@@ -232,10 +274,41 @@ class MotionEstimator:
                 if other.sharpness > 0.0:
                     turn = other
                     break
+        if turn.sharpness > 0.0 and self._moved_far(turn):
+            turn = self._on_overlap(mean, turn, filtered)
         return self._fit_turned(image, mean, spectrum, turn, snr_db, filtered)
 
-    def _turn_from(self, mean: float, spectrum: np.ndarray, angle: float, filtered: bool) -> Turn:
-        """From a log-polar angle: the search (theta or theta + 180) and the refinement."""
+    def _moved_far(self, turn: Turn) -> bool:
+        """Whether the view moved by more than ``OVERLAP_ABOVE`` of the field."""
+        return max(abs(turn.search.dy), abs(turn.search.dx)) > OVERLAP_ABOVE * min(self.shape)
+
+    def _on_overlap(self, mean: float, turn: Turn, filtered: bool) -> Turn:
+        """``turn`` refined again on the scene both images show (:meth:`_refine_on_overlap`),
+        its correlation there kept; as it was, with correlation 0, when that finds no top."""
+        refined = self._refine_on_overlap(mean, turn, filtered)
+        if refined.sharpness > 0.0:
+            return turn._replace(angle=refined.angle, sharpness=refined.sharpness, shift=refined.shift,
+                                 correlation=refined.correlation, match=refined.match)
+        return turn._replace(correlation=0.0, match=0.0)
+
+    def _best_of(self, mean: float, spectrum: np.ndarray, candidates: list[float], filtered: bool) -> Turn:
+        """Of the candidate angles, each as it is and turned by 180 degrees, the one whose
+        refined angle correlates best with the reference (on the scene both show, when
+        the view moved far)."""
+        best = None
+        for candidate in candidates:
+            for flip in (False, True):
+                turn = self._turn_from(mean, spectrum, candidate, filtered, flip=flip)
+                if turn.sharpness > 0.0:
+                    turn = self._on_overlap(mean, turn, filtered) if self._moved_far(turn) else turn
+                if best is None or turn.correlation > best.correlation:
+                    best = turn
+        return best
+
+    def _turn_from(self, mean: float, spectrum: np.ndarray, angle: float, filtered: bool,
+                   flip: bool | None = None) -> Turn:
+        """From a log-polar angle: the search (theta or theta + 180: as the search's peaks
+        say, or as ``flip`` says) and the refinement."""
         if abs(angle) <= SMALL_TURN_PROBES * self._probes.step_deg:
             # A turn this small moves no pixel by more than SMALL_TURN_PROBES: the
             # whole-pixel search does not need the frame turned back.
@@ -246,11 +319,13 @@ class MotionEstimator:
             reference = self._half.reference_conjugate
         # theta or theta + 180? The magnitude spectrum cannot tell; the translation
         # peak can: compare it with the peak of the image turned by 180 degrees.
-        if self._quarter.turned_is_better(searched, reference):
+        heights = self._half.half_turn_heights(searched, reference)
+        if heights.turned_is_better if flip is None else flip:
             angle += 180.0 if angle < 0 else -180.0
             search, _ = self._half_search(mean, angle)
         refined = self._refine_rotation(mean, angle, search.shift, filtered)
-        return Turn(refined.angle, refined.sharpness, refined.shift, search)
+        return Turn(refined.angle, refined.sharpness, refined.shift, angle, search, refined.correlation, heights,
+                    refined.match)
 
     def _half_search(self, mean: float, angle: float) -> tuple[Search, np.ndarray]:
         """The whole-pixel search on the halved image turned back by ``angle``, and the
@@ -274,21 +349,88 @@ class MotionEstimator:
         one probe further out on the higher side is tried too.
         """
         probes, half = self._probes, self._half
-        if abs(angle) <= SMALL_TURN_PROBES * probes.step_deg:
-            turned_back, middle, frame = 0.0, int(round(angle / probes.step_deg)), probes.half_image
-        else:
-            turned_back, middle, frame = angle, 0, probes.turned_back(angle)
+        turned_back, middle, frame = self._probe_frame(angle)
         spectrum = half.windowed_spectrum(frame, mean, shift)
         # The unturned reference's fit starts the others (a turn moves the best shift
         # little: by the turn times the distance from the window's centre).
         best = half.fit(spectrum, probes.conjugates[0], shift, filtered, with_correlation=True)
         fits = {0: best}
 
-        def correlation(probe: int) -> float:
+        def fit(probe: int) -> BandFit:
             if probe not in fits:
                 fits[probe] = half.fit(spectrum, probes.conjugates[probe], best[:2], filtered, with_correlation=True)
-            return fits[probe].correlation
+            return fits[probe]
 
+        reachable = np.sqrt(self._reference_signal_fraction[filtered] * half.band_signal_fraction(
+            spectrum, half.moved_window(int(round(shift[0])), int(round(shift[1]))), probes.half_noise, filtered))
+        return self._probe_parabola(fit, turned_back, middle, angle, shift, reachable)
+
+    def _refine_on_overlap(self, mean: float, turn: Turn, filtered: bool) -> Refined:
+        """:meth:`_refine_rotation` again, for a frame whose view has moved far: both the
+        frame and the reference copies weighted by windows over the scene they share
+        (:func:`overlap_windows`), made for this frame.
+
+        The fixed window's fit weights the frame by the window moved with the content,
+        which runs off the frame's edge while it still weighs (a hard cut), against a
+        reference that keeps the content the frame lacks: both bias the correlation over
+        the probe turns, by up to 0.3 degree at shifts of a quarter of the field. The
+        frame is the one the first refinement used (turned back by the searched angle,
+        or not at all for small turns), and the probes are centred on its answer. The
+        copies are turned about the reference's centre, not the overlap's, so each
+        probe's fit starts where that turn moves the overlap's centre.
+        """
+        probes, half = self._probes, self._half
+        turned_back, _, frame = self._probe_frame(turn.searched_angle)
+        residual = turn.angle - turned_back
+        middle = int(np.clip(round(residual / probes.step_deg), -SMALL_TURN_PROBES, SMALL_TURN_PROBES))
+        search = turn.search.shift
+        windows = overlap_windows(half.moved_window(0, 0), turned_back, (search.dy / 2, search.dx / 2))
+        spectrum = np.array(half.weighted_spectrum(frame, windows.frame))
+        frame_fraction = half.band_signal_fraction(spectrum, windows.frame, probes.half_noise, filtered)
+        reference_fraction = []
+        # From the reference's centre to the overlap's, in full-resolution pixels.
+        lever_x, lever_y = 2 * windows.centroid[0], 2 * windows.centroid[1]
+        fits: dict[int, BandFit] = {}
+
+        def fit(probe: int) -> BandFit:
+            if probe not in fits:
+                reference = np.conj(half.weighted_spectrum(probes.halved[probe], windows.reference))
+                if not reference_fraction:
+                    reference_fraction.append(half.band_signal_fraction(reference, windows.reference,
+                                                                        self._reference_half_noise, filtered))
+                # Where the overlap's centre goes under the turn left to this probe,
+                # against where it goes under the turn the search saw (the unturned copy).
+                moves = [_turned(lever_x, lever_y, np.radians(turn_deg)) for turn_deg in
+                         (residual - probe * probes.step_deg, residual)]
+                start = (search.dy + moves[0][1] - moves[1][1], search.dx + moves[0][0] - moves[1][0])
+                fits[probe] = half.fit(spectrum, reference, start, filtered, with_correlation=True)
+            return fits[probe]
+
+        fit(middle)  # the first fit, which measures the reference's share of signal
+        return self._probe_parabola(fit, turned_back, middle, turn.angle, turn.shift,
+                                    np.sqrt(frame_fraction * reference_fraction[0]))
+
+    def _probe_frame(self, angle: float) -> tuple[float, int, np.ndarray]:
+        """The halved frame the probes are fitted to for a turn ``angle``: (the turn it was
+        turned back by, the probe nearest the angle left, the frame). Small turns are
+        not turned back (see ``SMALL_TURN_PROBES``)."""
+        probes = self._probes
+        if abs(angle) <= SMALL_TURN_PROBES * probes.step_deg:
+            return 0.0, int(round(angle / probes.step_deg)), probes.half_image
+        return angle, 0, probes.turned_back(angle)
+
+    def _probe_parabola(self, fit, turned_back: float, middle: int, angle: float, shift: Shift,
+                        reachable: float) -> Refined:
+        """Climb to the probe whose fit (``fit(probe)``: a :class:`BandFit`) correlates
+        best, at most two probes from ``middle`` and within the probes made, and fit a
+        parabola through it and its neighbours; ``angle`` and ``shift`` are answered
+        unchanged, with sharpness 0, when there is no top. ``reachable``: the correlation
+        two noisy views of one scene would reach (the match is the top's over it)."""
+
+        def correlation(probe: int) -> float:
+            return fit(probe).correlation
+
+        probe_deg = self._probes.step_deg
         outermost = SMALL_TURN_PROBES + 1
         for _ in range(2):
             if max(correlation(middle - 1), correlation(middle + 1)) <= correlation(middle):
@@ -300,20 +442,21 @@ class MotionEstimator:
         top = probe_top(correlation(middle - 1), correlation(middle), correlation(middle + 1))
         if top is None:
             return Refined(angle, 0.0, shift)
-        refined = turned_back + (middle + top.offset) * probes.step_deg
-        best_shift = Shift(fits[middle].dy, fits[middle].dx)
+        refined = turned_back + (middle + top.offset) * probe_deg
+        best_shift = Shift(fit(middle).dy, fit(middle).dx)
         if turned_back == 0.0 and abs(refined) > DEROTATE_ABOVE_DEG:
             # The fits were in the frame's own axes; the fit that follows turns it back.
             theta = np.deg2rad(refined)
             y, x = best_shift
             best_shift = Shift(x * np.sin(theta) + y * np.cos(theta), x * np.cos(theta) - y * np.sin(theta))
-        return Refined(float(refined), float(top.sharpness), best_shift)
+        return Refined(float(refined), float(top.sharpness), best_shift, float(top.height),
+                       float(top.height / reachable) if reachable > 0 else 0.0)
 
     def _fit_turned(self, image: np.ndarray, mean: float, spectrum: np.ndarray, turn: Turn, snr_db: float,
                     filtered: bool) -> Motion:
         """The final fit of the frame turned back by the refined angle (``spectrum``: the
         frame's own, used as it is below ``DEROTATE_ABOVE_DEG``)."""
-        rotation_confidence = confidence_from_sharpness(turn.sharpness)
+        rotation_confidence = min(confidence_from_sharpness(turn.sharpness), confidence_from_match(turn.match))
         if self.precision == "fast":
             # On the halved frame turned back, under the full-resolution window moved by
             # the whole-pixel shift and halved (as the fast fit's reference).
@@ -335,7 +478,7 @@ class MotionEstimator:
         turned = rotate_about_centre(image, -angle, self._full.frame_buffer()) if derotated else image
         spectrum = self._full.spectrum(turned, mean)
         search = self._half.search_full(spectrum)
-        if self._quarter.turned_is_better(self._half.cropped, self._half.cropped_reference_conjugate):
+        if self._half.half_turn_heights(self._half.cropped, self._half.cropped_reference_conjugate).turned_is_better:
             angle += 180.0 if angle < 0 else -180.0
             derotated = True
             spectrum = self._full.spectrum(rotate_about_centre(image, -angle, self._full.frame_buffer()), mean)

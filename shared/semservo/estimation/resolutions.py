@@ -5,10 +5,9 @@ reading it reuse (large temporaries would cost page faults on every frame).
 
 * :class:`FullResolution`: the frame's own pixels. The sub-pixel fit (section II-C, eq.
   18-22 as a phase-plane fit) and the rotation's spectrum (section II-B-1) read it.
-* :class:`HalfResolution`: the pair halved (2 x 2). The whole-pixel search (eq. 18-24)
-  and ``precision="fast"``'s fit, and the rotation's refinement on the image.
-* :class:`QuarterResolution`: the search spectra's low-frequency quarter, where theta is
-  told from theta + 180 degrees.
+* :class:`HalfResolution`: the pair halved (2 x 2). The whole-pixel search (eq. 18-24),
+  ``precision="fast"``'s fit, theta told from theta + 180 degrees, and the rotation's
+  refinement on the image.
 
 An estimator is not thread-safe: these buffers are reused from frame to frame.
 """
@@ -46,6 +45,27 @@ class Search(NamedTuple):
     @property
     def shift(self) -> Shift:
         return Shift(self.dy, self.dx)
+
+
+class HalfTurnHeights(NamedTuple):
+    """The phase-correlation peaks of a frame and of the frame turned by 180 degrees
+    against the reference (:meth:`HalfResolution.half_turn_heights`)."""
+
+    as_is: float
+    turned: float
+
+    @property
+    def turned_is_better(self) -> bool:
+        return self.turned > self.as_is
+
+    @property
+    def best(self) -> float:
+        return max(self.as_is, self.turned)
+
+    @property
+    def decisive(self) -> float:
+        """How clearly one wins: the higher peak over the lower (1: no telling)."""
+        return max(self.as_is, self.turned) / max(min(self.as_is, self.turned), 1e-12)
 
 
 @dataclass
@@ -252,6 +272,22 @@ class HalfResolution:
         # Block means are centred half a search pixel in: the shift scales exactly.
         return BandFit(fit.dy * 2, fit.dx * 2, fit.correlation)
 
+    def half_turn_heights(self, search_spectrum: np.ndarray, reference_conjugate: np.ndarray) -> "HalfTurnHeights":
+        """How well the frame as it is and the frame turned by 180 degrees match the
+        reference: for a real image under a symmetric window the turned spectrum is the
+        conjugate (up to a one-pixel shift that does not change the peak height), so the
+        two phase-correlation peaks of a spectrum of this resolution are compared. (On
+        the spectra's low-frequency quarter, as before, a scene dominated by a centrally
+        symmetric shape, a hole's disc, chose the wrong one when the view had moved by a
+        fifth of the field: the detail that tells them apart is above that band.) Uses
+        the plans' inverse buffer."""
+        heights = []
+        for spectrum in (search_spectrum, np.conj(search_spectrum)):
+            _kernels.normalized_cross_power_into(spectrum, reference_conjugate, self.no_weight, False,
+                                                 self.plans.inverse.input_array)
+            heights.append(float(self.plans.inverse(normalise_idft=True).max()))
+        return HalfTurnHeights(*heights)
+
     def moved_window(self, row_shift: int, col_shift: int) -> np.ndarray:
         """Block means of the full-resolution window moved by whole pixels (kept per
         shift: a servo loop sees few)."""
@@ -266,6 +302,30 @@ class HalfResolution:
             self.moved_windows[key] = window
         return window
 
+    def band_signal_fraction(self, spectrum: np.ndarray, weights: np.ndarray, noise_variance: float,
+                             filtered: bool) -> float:
+        """The share of a spectrum's power in the fit band that is signal, not pixel
+        noise: white noise of ``noise_variance`` (per pixel of this resolution) under
+        the spatial ``weights`` puts noise_variance x sum(weights^2) into every
+        frequency, so 1 - that times the band's weights over the band's power. Two
+        noisy views of one scene correlate at most by the square root of the product
+        of their fractions."""
+        band = self.filtered_fit_band if filtered else self.fit_band
+        values = spectrum[band.rows, :band.weights.shape[1]]
+        power = float((band.weights * (values.real * values.real + values.imag * values.imag)).sum())
+        noise = noise_variance * float(np.square(weights, dtype=np.float64).sum()) * float(band.weights.sum())
+        return max(0.0, 1.0 - noise / power) if power > 0 else 0.0
+
+    def weighted_spectrum(self, halved: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """FFT of an image of this resolution under ``weights``, less its weighted mean
+        (so the weights' own spectrum does not leak into the band). The plan's buffer."""
+        total = float(weights.sum())
+        mean = float((halved * weights).sum() / total) if total > 0 else 0.0
+        windowed = self.plans.forward.input_array
+        np.subtract(halved, mean, out=windowed)
+        windowed *= weights
+        return self.plans.forward()
+
     def windowed_spectrum(self, halved: np.ndarray, mean: float, shift: Shift) -> np.ndarray:
         """FFT of a halved frame (mean-free) under the full-resolution window moved by the
         whole-pixel ``shift`` and halved, so it weights the scene as the fast fit's
@@ -274,36 +334,3 @@ class HalfResolution:
         np.subtract(halved, mean, out=windowed)
         windowed *= self.moved_window(int(round(shift[0])), int(round(shift[1])))
         return self.plans.forward()
-
-
-@dataclass
-class QuarterResolution:
-    """The low-frequency quarter of the search spectra, where theta is told from theta +
-    180 degrees (:meth:`turned_is_better`)."""
-
-    plans: FFTPlans
-    spectrum: np.ndarray
-    reference: np.ndarray
-    no_weight: np.ndarray = field(default_factory=lambda: np.ones((1, 1), np.float32))
-
-    @classmethod
-    def of(cls, half: HalfResolution, fft_effort: str) -> "QuarterResolution":
-        shape = (half.shape[0] // 2, half.shape[1] // 2)
-        spectrum = np.empty((shape[0], shape[1] // 2 + 1), np.complex64)
-        return cls(plans=FFTPlans.for_shape(shape, fft_effort), spectrum=spectrum, reference=np.empty_like(spectrum))
-
-    def turned_is_better(self, search_spectrum: np.ndarray, reference_conjugate: np.ndarray) -> bool:
-        """Whether the frame turned by 180 degrees matches the reference better than the
-        frame as it is: for a real image under a symmetric window the turned spectrum is
-        the conjugate (up to a one-pixel shift that does not change the peak height), so
-        the two phase-correlation peaks are compared, on the spectra's low-frequency
-        quarter (an ideal decimation: plenty to tell a match from none, at a quarter of
-        the cost)."""
-        quarter = crop_spectrum_into(search_spectrum, self.spectrum)
-        reference = crop_spectrum_into(reference_conjugate, self.reference)
-        heights = []
-        for spectrum in (quarter, np.conj(quarter)):
-            _kernels.normalized_cross_power_into(spectrum, reference, self.no_weight, False,
-                                                 self.plans.inverse.input_array)
-            heights.append(float(self.plans.inverse(normalise_idft=True).max()))
-        return heights[1] > heights[0]

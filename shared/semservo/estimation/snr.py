@@ -56,16 +56,29 @@ def frame_statistics(image: np.ndarray) -> FrameStatistics:
     return FrameStatistics(*_kernels.frame_statistics(image, first, last))
 
 
-def snr_from_statistics(statistics: FrameStatistics) -> float:
-    """The SNR in dB (:func:`estimate_snr_db`) from a frame's statistics."""
+def _signal_and_noise(statistics: FrameStatistics) -> tuple[float, float]:
+    """(signal, noise) variances per pixel (:func:`estimate_snr_db`'s split)."""
     zero_lag, down1, down2, along1, along2 = (statistics.zero_lag, statistics.down1, statistics.down2,
                                               statistics.along1, statistics.along2)
-    if zero_lag <= 0:
-        return float("-inf")
     signal = ((4 * down1 - down2) / 3 + (4 * along1 - along2) / 3) / 2
     signal = min(max(signal, 1e-12 * zero_lag), zero_lag)
-    noise = max(zero_lag - signal, 1e-12 * zero_lag)
+    return signal, max(zero_lag - signal, 1e-12 * zero_lag)
+
+
+def snr_from_statistics(statistics: FrameStatistics) -> float:
+    """The SNR in dB (:func:`estimate_snr_db`) from a frame's statistics."""
+    if statistics.zero_lag <= 0:
+        return float("-inf")
+    signal, noise = _signal_and_noise(statistics)
     return float(10 * np.log10(signal / noise))
+
+
+def noise_variance(statistics: FrameStatistics) -> float:
+    """The pixel noise's variance (grey levels squared) from a frame's statistics: what
+    the zero-lag autocorrelation holds beyond the signal extrapolated from lags 1 and 2."""
+    if statistics.zero_lag <= 0:
+        return 0.0
+    return float(_signal_and_noise(statistics)[1])
 
 
 def gaussian_transfer(shape: tuple[int, int], size: int = 5, sigma: float = 1.0) -> np.ndarray:
