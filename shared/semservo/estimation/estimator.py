@@ -15,7 +15,7 @@ import numpy as np
 
 from semservo.estimation.common import Motion, as_image
 from semservo.estimation.masks import mask_reference
-from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search
+from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search, kept_near
 from semservo.estimation.rotation import (
     ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_match,
     confidence_from_sharpness, overlap_windows, probe_top, rotate_about_centre,
@@ -241,8 +241,14 @@ class MotionEstimator:
         if self._half.factor == 1:
             return self._full.fit(self._full.spectrum(image, mean), shift, filtered)
         spectrum = self._half.apodized_spectrum(image, mean, int(round(shift.dy)), int(round(shift.dx)))
-        fit = self._half.fit(spectrum, self._half.fit_reference_conjugate, shift, filtered)
-        return Shift(fit.dy, fit.dx)
+        half = self._half
+
+        def fitted(band) -> Shift:
+            fit = half.fit(spectrum, half.fit_reference_conjugate, shift, band is half.filtered_fit_band)
+            return Shift(fit.dy, fit.dx)
+
+        band = half.filtered_fit_band if filtered else half.fit_band
+        return kept_near(shift, fitted, band, half.filtered_fit_band) if self._full.near_search else fitted(band)
 
     # -- rotation, then translation ---------------------------------------------------
     def _estimate_with_rotation(self, image: np.ndarray, mean: float, snr_db: float, filtered: bool,
