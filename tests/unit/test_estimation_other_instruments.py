@@ -148,3 +148,11 @@ def test_the_log_polar_angle_of_a_noisy_sparse_scene_is_not_pulled_to_the_axes(i
         turned = poisson_gaussian(rotate_about_centre(square, angle), 1000, 2.0, rng).astype(np.float32)
         measured = log_polar.angle(full.spectrum(turned, float(turned.mean())), small_turns=False)
         assert measured == pytest.approx(angle, abs=2.0)
+
+
+def test_turns_that_several_angles_explain_about_as_well_are_refused():
+    from semservo.estimation.rotation import confidence_from_distinct
+
+    assert confidence_from_distinct(float("inf")) == 1.0  # one angle tried: no say
+    assert confidence_from_distinct(1.2) < MotionEstimator.min_confidence  # the runner-up nearly as good
+    assert confidence_from_distinct(10.0) > 0.99

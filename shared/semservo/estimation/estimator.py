@@ -17,8 +17,8 @@ from semservo.estimation.common import Motion, as_image
 from semservo.estimation.masks import mask_reference
 from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search, kept_near
 from semservo.estimation.rotation import (
-    ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_match,
-    confidence_from_sharpness, overlap_windows, probe_top, rotate_about_centre,
+    ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_distinct,
+    confidence_from_match, confidence_from_sharpness, overlap_windows, probe_top, rotate_about_centre,
 )
 from semservo.estimation.snr import (
     DEFAULT_SNR_THRESHOLD_DB, FrameStatistics, estimate_snr_db, frame_statistics, gaussian_lowpass,
@@ -37,7 +37,9 @@ DEROTATE_ABOVE_DEG = 0.05
 #: the log-polar angle is in doubt (see ``MotionEstimator._estimate_with_rotation``): for
 #: the right angle it was 3.4-40 on real scenes turned by up to 20 degrees and moved by
 #: up to a quarter of the field (once 1.2, on a hole's disc), for a wrong one 1.0-1.9.
-UNDECIDED_BELOW = 2.0
+UNDECIDED_BELOW = 3.5
+#: Then the search's peak is also scanned over turns this far apart (degrees).
+SCAN_STEP_DEG = 1.5
 #: Views moved by more than this fraction of the frame's side (along rows or columns)
 #: have their turn refined again under windows over the scene both images share
 #: (``MotionEstimator._refine_on_overlap``).
@@ -72,6 +74,9 @@ class Turn(NamedTuple):
     #: The search's peaks for theta and theta + 180 (which decided between them).
     heights: HalfTurnHeights | None = None
     match: float = 0.0
+    #: How much more the best other angle misses of a perfect correlation (inf: none was
+    #: tried), when several were.
+    distinct: float = float("inf")
 
 
 def _turned(x: float, y: float, theta: float) -> tuple[float, float]:
@@ -259,30 +264,32 @@ class MotionEstimator:
         if small_image:
             return self._estimate_small_with_rotation(image, mean, angle, snr_db, filtered)
         self._probes.load(image, noise)
-        turn = self._turn_from(mean, spectrum, angle, filtered)
+        turn = self._refined_far(mean, self._turn_from(mean, spectrum, angle, filtered), filtered)
         if turn.heights.decisive < UNDECIDED_BELOW:
             # Neither theta nor theta + 180 matches clearly: the log-polar peak may be the
             # wrong angle (on a sparse scene whose view moved far, its second or third
-            # peak was the turn), or the search may not tell theta from theta + 180.
-            # So the next peaks are tried too, each as it is and turned by 180 degrees,
-            # and judged by how well the image correlates at its refined angle; when the
-            # view moved far, on the scene both images show (the searches' peaks weigh
-            # what only one of them shows, which misled them).
-            candidates = [angle] + self._log_polar.candidates(ANGLE_CANDIDATES)[1:]
-            return self._fit_turned(image, mean, spectrum, self._best_of(mean, spectrum, candidates, filtered),
-                                    snr_db, filtered)
-        if turn.sharpness == 0.0:
+            # peak was the turn, or none was), or the search may not tell theta from
+            # theta + 180. So the next log-polar peaks and the best turns of a scan of
+            # the search's peak are tried too, each as it is and turned by 180 degrees,
+            # and judged by how well the image correlates at its refined angle.
+            candidates = [angle] + self._log_polar.candidates(ANGLE_CANDIDATES)[1:] + self._scanned_angles(mean)
+            turn = self._best_of(mean, spectrum, candidates, filtered)
+        elif turn.sharpness == 0.0:
             # No top near the log-polar peak: the magnitude spectrum's strongest peak can
             # be the scene's axis-aligned edges or the window's (a turn near 90 degrees
             # read as 0). Its next peaks are tried, each verified on the image.
             for candidate in self._log_polar.candidates(ANGLE_CANDIDATES)[1:]:
-                other = self._turn_from(mean, spectrum, candidate, filtered)
+                other = self._refined_far(mean, self._turn_from(mean, spectrum, candidate, filtered), filtered)
                 if other.sharpness > 0.0:
                     turn = other
                     break
-        if turn.sharpness > 0.0 and self._moved_far(turn):
-            turn = self._on_overlap(mean, turn, filtered)
         return self._fit_turned(image, mean, spectrum, turn, snr_db, filtered)
+
+    def _refined_far(self, mean: float, turn: Turn, filtered: bool) -> Turn:
+        """``turn`` refined again on the scene both images show when the view moved far
+        (:meth:`_refine_on_overlap`, also where the first refinement found no top: its
+        windows, moved with the content, cut at the frame's edge), else as it is."""
+        return self._on_overlap(mean, turn, filtered) if self._moved_far(turn) else turn
 
     def _moved_far(self, turn: Turn) -> bool:
         """Whether the view moved by more than ``OVERLAP_ABOVE`` of the field."""
@@ -295,20 +302,35 @@ class MotionEstimator:
         if refined.sharpness > 0.0:
             return turn._replace(angle=refined.angle, sharpness=refined.sharpness, shift=refined.shift,
                                  correlation=refined.correlation, match=refined.match)
-        return turn._replace(correlation=0.0, match=0.0)
+        return turn._replace(sharpness=0.0, correlation=0.0, match=0.0)
+
+    def _scanned_angles(self, mean: float, step_deg: float = SCAN_STEP_DEG, count: int = ANGLE_CANDIDATES) -> list[float]:
+        """The ``count`` turns (within [-90, 90), every ``step_deg``) at which the search's
+        peak on the halved frame turned back is highest, as it is or turned by 180
+        degrees (both from one spectrum, see :meth:`HalfResolution.half_turn_heights`),
+        local tops only, highest first."""
+        angles = np.arange(-90.0, 90.0, step_deg)
+        heights = np.array([self._half.half_turn_heights(self._half_search(mean, float(angle))[1],
+                                                         self._half.reference_conjugate).best for angle in angles])
+        tops = (heights >= np.roll(heights, 1)) & (heights > np.roll(heights, -1))
+        order = np.flatnonzero(tops)[np.argsort(heights[tops])[::-1]][:count]
+        return [float(angles[index]) for index in order]
 
     def _best_of(self, mean: float, spectrum: np.ndarray, candidates: list[float], filtered: bool) -> Turn:
         """Of the candidate angles, each as it is and turned by 180 degrees, the one whose
         refined angle correlates best with the reference (on the scene both show, when
-        the view moved far)."""
-        best = None
+        the view moved far); its ``distinct``: how much more the runner-up (another
+        angle, more than a degree away) misses of a perfect correlation than it does."""
+        turns = []
         for candidate in candidates:
             for flip in (False, True):
-                turn = self._turn_from(mean, spectrum, candidate, filtered, flip=flip)
-                if turn.sharpness > 0.0:
-                    turn = self._on_overlap(mean, turn, filtered) if self._moved_far(turn) else turn
-                if best is None or turn.correlation > best.correlation:
-                    best = turn
+                turns.append(self._refined_far(mean, self._turn_from(mean, spectrum, candidate, filtered, flip=flip),
+                                               filtered))
+        best = max(turns, key=lambda turn: turn.correlation)
+        others = [turn.correlation for turn in turns
+                  if turn.sharpness > 0.0 and abs((turn.angle - best.angle + 180) % 360 - 180) > 1.0]
+        if others and best.correlation < 1.0:
+            return best._replace(distinct=(1.0 - max(others)) / (1.0 - best.correlation))
         return best
 
     def _turn_from(self, mean: float, spectrum: np.ndarray, angle: float, filtered: bool,
@@ -462,7 +484,8 @@ class MotionEstimator:
                     filtered: bool) -> Motion:
         """The final fit of the frame turned back by the refined angle (``spectrum``: the
         frame's own, used as it is below ``DEROTATE_ABOVE_DEG``)."""
-        rotation_confidence = min(confidence_from_sharpness(turn.sharpness), confidence_from_match(turn.match))
+        rotation_confidence = min(confidence_from_sharpness(turn.sharpness), confidence_from_match(turn.match),
+                                  confidence_from_distinct(turn.distinct))
         if self.precision == "fast":
             # On the halved frame turned back, under the full-resolution window moved by
             # the whole-pixel shift and halved (as the fast fit's reference).

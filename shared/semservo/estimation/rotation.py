@@ -62,6 +62,20 @@ def confidence_from_match(match: float) -> float:
     return float(1.0 - np.exp(-max(match - MATCH_FLOOR, 0.0) / MATCH_SCALE))
 
 
+#: When several angles were tried, the best one's ``distinct`` (how much more the
+#: runner-up misses of a perfect correlation) at which the confidence is 1 - 1/e above 1:
+#: a scene that a wrong turn matches almost as well (a field mostly filled by a hole's
+#: disc, which looks alike at every turn about its own centre) cannot tell the angle.
+DISTINCT_SCALE = 1.0
+
+
+def confidence_from_distinct(distinct: float) -> float:
+    """Map the best angle's distinctness to [0, 1]: ``1 - exp(-(distinct - 1) / DISTINCT_SCALE)``."""
+    if not np.isfinite(distinct):
+        return 1.0
+    return float(1.0 - np.exp(-max(distinct - 1.0, 0.0) / DISTINCT_SCALE))
+
+
 def confidence_from_sharpness(sharpness: float) -> float:
     """Map the rotation's sharpness to [0, 1]: ``1 - exp(-sharpness / SHARPNESS_SCALE)``."""
     return float(1.0 - np.exp(-max(sharpness, 0.0) / SHARPNESS_SCALE))
