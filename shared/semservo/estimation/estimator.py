@@ -40,6 +40,9 @@ DEROTATE_ABOVE_DEG = 0.05
 UNDECIDED_BELOW = 3.5
 #: Then the search's peak is also scanned over turns this far apart (degrees).
 SCAN_STEP_DEG = 1.5
+#: The least weight the windows over the shared scene may keep, as a fraction of the
+#: fixed window's: a view moved (or turned) so far that they keep less shares too little.
+MIN_OVERLAP = 0.1
 #: Views moved by more than this fraction of the frame's side (along rows or columns)
 #: have their turn refined again under windows over the scene both images share
 #: (``MotionEstimator._refine_on_overlap``).
@@ -412,7 +415,10 @@ class MotionEstimator:
         residual = turn.angle - turned_back
         middle = int(np.clip(round(residual / probes.step_deg), -SMALL_TURN_PROBES, SMALL_TURN_PROBES))
         search = turn.search.shift
-        windows = overlap_windows(half.moved_window(0, 0), turned_back, (search.dy / 2, search.dx / 2))
+        window = half.moved_window(0, 0)
+        windows = overlap_windows(window, turned_back, (search.dy / 2, search.dx / 2))
+        if windows.reference.sum() < MIN_OVERLAP * window.sum():
+            return Refined(turn.angle, 0.0, turn.shift)  # too little shared to tell a turn
         spectrum = np.array(half.weighted_spectrum(frame, windows.frame))
         frame_fraction = half.band_signal_fraction(spectrum, windows.frame, probes.half_noise, filtered)
         reference_fraction = []
