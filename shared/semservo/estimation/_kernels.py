@@ -420,3 +420,15 @@ def kernel_autocovariances(frame: np.ndarray, kernel: int, out: np.ndarray) -> N
             out[block_row, block_col, 1] = zero / count
             out[block_row, block_col, 2] = (along1 + down1) / (2 * pairs1)
             out[block_row, block_col, 3] = (along2 + down2) / (2 * pairs2)
+
+
+@_jit
+def band_power(spectrum: np.ndarray, band_rows: np.ndarray, weights: np.ndarray) -> float:
+    """sum of weights[i, j] |spectrum[band_rows[i], j]|^2 over the band (float64)."""
+    total = 0.0
+    for i in range(band_rows.size):
+        row = band_rows[i]
+        for j in range(weights.shape[1]):
+            value = spectrum[row, j]
+            total += weights[i, j] * (value.real * value.real + value.imag * value.imag)
+    return total

@@ -46,7 +46,7 @@ MIN_OVERLAP = 0.1
 #: Views moved by more than this fraction of the frame's side (along rows or columns)
 #: have their turn refined again under windows over the scene both images share
 #: (``MotionEstimator._refine_on_overlap``).
-OVERLAP_ABOVE = 0.04
+OVERLAP_ABOVE = 0.08
 
 
 class Refined(NamedTuple):
@@ -313,8 +313,12 @@ class MotionEstimator:
         degrees (both from one spectrum, see :meth:`HalfResolution.half_turn_heights`),
         local tops only, highest first."""
         angles = np.arange(-90.0, 90.0, step_deg)
-        heights = np.array([self._half.half_turn_heights(self._half_search(mean, float(angle))[1],
-                                                         self._half.reference_conjugate).best for angle in angles])
+        heights = []
+        for angle in angles:
+            search, spectrum = self._half_search(mean, float(angle))
+            heights.append(self._half.half_turn_heights(spectrum, self._half.reference_conjugate,
+                                                        as_is=search.height).best)
+        heights = np.array(heights)
         tops = (heights >= np.roll(heights, 1)) & (heights > np.roll(heights, -1))
         order = np.flatnonzero(tops)[np.argsort(heights[tops])[::-1]][:count]
         return [float(angles[index]) for index in order]
@@ -350,7 +354,7 @@ class MotionEstimator:
             reference = self._half.reference_conjugate
         # theta or theta + 180? The magnitude spectrum cannot tell; the translation
         # peak can: compare it with the peak of the image turned by 180 degrees.
-        heights = self._half.half_turn_heights(searched, reference)
+        heights = self._half.half_turn_heights(searched, reference, as_is=search.height)
         if heights.turned_is_better if flip is None else flip:
             angle += 180.0 if angle < 0 else -180.0
             search, _ = self._half_search(mean, angle)
@@ -513,7 +517,8 @@ class MotionEstimator:
         turned = rotate_about_centre(image, -angle, self._full.frame_buffer()) if derotated else image
         spectrum = self._full.spectrum(turned, mean)
         search = self._half.search_full(spectrum)
-        if self._half.half_turn_heights(self._half.cropped, self._half.cropped_reference_conjugate).turned_is_better:
+        if self._half.half_turn_heights(self._half.cropped, self._half.cropped_reference_conjugate,
+                                        as_is=search.height).turned_is_better:
             angle += 180.0 if angle < 0 else -180.0
             derotated = True
             spectrum = self._full.spectrum(rotate_about_centre(image, -angle, self._full.frame_buffer()), mean)

@@ -305,21 +305,23 @@ class HalfResolution:
         # Block means are centred half a search pixel in: the shift scales exactly.
         return BandFit(fit.dy * 2, fit.dx * 2, fit.correlation)
 
-    def half_turn_heights(self, search_spectrum: np.ndarray, reference_conjugate: np.ndarray) -> "HalfTurnHeights":
+    def half_turn_heights(self, search_spectrum: np.ndarray, reference_conjugate: np.ndarray,
+                          as_is: float | None = None) -> "HalfTurnHeights":
         """How well the frame as it is and the frame turned by 180 degrees match the
         reference: for a real image under a symmetric window the turned spectrum is the
         conjugate (up to a one-pixel shift that does not change the peak height), so the
         two phase-correlation peaks of a spectrum of this resolution are compared. (On
         the spectra's low-frequency quarter, as before, a scene dominated by a centrally
         symmetric shape, a hole's disc, chose the wrong one when the view had moved by a
-        fifth of the field: the detail that tells them apart is above that band.) Uses
-        the plans' inverse buffer."""
+        fifth of the field: the detail that tells them apart is above that band.)
+        ``as_is``: the frame's own peak when the search has just measured it on these
+        spectra (its height). Uses the plans' inverse buffer."""
         heights = []
-        for spectrum in (search_spectrum, np.conj(search_spectrum)):
+        for spectrum in ((search_spectrum,) if as_is is None else ()) + (np.conj(search_spectrum),):
             _kernels.normalized_cross_power_into(spectrum, reference_conjugate, self.no_weight, False,
                                                  self.plans.inverse.input_array)
             heights.append(float(self.plans.inverse(normalise_idft=True).max()))
-        return HalfTurnHeights(*heights)
+        return HalfTurnHeights(*([as_is] if as_is is not None else []), *heights)
 
     def moved_window(self, row_shift: int, col_shift: int) -> np.ndarray:
         """Block means of the full-resolution window moved by whole pixels (kept per
@@ -344,19 +346,16 @@ class HalfResolution:
         noisy views of one scene correlate at most by the square root of the product
         of their fractions."""
         band = self.filtered_fit_band if filtered else self.fit_band
-        values = spectrum[band.rows, :band.weights.shape[1]].astype(np.complex128)
-        power = float((band.weights * (values.real * values.real + values.imag * values.imag)).sum())
-        noise = noise_variance * float(np.square(weights, dtype=np.float64).sum()) * float(band.weights.sum())
+        power = _kernels.band_power(spectrum, band.rows, band.weights)
+        noise = noise_variance * float(np.vdot(weights, weights)) * band.total_weight
         return max(0.0, 1.0 - noise / power) if power > 0 else 0.0
 
     def weighted_spectrum(self, halved: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """FFT of an image of this resolution under ``weights``, less its weighted mean
         (so the weights' own spectrum does not leak into the band). The plan's buffer."""
         total = float(weights.sum())
-        mean = float((halved * weights).sum() / total) if total > 0 else 0.0
-        windowed = self.plans.forward.input_array
-        np.subtract(halved, mean, out=windowed)
-        windowed *= weights
+        mean = float(np.vdot(halved, weights)) / total if total > 0 else 0.0
+        _kernels.apodize_into(halved, mean, weights, 0, 0, self.plans.forward.input_array)
         return self.plans.forward()
 
     def windowed_spectrum(self, halved: np.ndarray, mean: float, shift: Shift) -> np.ndarray:

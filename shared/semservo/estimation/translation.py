@@ -89,6 +89,10 @@ class PhasePlaneBand:
     frequency_cols: np.ndarray  # cycles/pixel of the first columns
     weights: np.ndarray  # (rows, cols)
 
+    @property
+    def total_weight(self) -> float:
+        return float(self.weights.sum())
+
     @classmethod
     def for_shape(cls, shape: tuple[int, int], band: float, extra_weight: np.ndarray | None = None) -> "PhasePlaneBand":
         rows, cols = shape
