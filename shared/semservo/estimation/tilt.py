@@ -167,10 +167,13 @@ class FocusCurves(NamedTuple):
 
 def noise_free_focus_curves(sweep: np.ndarray, kernel: int) -> FocusCurves:
     """Eq. 13 for every k x k kernel of every frame, with the pixel noise's share taken
-    out: the kernel's autocovariance at lags 1 and 2 (along rows and columns) holds the
-    scene only (pixel noise is uncorrelated from pixel to pixel), so the scene's
-    variance is their extrapolation to lag 0, (4 R(1) - R(2)) / 3 (the split of
-    :func:`semservo.estimation.estimate_snr_db`), and the noise's is the rest of R(0).
+    out. The kernel's autocovariance at lags 1 and 2 (along rows and columns) holds the
+    scene only (pixel noise is uncorrelated from pixel to pixel), so the noise's share
+    of R(0) is what lies beyond their extrapolation to lag 0, (4 R(1) - R(2)) / 3 (the
+    split of :func:`semservo.estimation.estimate_snr_db`). That split counts detail
+    sharp at the pixel scale as noise, and shot noise does not change with focus (it
+    goes with the kernel's mean): so each kernel's noise share is the median of its
+    split over the sweep, and the scene's is the rest of R(0), over the mean.
 
     Why: shot noise adds to eq. 13's variance over the mean a floor that does not
     change with focus (for Poisson noise the same in every kernel), which flattens the
@@ -190,9 +193,14 @@ def noise_free_focus_curves(sweep: np.ndarray, kernel: int) -> FocusCurves:
     scene = (4 * lag1 - lag2) / 3
     positive = mean > 0
     safe_mean = np.where(positive, mean, 1.0)
-    signal = np.where(positive, scene / safe_mean, 0.0)
     noise = np.where(positive, np.maximum(zero_lag - scene, 0.0) / safe_mean, 0.0)
-    return FocusCurves(signal, noise, kernel * kernel)
+    # The split is exact for a scene smooth at the pixel scale (out of focus) but counts
+    # detail sharp at the pixel scale (in focus) as noise. The noise's share does not
+    # change with focus (shot noise goes with the kernel's mean, which focus keeps), so
+    # each kernel's is its median over the sweep, and the scene's is the rest of R(0).
+    floor = np.median(noise, axis=0)
+    signal = np.where(positive, zero_lag / safe_mean, 0.0) - floor
+    return FocusCurves(signal, np.broadcast_to(floor, noise.shape), kernel * kernel)
 
 
 def clear_focus_peaks(curves: FocusCurves, working_distances: np.ndarray) -> np.ndarray:
