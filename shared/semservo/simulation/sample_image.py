@@ -402,6 +402,21 @@ def environment_from_arguments(args: argparse.Namespace) -> dict[str, str]:
     return variables
 
 
+def find_picture(name: str | Path) -> Path:
+    """A picture's path: a file as given, or a name (with or without its suffix) in the
+    real SEM images' folder (``../shared/data/sem-images``, ``SEMSERVO_SEM_IMAGES``)."""
+    from semservo.config import find_sem_images
+
+    path = Path(name)
+    if path.is_file():
+        return path.resolve()
+    folder = find_sem_images()
+    for candidate in (folder / str(name), folder / f"{name}.tif", folder / f"{name}.png"):
+        if candidate.is_file():
+            return candidate
+    raise SampleImageError(f"no picture {str(name)!r}: not a file, nor a name in {folder}")
+
+
 def from_settings(settings) -> SampleImage | None:
     """The fake lab's sample image from its settings (:class:`semservo.config.FakelabSettings`),
     or None without one."""
