@@ -228,6 +228,15 @@ def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path, run_
             final = stack.true_pose_over(*resting_interval(record["records"])) if record["records"] else stack.true_pose()
             scans = [r["frame_source_interval_s"] for r in record["records"][-3:] if r.get("frame_source_interval_s")]
             last3 = stack.true_pose_over(scans[0][0], scans[-1][1]) if scans else final
+            # The estimator against the truth on the run's last fresh frames: each
+            # estimate (dx, dy) against the true pose over that frame's scan (a stage move
+            # moves the content by the same, axis signs +1): is a final error the
+            # estimate's or the loop's?
+            fresh = [r for r in record["records"] if r.get("frame_source_interval_s") and "dx_px" in r
+                     and not r["action"].startswith("held")][-6:]
+            estimate_errors = [(np.array([r["dx_px"], r["dy_px"]])
+                                - (stack.true_pose_over(*r["frame_source_interval_s"]) - taught) / pixel_um).tolist()
+                               for r in fresh]
             later = stack.true_pose()
             moved = [r for r in record["records"] if r["action"] == "moved"]
             intervals = [r["frame_source_interval_s"] for r in record["records"] if r.get("frame_source_interval_s")]
@@ -236,7 +245,7 @@ def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path, run_
                 "offset_um": offset.tolist(), "iterations": record["outcome"]["iterations"] if record.get("outcome") else None,
                 "sim_time_s": intervals[-1][1] - intervals[0][0] if intervals else None,
                 "true_error_um": (final - taught).tolist(), "pixel_um": pixel_um,
-                "true_error_last3_um": (last3 - taught).tolist(),
+                "true_error_last3_um": (last3 - taught).tolist(), "estimate_error_px": estimate_errors,
                 "true_error_later_um": (later - taught).tolist(),
                 "latency_ms": [r["latency_ms"] for r in moved],
                 "trajectory": [{"iteration": r["iteration"], "error": r.get("error"), "cost": r.get("cost"),
@@ -312,9 +321,18 @@ def summarize(result: dict) -> dict:
         "error_px_mean": errors_px.mean(axis=0).tolist() if ok else None,
         "error_px_std": errors_px.std(axis=0).tolist() if ok else None,
         "error_px_max": errors_px.max(axis=0).tolist() if ok else None,
+        "estimate_error_px": _estimate_errors(trials),
         "error_um_mean": errors_um.mean(axis=0).tolist() if ok else None,
         "error_um_std": errors_um.std(axis=0).tolist() if ok else None,
     }
+
+
+def _estimate_errors(trials: list[dict]) -> dict | None:
+    """|estimate - truth| per axis over the trials' last fresh frames: mean and max (px)."""
+    errors = np.abs([error for t in trials for error in t.get("estimate_error_px", [])])
+    if not len(errors):
+        return None
+    return {"frames": len(errors), "mean": errors.mean(axis=0).tolist(), "max": errors.max(axis=0).tolist()}
 
 
 def plot(results: list[dict], path: Path) -> None:
@@ -376,12 +394,12 @@ def main(argv: list[str] | None = None) -> int:
     name = "positioning"
     if args.sample_images:
         name = "positioning-sample-images"
-        for name in args.sample_images:
-            if name == "scene":  # the preset's own scene, the same settings: the row to compare with
+        for picture in args.sample_images:
+            if picture == "scene":  # the preset's own scene, the same settings: the row to compare with
                 say(f"{args.sample_preset}: its own scene, {PRESETS[args.sample_preset].description}")
                 results.append(run_preset(args.sample_preset, args.trials, rng, args.out, run_settings))
                 continue
-            image = find_picture(name)
+            image = find_picture(picture)
             say(f"{image.name}: the real picture as the sample, {args.sample_preset} optics")
             results.append(run_preset(args.sample_preset, args.trials, rng, args.out, run_settings, sample=image))
     else:
@@ -405,7 +423,10 @@ def main(argv: list[str] | None = None) -> int:
         say(f"{result['preset']:24s} {summary['success']:>7s} {summary['iterations']:5.1f} {summary['sim_time_s']:6.1f}  "
             f"{px[0]:.3f}, {px[1]:.3f} ({pxs[0]:.3f}, {pxs[1]:.3f})  {um[0]:.4f}, {um[1]:.4f} ({ums[0]:.4f}, {ums[1]:.4f})  "
             f"{'%.2f, %.2f' % paper if paper else '-':>13s}  "
-            f"{summary['error_px_max'][0]:.3f}, {summary['error_px_max'][1]:.3f}")
+            f"{summary['error_px_max'][0]:.3f}, {summary['error_px_max'][1]:.3f}"
+            + (f"  estimate - truth, last frames: mean {summary['estimate_error_px']['mean'][0]:.3f}, "
+               f"{summary['estimate_error_px']['mean'][1]:.3f}, max {summary['estimate_error_px']['max'][0]:.3f}, "
+               f"{summary['estimate_error_px']['max'][1]:.3f} px" if summary["estimate_error_px"] else ""))
     if latencies:
         say(f"\nLatency frame published -> voltage command written, {len(latencies)} moves in the runs above: "
             f"p50 {np.percentile(latencies, 50):.2f} ms, p99 {np.percentile(latencies, 99):.2f} ms")

@@ -120,13 +120,14 @@ def summarize_runs(runs: list[dict]) -> dict:
 def sample_image_runs(args, rng: np.random.Generator) -> int:
     """The 5-DOF runs on real pictures as the sample, under the tilts preset's optics and
     as if photographed at its scan pixel, each scene with the same random starts."""
+    from semservo.client import SemservoError
     from semservo.simulation.sample_image import find_picture, scan_pixel_um
     from semservo.simulation.world import PRESETS
 
     starts = random_starts(rng, args.runs)
     pixel_nm = scan_pixel_um(PRESETS["tilts"].magnification, 512) * 1000
     tolerance = 0.1 if args.tolerance_px is None else args.tolerance_px
-    output = {"run_settings": {"tolerance_px": tolerance}, "scenes": {}}
+    output = {"run_settings": {"tolerance_px": tolerance, "converge_on": args.converge_on}, "scenes": {}}
     for name in args.sample_images:
         environment = {}
         if name != "scene":
@@ -136,19 +137,27 @@ def sample_image_runs(args, rng: np.random.Generator) -> int:
                            "SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM": f"{pixel_nm:.6g}"}
         say(f"\n{name}: {len(starts)} 5-DOF runs through the whole stack (fake lab x{args.speedup:g}, tilts preset's "
             f"optics, tolerance {tolerance:g} px)")
-        runs = five_dof_runs(starts, speedup=args.speedup, say=say, environment=environment,
-                             run_settings={"tolerance_px": tolerance})
+        try:
+            runs = five_dof_runs(starts, speedup=args.speedup, say=say, environment=environment,
+                                 run_settings={"tolerance_px": tolerance, "converge_on": args.converge_on})
+        except SemservoError as error:  # e.g. a picture whose focus sweep cannot tell the tilts
+            say(f"{name}: refused: {error}")
+            output["scenes"][name] = {"refused": str(error)}
+            continue
         print_runs(runs, first="1")
         summary = summarize_runs(runs)
         say(f"{name}: {summary['converged']}/{summary['runs']} converged; true final tilts {summary['tilt_deg']}, "
             f"gamma {summary['gamma_deg']}, view {summary['view_px']} px")
         output["scenes"][name] = {"summary": summary, "runs": [{key: value for key, value in run.items()
                                                                  if key != "trajectory"} for run in runs]}
-        (RESULTS / "tilt-sample-images.json").write_text(json.dumps(output, indent=1, default=float))
+        (RESULTS / f"tilt-sample-images-{args.converge_on}.json").write_text(json.dumps(output, indent=1, default=float))
     say("\n| scene | converged | iterations | true final tilts mean / max (deg) | gamma mean / max (deg) | "
         "view x, y mean / max (px) |")
     say("| --- | --- | --- | --- | --- | --- |")
     for name, scene in output["scenes"].items():
+        if "refused" in scene:
+            say(f"| {name} | refused: {scene['refused']} | | | | |")
+            continue
         summary = scene["summary"]
 
         def cell(entry, digits=3):
@@ -156,7 +165,7 @@ def sample_image_runs(args, rng: np.random.Generator) -> int:
 
         say(f"| {name} | {summary['converged']}/{summary['runs']} | {summary['iterations'] or math.nan:.0f} | "
             f"{cell(summary['tilt_deg'])} | {cell(summary['gamma_deg'], 4)} | {cell(summary['view_px'])} |")
-    say(f"\nwrote {RESULTS / 'tilt-sample-images.json'}")
+    say(f"\nwrote {RESULTS / f'tilt-sample-images-{args.converge_on}.json'}")
     return 0
 
 
@@ -171,9 +180,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sample-images", nargs="+", metavar="IMAGE",
                         help="only the 5-DOF runs, on real pictures as the sample (files, or names of "
                              "../shared/data/sem-images; 'scene' for the tilts preset's own scene, with the same "
-                             "settings); writes tilt-sample-images.json")
+                             "settings); writes tilt-sample-images-{mean,each}.json")
     parser.add_argument("--tolerance-px", type=float, default=None,
                         help="the runs' x, y tolerance (default 0.3 px; 0.1 with --sample-images)")
+    parser.add_argument("--converge-on", choices=["mean", "each"], default="mean",
+                        help="with --sample-images: converged when the mean of the last frames' errors is within "
+                             "tolerance (default), or each one")
     args = parser.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
