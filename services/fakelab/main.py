@@ -16,9 +16,7 @@ import logging
 import os
 import threading
 import time
-from dataclasses import asdict
 
-import numpy as np
 import pydantic
 import zmq
 
@@ -28,9 +26,9 @@ from semservo.messages import Reply, ScanRequest
 from semservo.service import ServiceRuntime
 from semservo.simulation import sample_image
 from semservo.simulation.world import PRESETS, World
-from semservo.transport import BadRequest, number
 from semservo.wire import encode_frame, frame_header
 from services.fakelab.acquisition import FolderWriter
+from services.fakelab.commands import FakeLab, handlers
 from services.fakelab.emulator import ChannelState, NV403Emulator
 from services.fakelab.scan import scan_settings
 from services.fakelab.serial_links import PseudoTerminalLink, TcpLink
@@ -172,76 +170,10 @@ def main(argv: list[str] | None = None) -> int:
     log.info("SEM scans on %s, preset %s (%s), speed-up x%g", connect(config.host, config.scan_port),
              preset_name, world.preset.description, world.speedup)
 
-    def describe(_args: dict) -> dict:
-        return {**world.describe(), "serial_pty": pty.path if pty else None,
-                "serial_tcp": tcp.url.replace(settings.bind_host, config.host),
-                "scan_endpoint": connect(config.host, config.scan_port)}
-
-    def pose(args: dict) -> dict:
-        """The true pose now, or at a past simulated time ``t_s`` (e.g. when a frame was
-        scanned: frame labels carry it), or averaged over a scan ``interval_s`` (t0, t1):
-        what a frame shows, with the vibration averaged out as the scan averages it."""
-        if "interval_s" in args:
-            interval = args["interval_s"]
-            if not isinstance(interval, list) or len(interval) != 2:
-                raise BadRequest("interval_s must be two numbers (simulated seconds)")
-            start, end = (simulated_time(value, "interval_s") for value in interval)
-            if start > end:
-                raise BadRequest(f"interval_s must be ordered, got {start:g} > {end:g}")
-            samples = [asdict(world.pose(t)) for t in np.linspace(start, end, 64)]
-            return {"interval_s": [start, end], "world_id": world.id,
-                    **{key: float(np.mean([sample[key] for sample in samples])) for key in samples[0]}}
-        when = simulated_time(args["t_s"], "t_s") if "t_s" in args else world.now()
-        return {"t_s": when, "world_id": world.id, **asdict(world.pose(when)),
-                "voltages": [world.voltage(channel) for channel in (0, 1, 2)]}
-
-    def simulated_time(value, name: str) -> float:
-        """A past simulated time: a finite number of seconds from 0 to now."""
-        value, now = number(value, name, "simulated seconds"), world.now()
-        if value > now:
-            raise BadRequest(f"{name} {value!r} is in the future (now {now:.3f} s)")
-        if value < 0:
-            raise BadRequest(f"{name} must be a past simulated time, 0..{now:.3f} s, got {value!r}")
-        return value
-
-    def set_rotation_stage(args: dict) -> dict:
-        """``set_rotation_stage {rotation_deg?, tilt_x_deg?, tilt_y_deg?, halt?}``: send
-        the rotation-and-tilt stage towards these angles (it moves at its own speed), or
-        halt it; always says where it is, where it is going and when it gets there."""
-        halt = args.pop("halt", False)
-        if not isinstance(halt, bool):
-            raise BadRequest("halt must be true or false")
-        angles = {key: number(value, key, "degrees") for key, value in args.items()}
-        try:
-            if halt:
-                world.halt_rotation_stage()
-            world.set_rotation_stage(**angles)
-        except (TypeError, ValueError) as error:
-            raise BadRequest(str(error)) from None
-        return {**world.rotation_stage, "targets_deg": world.goniometer.targets(),
-                "settles_in_s": world.rotation_stage_settles_in_s()}
-
-    def set_preset(args: dict) -> dict:
-        name = args.get("preset")
-        if not isinstance(name, str) or name not in PRESETS:
-            raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
-        world.set_preset(PRESETS[name])  # not while a frame renders with the old SEM; the sample image stays
-        return describe({})
-
-    def serial_link(args: dict) -> dict:
-        """Pull (``{"plugged": false}``) or plug back the serial cable."""
-        if "plugged" in args:
-            if not isinstance(args["plugged"], bool):
-                raise BadRequest("plugged must be true or false")
-            (plugged.set if args["plugged"] else plugged.clear)()
-            log.warning("serial cable %s", "plugged in" if args["plugged"] else "PULLED")
-        return {"plugged": plugged.is_set()}
-
-    runtime.control.register("info", describe)
-    runtime.control.register("serial_link", serial_link)
-    runtime.control.register("pose", pose)
-    runtime.control.register("set_rotation_stage", set_rotation_stage)
-    runtime.control.register("set_preset", set_preset)
+    lab = FakeLab(world, plugged, lambda: {"serial_pty": pty.path if pty else None,
+                                           "serial_tcp": tcp.url.replace(settings.bind_host, config.host),
+                                           "scan_endpoint": connect(config.host, config.scan_port)})
+    handlers.bind(runtime.control, lab)
     runtime.details = lambda: {"preset": world.preset.name, "world_id": world.id, "sample": world.preset.scene,
                                "serial_pty": pty.path if pty else None, "serial_tcp": tcp.url, "frames": world.frames,
                                "scanning": scanner.healthy}

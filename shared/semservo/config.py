@@ -14,7 +14,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field, PositiveFloat, SecretStr
+from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 #: Screen size constant of the paper's SEM: P = D / G (eq. 43) with D = 212.3 um for a
@@ -61,6 +61,20 @@ def find_sem_images() -> Path:
     """Where the real SEM images of other instruments lie:
     ``<repo>/../shared/data/sem-images`` (``SEMSERVO_SEM_IMAGES`` points elsewhere)."""
     return Path(os.environ.get("SEMSERVO_SEM_IMAGES") or _find_shared_data(SEM_IMAGES_NAME, "README.md"))
+
+
+def _integer_text(value):
+    """An environment variable is text: "-1" is the sign -1."""
+    if isinstance(value, str):
+        try:
+            return int(value.strip())
+        except ValueError:
+            return value
+    return value
+
+
+#: A sign, +1 or -1 (from an environment variable as well as from JSON).
+Sign = Annotated[Literal[-1, 1], BeforeValidator(_integer_text)]
 
 
 class ImageServerSettings(BaseModel):
@@ -187,6 +201,9 @@ class StageSettings(BaseModel):
     rotation_stage: Literal["none", "fakelab"] = Field(
         "fakelab", description="the rotation-and-tilt stage this service drives: the fake lab's simulated one, or none")
     max_turn_deg: PositiveFloat = Field(30.0, le=360, description="largest turn or tilt one command may ask (degrees)")
+    settle_s: dict[str, Annotated[float, Field(ge=0, le=60)]] = Field(
+        default_factory=dict, description="axis -> seconds the axis takes to settle after a move (default 0.01): a "
+                                          "frame scanned before then shows it moving")
 
 
 class ControllerSettings(BaseModel):
@@ -197,9 +214,23 @@ class ControllerSettings(BaseModel):
     status_port: int = Field(5581, ge=1, le=65535, description="PUB socket: status and per-iteration records")
     runs_dir: Path = Field(Path("runs"), description="where run records (JSON) are written")
     watchdog_s: PositiveFloat = Field(3.0, le=600, description="the stage holds if the controller is silent this long")
-    axis_signs: tuple[int, int] = Field((1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
-    orientation_deg: float = Field(0.0, description="camera-to-stage: stage x axis in the image, counter-clockwise")
-    rotation_sign: Literal[-1, 1] = 1
+    axis_signs: tuple[Sign, Sign] = Field(
+        (1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
+    orientation_deg: float = Field(0.0, ge=-360, le=360, description="camera-to-stage: stage x axis in the image, "
+                                                                     "counter-clockwise")
+    rotation_sign: Sign = Field(1, description="camera-to-stage: +1 if a positive turn of the rotation "
+                                                         "stage turns the content counter-clockwise")
+    tilt_signs: tuple[Sign, Sign] = Field(
+        (1, 1), description="camera-to-stage: +1 if a positive stage tilt about x / y tilts the surface by +alpha / "
+                            "+beta (semservo.estimation.tilt's convention)")
+
+    def camera_to_stage(self):
+        """The camera-to-stage transform these settings describe: the one every part that
+        turns image motion into stage motion uses (the controller, the gateway's
+        click-to-move, ``semservo calibrate``)."""
+        from semservo.control import CameraToStage
+
+        return CameraToStage(tuple(self.axis_signs), self.orientation_deg, self.rotation_sign, tuple(self.tilt_signs))
 
 
 class GatewaySettings(BaseModel):

@@ -51,6 +51,13 @@ class AcquiredImage(ImageMetadata):
         return {key: getattr(self, key) for key in ACQUISITION_FIELDS if getattr(self, key) is not None}
 
 
+def capabilities(source: Any) -> set[str]:
+    """What an image source can do beyond acquiring frames (``scan_settings``,
+    ``focus``, ``scan_once``): from its ``capabilities()``, none when it has none."""
+    method = getattr(source, "capabilities", None)
+    return set(method()) if callable(method) else set()
+
+
 class SourceUnavailable(RuntimeError):
     """The source cannot deliver a frame now (the microscope does not answer, the
     scan failed). The image server says so in health and asks again a second later."""
@@ -120,8 +127,34 @@ class ImageSourceAdapter(abc.ABC):
 
     def set_working_distance(self, working_distance_mm: float) -> float:
         """Focus at this working distance (the tilt measurement sweeps it); returns the
-        working distance now set."""
+        working distance now set. With it (and :meth:`working_distance`), the image
+        server serves focus sweeps from this adapter (:meth:`scan_at_focus`)."""
         raise NotSupported(f"{self.name} cannot set the focus")
+
+    def working_distance(self) -> float:
+        """The working distance (mm) the instrument is focused at now. Optional: without
+        it, a focus sweep is centred on the working distance of the last frame."""
+        raise NotSupported(f"{self.name} does not say its working distance")
+
+    def capabilities(self) -> set[str]:
+        """What this adapter can do beyond acquiring: ``scan_settings``, ``focus``.
+        Found from what the class implements, so an adapter states nothing twice."""
+        found = set()
+        if type(self).set_scan is not ImageSourceAdapter.set_scan:
+            found.add("scan_settings")
+        if type(self).set_working_distance is not ImageSourceAdapter.set_working_distance:
+            found.add("focus")
+        return found
+
+    def scan_at_focus(self, offset_um: float, nominal_mm: float) -> AcquiredImage:
+        """One frame focused ``offset_um`` (um, larger deeper) from ``nominal_mm``: a
+        frame of a focus sweep (the image server pauses the stream meanwhile, and sets
+        the focus back to ``nominal_mm`` when the sweep ends)."""
+        self.set_working_distance(nominal_mm + offset_um / 1000.0)
+        image = self.acquire()
+        if image is None:
+            raise SourceUnavailable(f"{self.name} ended during a focus sweep")
+        return image
 
 
 # -- stage drivers -------------------------------------------------------------------------

@@ -26,6 +26,7 @@ import numpy as np
 import pydantic
 import zmq
 
+from semservo.errors import BadRequest, CommandError, RequestCancelled, ServiceUnavailable, describe_validation_error
 from semservo.messages import FRAME_TOPIC, Reply, Request
 from semservo.security import default_context
 from semservo.wire import Frame, WireError, decode_frame, encode_frame, frame_header
@@ -204,24 +205,6 @@ class MessageSubscriber:
         self.socket.close(linger=0)
 
 
-class ServiceUnavailable(RuntimeError):
-    """No reply from a service after every try."""
-
-
-class RequestCancelled(ServiceUnavailable):
-    """The caller gave up waiting for a reply (e.g. the service is stopping): for the
-    caller, the service did not answer."""
-
-
-class CommandError(RuntimeError):
-    """The service answered, and the answer was an error."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(f"{code}: {message}")
-        self.code = code
-        self.message = message
-
-
 class ControlClient:
     """Lazy-pirate request-reply client for one service's control socket."""
 
@@ -290,7 +273,7 @@ class ControlClient:
         raw = self.request_raw(payload, timeout_s=timeout_s, retries=retries)
         reply = Reply.model_validate_json(raw)
         if not reply.ok:
-            raise CommandError(reply.error.code, reply.error.message)
+            raise CommandError(reply.error.code, reply.error.message, **(reply.error.details or {}))
         return reply.result or {}
 
     def close(self) -> None:
@@ -299,9 +282,8 @@ class ControlClient:
 
 Handler = Callable[[dict[str, Any]], dict[str, Any] | None]
 
-
-class BadRequest(ValueError):
-    """Raised by a command handler for arguments it cannot accept; sent as ``bad_request``."""
+__all__ = ["BadRequest", "CommandError", "ControlClient", "ControlServer", "FramePublisher", "FrameSubscriber",
+           "MessagePublisher", "MessageSubscriber", "RequestCancelled", "ServiceUnavailable", "number"]
 
 
 def number(value: Any, name: str, unit: str = "") -> float:
@@ -340,11 +322,11 @@ class ControlServer:
     def register(self, command: str, handler: Handler) -> None:
         self.handlers[command] = handler
 
-    def _reject(self, code: str, message: str) -> Reply:
+    def _reject(self, code: str, message: str, details: dict[str, Any] | None = None) -> Reply:
         self.counters[f"rejected_{code}"] += 1
         self.last_error = f"{code}: {message}"
         log.warning("rejected a request: %s: %s", code, message)
-        return Reply.failure(code, message)
+        return Reply.failure(code, message, details)
 
     def _answer(self, parts: list[bytes]) -> Reply:
         if len(parts) != 1:
@@ -357,8 +339,7 @@ class ControlServer:
             first = error.errors()[0]
             if first["loc"] == ("v",):
                 return self._reject("version", f"unsupported wire version: {first['msg']}")
-            where = ".".join(str(item) for item in first["loc"]) or "request"
-            return self._reject("bad_request", f"{where}: {first['msg']}")
+            return self._reject("bad_request", describe_validation_error(error))
         handler = self.handlers.get(request.command)
         if handler is None:
             known = ", ".join(sorted(self.handlers))
@@ -366,10 +347,8 @@ class ControlServer:
         self.counters[f"command_{request.command}"] += 1
         try:
             return Reply.success(handler(request.args))
-        except BadRequest as error:
-            return self._reject("bad_request", str(error))
-        except CommandError as error:  # a refusal with its own code (e.g. a stage limit)
-            return self._reject(error.code, error.message)
+        except CommandError as error:  # a refusal with its code (bad_request, or a rule such as a stage limit)
+            return self._reject(error.code, error.message, error.extra)
         except Exception as error:  # a handler bug must not take the service down
             log.exception("command %s failed", request.command)
             return self._reject("internal", f"{type(error).__name__}: {error}")

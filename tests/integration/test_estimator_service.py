@@ -134,9 +134,9 @@ def test_bad_teach_requests_are_refused_and_keep_the_previous_reference(stack):
         ({"polygon": [[1, 2], [3, 4]]}, "at least 3"),
         ({"polygon": "nonsense"}, "polygon"),
         ({"path": "/nonexistent/frame.png"}, "unreadable"),
-        ({"frames": 0}, "frames must be"),
-        ({"frames": "four"}, "frames must be"),
-        ({"frames": 17}, "frames must be"),
+        ({"frames": 0}, "frames: Input should be greater than or equal to 1"),
+        ({"frames": "four"}, "frames: Input should be a valid integer"),
+        ({"frames": 17}, "frames: Input should be less than or equal to 16"),
     ]
     for args, message in bad_requests:
         with pytest.raises(CommandError, match=message) as caught:

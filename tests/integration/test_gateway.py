@@ -235,7 +235,7 @@ def test_teach_from_an_upload_and_a_clicked_polygon(system):
 
 @pytest.mark.parametrize("script, args, expect", [
     ("position_to_target.py", [], r"converged after \d+ iterations"),
-    ("visit_targets.py", [], r"target-0.png: converged in \d+ iterations"),
+    ("visit_targets.py", [], r"target-0: converged in \d+ iterations"),
     ("hold_against_drift.py", ["3"], r"held for 3 s; largest error seen [\d.]+ px"),
 ])
 def test_the_examples_run(system, script, args, expect, tmp_path):
