@@ -238,3 +238,34 @@ def test_the_command_line_refuses_a_picture_without_a_pixel_size_before_starting
     done = subprocess.run([sys.executable, "-m", "semservo", "fakelab", "--sample-image", str(tmp_path / "nope.tif")],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode != 0 and "no such sample image file" in done.stderr
+
+
+def test_the_options_become_settings_and_the_depth_of_field_follows_the_scale(monkeypatch, tmp_path, sem_images):
+    """`--sample-*` options are SEMSERVO_FAKELAB__SAMPLE_* settings (paths made absolute);
+    the estimator's depth of field for the tilt sweeps follows the picture's scale, 2 P /
+    alpha: the tilts preset's 3.5 um at its own pixel, 35 um at ten times it."""
+    import argparse
+
+    from semservo.config import Settings
+    from semservo.simulation import sample_image
+
+    parser = argparse.ArgumentParser()
+    sample_image.add_arguments(parser)
+    monkeypatch.chdir(sem_images)
+    args = parser.parse_args(["--sample-image", "jeol_grid.tif", "--sample-pixel-nm", "70.77",
+                              "--sample-edges", "tile"])
+    variables = sample_image.environment_from_arguments(args)
+    assert variables == {"SEMSERVO_FAKELAB__SAMPLE_IMAGE": str(sem_images.resolve() / "jeol_grid.tif"),
+                         "SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM": "70.77", "SEMSERVO_FAKELAB__SAMPLE_EDGES": "tile"}
+    for name, value in {**variables, "SEMSERVO_FAKELAB__PRESET": "tilts"}.items():
+        monkeypatch.setenv(name, value)
+    settings = Settings()
+    assert settings.fakelab.sample_edges == "tile"
+    derived = sample_image.system_environment(settings)
+    assert float(derived["SEMSERVO_ESTIMATOR__TILT_DEPTH_OF_FIELD_UM"]) == pytest.approx(3.54, abs=0.01)
+    assert float(derived["SEMSERVO_ESTIMATOR__TILT_CENTRE_UM"]) == 0.0
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM", "707.7")
+    derived = sample_image.system_environment(Settings())
+    assert float(derived["SEMSERVO_ESTIMATOR__TILT_DEPTH_OF_FIELD_UM"]) == pytest.approx(35.4, abs=0.1)
+    monkeypatch.delenv("SEMSERVO_FAKELAB__SAMPLE_IMAGE")
+    assert sample_image.system_environment(Settings()) == {}
