@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     if config.save_frames_dir is not None:  # the SEM's software saving to a folder, for the watch source
         saver = FolderWriter(world, config.save_frames_dir, chunks=config.save_chunks,
                              chunk_pause_s=config.save_chunk_pause_s, interval_s=config.save_interval_s,
-                             counters=runtime.counters).start()
+                             counters=runtime.counters, keep=config.save_keep).start()
     runtime.report_errors_from(lambda: scanner.last_error or (saver and saver.last_error))
     # Said plainly on stdout: this is what a user plugs a stage service or a script into.
     if pty is not None:

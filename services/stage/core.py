@@ -63,6 +63,10 @@ UNCOMMANDED_V = 0.05
 #: A piezo stage settles within milliseconds of a step (the TRITOR's resonance is near 1 kHz);
 #: creep goes on for longer, which the loop measures and corrects.
 DEFAULT_SETTLE_S = 0.01
+#: A move's voltage step may be at most this factor times the model's steepest slope
+#: times the move, plus this slack (V): room for a reversal's minor loop, never for a jump.
+MODEL_STEP_FACTOR = 3.0
+MODEL_STEP_SLACK_V = 1.0
 #: The command log kept in memory and reloaded from disk at start.
 COMMAND_LOG_KEPT = 20_000
 
@@ -348,6 +352,20 @@ class StageCore:
                 raise Refused("rate_limit", f"{axis}: {step:.2f} V {since * 1000:.1f} ms after the last write exceeds "
                                             f"{self.limits.max_rate_v_per_s:g} V/s")
 
+    def _check_model_step(self, goal: dict[str, float], volts: dict[str, float]) -> None:
+        """A model that asks for far more voltage than the move's size can need is not to
+        be trusted: refused, said, nothing written (a model out of step with its axis once
+        turned a 0.03 um correction into an 11 V jump, a 70 px leap of the view)."""
+        for axis, target in goal.items():
+            model = self.models[axis]
+            moved_um = abs(target - model.position_um)
+            allowed_v = MODEL_STEP_SLACK_V + MODEL_STEP_FACTOR * model.max_slope_v_per_um() * moved_um
+            step_v = abs(volts[axis] - self.voltages.get(axis, volts[axis]))
+            if step_v > allowed_v:
+                raise Refused("model_jump", f"{axis}: the displacement model asks for a {step_v:.2f} V step for a "
+                                            f"{moved_um:.3f} um move (at most {allowed_v:.2f} V is plausible): the "
+                                            f"model is out of step with the axis; stop, check, resume")
+
     def _write(self, volts: dict[str, float], owner: str | None) -> dict:
         now = self.clock()
         written_at_ns = time.time_ns()
@@ -380,6 +398,7 @@ class StageCore:
             goal = _goals(targets, relative, here, travel, "travel_limit", "um")
             # Voltages from a copy of each model: a refused move must not change its state.
             volts = {axis: copy.copy(self.models[axis]).voltage_for(value) for axis, value in goal.items()}
+            self._check_model_step(goal, volts)
             self._check_voltages(volts, self.clock())
         except Refused:
             self.counters["refused"] += 1

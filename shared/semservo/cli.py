@@ -29,6 +29,7 @@ import zmq
 
 from semservo import __version__, security
 from semservo.config import Settings, connect
+from semservo.simulation.world import PRESETS
 from semservo.launcher import SERVICES, LaunchError, Launcher, spec, stage_rate_for
 from semservo.monitor import FrameStats, acquisition_text
 from semservo.messages import MOTION_TOPIC, MotionEstimate
@@ -51,7 +52,8 @@ def _source_environment(args: argparse.Namespace) -> None:
                                              and str(Path(args.watch_dir).resolve()),
         "SEMSERVO_FAKELAB__PRESET": args.preset,
         "SEMSERVO_FAKELAB__SPEEDUP": args.speedup and str(args.speedup),
-        "SEMSERVO_IMAGESERVER__REPLAY_GLOB": args.glob,
+        "SEMSERVO_IMAGESERVER__REPLAY_GLOB": args.glob if not args.watch_dir else None,
+        "SEMSERVO_IMAGESERVER__WATCH_GLOB": args.glob if args.watch_dir else None,
         "SEMSERVO_IMAGESERVER__FPS": args.fps and str(args.fps),
         "SEMSERVO_IMAGESERVER__LOOP": None if args.loop is None else str(args.loop).lower(),
         "SEMSERVO_IMAGESERVER__MAGNIFICATION": args.magnification and str(args.magnification),
@@ -697,11 +699,13 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines")
     up.add_argument("--source", choices=["sim", "replay", "watch", "adapter"],
                     help="frames from the simulated SEM (default), a replay, a watched folder or a lab's adapter")
-    up.add_argument("--preset", help="simulated condition: optimal, noisy, high-magnification, unstable, "
-                                     "high-quality-reference, mask-reference, repeated-pattern")
+    up.add_argument("--preset", choices=sorted(PRESETS), metavar="PRESET",
+                    help=f"simulated condition: {', '.join(PRESETS)} (default optimal; tilts: the small depth of "
+                         "field the tilt measurement needs)")
     up.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
     up.add_argument("--replay-dir", help="replay this folder of frames instead (default folder: the 2013 recording)")
-    up.add_argument("--glob", help="replay only files matching this pattern, e.g. 'frame*'")
+    up.add_argument("--glob", help="only files matching this pattern are frames, e.g. 'frame*' or '*.tif' (a replayed "
+                                   "folder, and a watched one with --watch-dir)")
     up.add_argument("--fps", type=float, help="replay frame rate")
     loop = up.add_mutually_exclusive_group()
     loop.add_argument("--loop", dest="loop", action="store_true", default=None, help="replay in a loop (default)")

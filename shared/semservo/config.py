@@ -134,6 +134,8 @@ class FakelabSettings(BaseModel):
     save_chunks: int = Field(4, ge=1, le=1000, description="each saved file is written in this many pieces")
     save_chunk_pause_s: float = Field(0.01, ge=0, le=10, description="pause between the pieces")
     save_interval_s: float = Field(0.1, ge=0, le=3600, description="a frame saved this often at most (wall time)")
+    save_keep: int | None = Field(200, ge=1, le=10_000_000, description="keep the last this many saved frames, "
+                                                                        "deleting the older ones it saved (null: all)")
     # A real SEM image as the sample (semservo.simulation.sample_image), under the preset's optics.
     sample_image: Path | None = Field(None, description="a real SEM image (PNG/TIFF, 8/16 bit) as the sample instead "
                                                         "of the preset's scene; its data bar is cropped")

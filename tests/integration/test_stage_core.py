@@ -74,6 +74,18 @@ def test_refusals_name_the_rule_and_change_nothing(stage):
     assert stage.voltages == before
 
 
+def test_a_model_out_of_step_with_its_axis_is_refused_not_written(stage):
+    """However a model came to disagree with its axis, a small move that would need a big
+    voltage step is refused with the reason, and nothing reaches the amplifier."""
+    before, writes = dict(stage.voltages), sum(1 for entry in stage.driver.log if entry.text.startswith("set"))
+    stage.models["x"].offset_v = 9.0  # as the model was before its follow_voltage fix
+    with pytest.raises(Refused) as refusal:
+        stage.move({"x": -0.03}, relative=True)
+    assert refusal.value.code == "model_jump" and "0.030 um move" in refusal.value.message
+    assert stage.voltages == before
+    assert sum(1 for entry in stage.driver.log if entry.text.startswith("set")) == writes
+
+
 def test_rate_limit(link):
     _, pty = link
     clock = FakeClock()

@@ -121,3 +121,18 @@ def test_decide_saturates_moves_and_turns_and_judges_divergence_above_its_floor(
     decide(run, LawStep((2.0,), 4.0, 0.5, (0.0,), {"x_um": 0.1}), None)
     decide(run, LawStep((5.0,), 25.0, 0.5, (0.0,), {"x_um": 0.1}), None)
     assert decide(run, LawStep((6.0,), 36.0, 0.5, (0.0,), {"x_um": 0.1}), None).diverging.startswith("diverging")
+
+
+def test_recovery_reads_run_journals_only_and_says_nothing_of_the_stages_log(tmp_path, caplog):
+    """A frightening line on every first start: the stage's command log (a .jsonl in the
+    same folder) was read as a dead controller's journal."""
+    import logging
+
+    from services.controller.core import ControllerCore
+
+    (tmp_path / "stage-commands.jsonl").write_text('{"time_ns": 1, "direction": "sent", "text": "set,0,1"}\n')
+    (tmp_path / "20260101-000000-abcdef.jsonl").write_text("")  # a run's journal torn at its first line
+    with caplog.at_level(logging.ERROR, logger="controller"):
+        assert ControllerCore(stage=None, runs_dir=tmp_path).recover() == []
+    messages = [record.getMessage() for record in caplog.records]
+    assert len(messages) == 1 and "20260101-000000-abcdef" in messages[0] and "delete it" in messages[0]

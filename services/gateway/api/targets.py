@@ -29,14 +29,16 @@ def targets(core: Core) -> list[Target]:
 
 
 @router.post("/import", response_model=Target, status_code=201, dependencies=[Depends(require_token)],
-             summary="A target from a file GET /targets/{name}/export wrote (this or another gateway's)")
+             summary="A target from a file GET /targets/{name}/export wrote (this or another gateway's)",
+             description="`file` is the bytes of a target's TIFF; what they hold is checked beyond this schema: "
+                         "nothing is 422 `empty`, anything but a target file 422 `bad_target_file`.")
 async def import_target(request: Request, core: Core,
-                        file: Annotated[UploadFile | str, File(description="the target's TIFF (a file GET "
-                                                                        "/targets/{name}/export wrote)")],
+                        file: Annotated[UploadFile | str | None, File(description="the target's TIFF (a file GET "
+                                                                               "/targets/{name}/export wrote)")] = None,
                         name: Annotated[str | None, Form(max_length=80, description="store it under this name "
                                                                                      "instead")] = None,
                         replace: Annotated[bool, Form()] = False) -> Target:
-    data = await read_upload(request, file, "file")
+    data = await read_upload(request, file if file is not None else "", "file")
     return Target.model_validate(core.import_target(data, name=name, replace=replace))
 
 

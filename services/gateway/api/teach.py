@@ -63,7 +63,9 @@ async def teach(
 
 
 @router.post("/teach/polygon", response_model=TeachResult, dependencies=[Depends(require_token)],
-             summary="Teach a mask drawn by corner points on the live image")
+             summary="Teach a mask drawn by corner points on the live image",
+             description="At least three distinct corner points, on or near the live image, enclosing 256 square "
+                         "pixels or more (checked beyond this schema: a 422 naming the reason).")
 def teach_polygon(body: PolygonTeach, core: Core) -> TeachResult:
     points = [tuple(point) for point in body.polygon]
     if len(set(points)) != len(points):

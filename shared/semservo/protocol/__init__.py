@@ -33,7 +33,7 @@ from typing import Any, Callable, Generic, Iterator, Protocol, TypeVar
 import pydantic
 from pydantic import BaseModel, ConfigDict
 
-from semservo.errors import BadRequest, CommandError, describe_validation_error
+from semservo.errors import BadRequest, describe_validation_error
 from semservo.messages import Health
 
 __all__ = ["HEALTH", "Command", "CommandReply", "CommandRequest", "CommandSet", "Handlers", "LocalPort", "NoArguments",

@@ -3,7 +3,8 @@
 A refused command is a :class:`~semservo.errors.CommandError` whose code names the rule:
 ``travel_limit``, ``voltage_limit``, ``step_limit``, ``rate_limit``, ``held``, ``stopped``,
 ``link_lost``, ``not_applied``, ``bad_axis``, ``owned`` (a run's controller has the
-stage armed), ``rotation_limit``, ``no_rotation_stage``, ``rotation_link_lost``,
+stage armed), ``model_jump`` (the displacement model asks for far more voltage than the
+move can need), ``rotation_limit``, ``no_rotation_stage``, ``rotation_link_lost``,
 ``device_refused``.
 """
 
