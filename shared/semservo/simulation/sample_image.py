@@ -106,7 +106,7 @@ def to_yield(pixels: np.ndarray) -> np.ndarray:
     values = np.asarray(pixels, np.float32)
     low, high = np.percentile(values, LEVEL_PERCENTILES)
     if not high > low:
-        raise SampleImageError("the image has one grey level (a blank picture): nothing to image")
+        raise SampleImageError("the image is (almost all) one grey level: a blank picture has nothing to image")
     bottom, top = YIELD_RANGE
     return np.clip(bottom + (values - low) * ((top - bottom) / (high - low)), 0.0, 1.0).astype(np.float32)
 
