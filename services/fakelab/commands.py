@@ -13,7 +13,6 @@ import numpy as np
 from semservo.errors import BadRequest
 from semservo.protocol import Handlers, NoArguments, OpenReply
 from semservo.protocol import fakelab as protocol
-from semservo.simulation.sem import SEM
 from semservo.simulation.world import PRESETS, World
 
 log = logging.getLogger("fakelab")
@@ -89,10 +88,7 @@ def set_rotation_stage(lab: FakeLab, request: protocol.RotationStageRequest) -> 
 def set_preset(lab: FakeLab, request: protocol.PresetRequest) -> OpenReply:
     if request.preset not in PRESETS:
         raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
-    world = lab.world
-    with world.lock, world.render_lock:  # not while a frame renders with the old SEM
-        world.preset = PRESETS[request.preset]
-        world.sem = SEM.for_preset(world.preset, world.seed)
+    lab.world.set_preset(PRESETS[request.preset])  # not while a frame renders with the old SEM; a sample image stays
     return OpenReply.model_validate(lab.describe())
 
 

@@ -1,7 +1,9 @@
 """Fake lab process: one simulated world, the NV 40/3 emulator on a pseudo-terminal and
 TCP, a scan socket for the image server's ``sim`` source, the control socket (health,
 true pose, rotation stage, presets) and, with ``save_frames_dir``, the SEM saving every
-frame to a folder as a vendor's software does (for the ``watch`` source).
+frame to a folder as a vendor's software does (for the ``watch`` source). With
+``--sample-image FILE`` (``SEMSERVO_FAKELAB__SAMPLE_IMAGE``) a real SEM picture is the
+sample, under the preset's optics (:mod:`semservo.simulation.sample_image`).
 
 Run it with ``semservo fakelab`` (prints where the serial device is) or
 ``semservo service fakelab``; settings ``SEMSERVO_FAKELAB__*``.
@@ -11,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import threading
 import time
 
@@ -21,6 +24,7 @@ from semservo.config import Settings, connect
 from semservo.logs import configure
 from semservo.messages import Reply, ScanRequest
 from semservo.service import ServiceRuntime
+from semservo.simulation import sample_image
 from semservo.simulation.world import PRESETS, World
 from semservo.wire import encode_frame, frame_header
 from services.fakelab.acquisition import FolderWriter
@@ -41,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preset", choices=sorted(PRESETS), help="experimental condition (default: settings)")
     parser.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
     parser.add_argument("--no-pty", action="store_true", help="no pseudo-terminal (TCP only)")
+    sample_image.add_arguments(parser)
     return parser
 
 
@@ -115,13 +120,30 @@ class ScanServer:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    settings = Settings()
+    # The sample-image options are settings (SEMSERVO_FAKELAB__SAMPLE_*): one validation.
+    os.environ.update(sample_image.environment_from_arguments(args))
+    try:
+        settings = Settings()
+    except pydantic.ValidationError as error:
+        raise SystemExit(f"fakelab: bad settings: {error}") from None
     configure(settings.log_level)
     config = settings.fakelab
     preset_name = args.preset or config.preset
     if preset_name not in PRESETS:
         raise SystemExit(f"unknown preset {preset_name!r}; presets: {', '.join(sorted(PRESETS))}")
-    world = World(PRESETS[preset_name], speedup=args.speedup or config.speedup, seed=config.seed)
+    try:
+        sample = sample_image.from_settings(config)
+        world = World(PRESETS[preset_name], speedup=args.speedup or config.speedup, seed=config.seed,
+                      sample_image=sample)
+    except sample_image.SampleImageError as error:
+        raise SystemExit(f"fakelab: sample image refused: {error}") from None
+    if sample is not None:
+        description = sample.describe()
+        log.info("sample: the picture %s, %d x %d px at %.4g nm/px (%s), %s edges, %s; noise %.4f -> %.4f (yield); "
+                 "magnifications x%.4g..x%.4g", sample.name, sample.shape[1], sample.shape[0], sample.pixel_um * 1000,
+                 sample.pixel_size_from, sample.edges,
+                 f"heights 0..{sample.height_range_um:g} um" if sample.height_um is not None else "flat",
+                 sample.noise_before, sample.noise_after, *description["magnification_range"])
 
     channels = {channel: ChannelState(knob_voltage=world.voltage(channel)) for channel in (0, 1, 2)}
 
@@ -152,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
                                            "serial_tcp": tcp.url.replace(settings.bind_host, config.host),
                                            "scan_endpoint": connect(config.host, config.scan_port)})
     handlers.bind(runtime.control, lab)
-    runtime.details = lambda: {"preset": world.preset.name, "world_id": world.id,
+    runtime.details = lambda: {"preset": world.preset.name, "world_id": world.id, "sample": world.preset.scene,
                                "serial_pty": pty.path if pty else None, "serial_tcp": tcp.url, "frames": world.frames,
                                "scanning": scanner.healthy}
 

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pydantic
 import zmq
 
 from semservo import __version__, security
@@ -33,6 +34,7 @@ from semservo.launcher import SERVICES, LaunchError, Launcher, spec, stage_rate_
 from semservo.monitor import FrameStats, acquisition_text
 from semservo.messages import MOTION_TOPIC, MotionEstimate
 from semservo.protocol import ServicePort
+from semservo.simulation import sample_image
 from semservo.transport import CommandError, ControlClient, FrameSubscriber, MessageSubscriber, ServiceUnavailable
 
 
@@ -57,9 +59,24 @@ def _source_environment(args: argparse.Namespace) -> None:
         "SEMSERVO_IMAGESERVER__MAGNIFICATION": args.magnification and str(args.magnification),
     }
     os.environ.update({key: value for key, value in overrides.items() if value})
+    os.environ.update(sample_image.environment_from_arguments(args))
     speedup = float(os.environ.get("SEMSERVO_FAKELAB__SPEEDUP") or 1.0)
     if speedup != 1.0 and "SEMSERVO_STAGE__MAX_RATE_V_PER_S" not in os.environ:
         os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(speedup))
+
+
+def _sample_image_environment(command: str) -> bool:
+    """With a sample image set (options or settings): check it before anything starts,
+    and set what follows from it (the estimator's depth of field for the tilts) where
+    not set already. False, with the reason on stderr, when the picture is refused."""
+    try:
+        derived = sample_image.system_environment(Settings())
+    except (sample_image.SampleImageError, pydantic.ValidationError) as error:
+        print(f"semservo {command}: sample image refused: {error}", file=sys.stderr)
+        return False
+    for key, value in derived.items():
+        os.environ.setdefault(key, value)
+    return True
 
 
 def command_up(args: argparse.Namespace) -> int:
@@ -73,6 +90,8 @@ def command_up(args: argparse.Namespace) -> int:
             print(f"semservo up: no folder to watch at {args.watch_dir}", file=sys.stderr)
             return 2
     _source_environment(args)
+    if not _sample_image_environment("up"):
+        return 2
     settings = Settings()
     launcher = Launcher(settings, restart=args.restart)
     # Ctrl-C stops everything even when started from a shell that ignores SIGINT for
@@ -504,6 +523,13 @@ def command_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+#: The demo's jog: (6, -4) um at x1200's pixel; with a sample image the same pixels, at
+#: most DEMO_MAX_JOG_UM a side (the stage's travel is ~100 um).
+DEMO_OFFSET_UM = (6.0, -4.0)
+DEMO_PIXEL_UM = 0.1769
+DEMO_MAX_JOG_UM = 8.0
+
+
 def command_demo(args: argparse.Namespace) -> int:
     """Teach, displace, position back, report: on the running system, or on one the demo
     starts (simulated hardware) and stops again. A run the demo started never outlives it:
@@ -517,6 +543,8 @@ def command_demo(args: argparse.Namespace) -> int:
         os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(args.speedup))
     if tilts:  # the tilts are seen through focus: the small-depth-of-field condition
         os.environ.setdefault("SEMSERVO_FAKELAB__PRESET", "tilts")
+    sample_options = sample_image.environment_from_arguments(args)
+    os.environ.update(sample_options)
     settings = Settings()
     url = args.url or f"http://127.0.0.1:{settings.gateway.http_port}"
     launcher = None
@@ -525,9 +553,18 @@ def command_demo(args: argparse.Namespace) -> int:
     try:
         try:
             lab.status()
+            if sample_options:
+                print(f"demo: a system is already running at {url}, with its own sample; the --sample-* options "
+                      "apply to a system the demo starts: stop that one, or leave the options out", file=sys.stderr)
+                return 2
             print(f"using the running system at {url}")
         except SemservoError:
             print(f"no system at {url}: starting one on simulated hardware (semservo up does the same)")
+            if not _sample_image_environment("demo"):
+                return 2
+            settings = Settings()
+            if settings.fakelab.sample_image is not None:
+                print(f"   the sample: the picture {settings.fakelab.sample_image} (semservo.simulation.sample_image)")
             launcher = Launcher(settings, out=open(os.devnull, "w") if not args.verbose else sys.stdout)
             launcher.start(timeout_s=120)
         deadline = time.monotonic() + 60
@@ -562,8 +599,19 @@ def command_demo(args: argparse.Namespace) -> int:
                 return 1
             lab.resume()
             print("   the stage was stopped; resumed (--resume)")
-        lab.move(x_um=args.offset[0], y_um=args.offset[1])
-        print(f"2. displaced the stage by ({args.offset[0]:+g}, {args.offset[1]:+g}) um, as an operator's joystick would")
+        offset = args.offset
+        pixel_nm = reference.get("pixel_size_nm") or (reference.get("acquisition") or {}).get("pixel_size_nm")
+        if offset is None:
+            # 34, -23 px: (6, -4) um at the default x1200, the same part of the field at any
+            # scale (a sample image's own), within what one jog of the stage may be.
+            offset = DEMO_OFFSET_UM
+            if pixel_nm and settings.fakelab.sample_image is not None:
+                offset = tuple(float(np.clip(value / DEMO_PIXEL_UM * pixel_nm / 1000, -DEMO_MAX_JOG_UM,
+                                             DEMO_MAX_JOG_UM)) for value in DEMO_OFFSET_UM)
+        lab.move(x_um=offset[0], y_um=offset[1])
+        in_pixels = f" = ({offset[0] * 1000 / pixel_nm:+.1f}, {offset[1] * 1000 / pixel_nm:+.1f}) px" if pixel_nm else ""
+        print(f"2. displaced the stage by ({offset[0]:+.3g}, {offset[1]:+.3g}) um{in_pixels}, as an operator's "
+              "joystick would")
         dofs = ["x", "y"]
         if turns:
             angles = {"rotation_deg": args.turn}
@@ -674,6 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--magnification", type=float, help="magnification of the replayed frames")
     up.add_argument("--watch-dir", help="frames from the folder an SEM's software saves into: each new file is "
                                         "published once it is complete (see docs/instruments.md)")
+    sample_image.add_arguments(up)
     up.add_argument("--sim-saves-frames", action="store_true",
                     help="with --watch-dir: the simulated SEM saves its frames there, as a vendor's software "
                          "would (the whole path without a microscope)")
@@ -771,8 +820,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "hardware) the true final error, with the path of the run's report. Uses the running "
                     "system, or starts one on simulated hardware and stops it afterwards.")
     demo.add_argument("--url", help="gateway address (default http://127.0.0.1:HTTP_PORT)")
-    demo.add_argument("--offset", type=float, nargs=2, default=(6.0, -4.0), metavar=("X_UM", "Y_UM"),
-                      help="how far to displace the stage (default 6 -4 um)")
+    demo.add_argument("--offset", type=float, nargs=2, metavar=("X_UM", "Y_UM"),
+                      help="how far to displace the stage (default 6 -4 um: 34, -23 px at x1200; with a sample image "
+                           "the same pixels at its scale, at most 8 um a side)")
     demo.add_argument("--tolerance", type=float, default=0.1, help="converged under this error, px (default 0.1)")
     demo.add_argument("--dof", choices=["xy", "rotation", "all"], default="xy",
                       help="degrees of freedom: xy (default), rotation (x, y and the turn about the beam) or all five "
@@ -788,6 +838,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--verbose", action="store_true", help="show the services' logs when the demo starts them")
     demo.add_argument("--resume", action="store_true", help="let a stage an operator stopped move again first (a "
                                                             "stop holds until someone resumes, across restarts too)")
+    sample_image.add_arguments(demo)
     demo.set_defaults(handler=command_demo)
 
     from semservo.reproduce import EXPERIMENTS

@@ -139,6 +139,27 @@ class FakelabSettings(BaseModel):
     save_interval_s: float = Field(0.1, ge=0, le=3600, description="a frame saved this often at most (wall time)")
     save_keep: int | None = Field(200, ge=1, le=10_000_000, description="keep the last this many saved frames, "
                                                                         "deleting the older ones it saved (null: all)")
+    # A real SEM image as the sample (semservo.simulation.sample_image), under the preset's optics.
+    sample_image: Path | None = Field(None, description="a real SEM image (PNG/TIFF, 8/16 bit) as the sample instead "
+                                                        "of the preset's scene; its data bar is cropped")
+    sample_pixel_size_nm: PositiveFloat | None = Field(None, le=1e6, description="the sample image's pixel size "
+                                                       "(default: its file's metadata; required when the file has none)")
+    sample_data_bar: Literal["auto"] | Annotated[int, Field(ge=0, le=100_000)] = Field(
+        "auto", description="rows of data bar to crop from the sample image: auto (metadata, else detected) or a number")
+    sample_height_image: Path | None = Field(None, description="a height map of the sample image's field (brighter "
+                                                               "is higher, towards the lens); none: flat")
+    sample_height_um: PositiveFloat | None = Field(None, le=1e4, description="the height map's brightest level over "
+                                                   "its darkest, um (required with a height map)")
+    sample_edges: Literal["mirror", "tile", "pad"] = Field(
+        "mirror", description="the sample beyond the image's edges: mirrored (no seam), tiled (a seam, periodic) or "
+                              "padded with its median grey (flat)")
+    sample_denoise: float = Field(1.5, ge=0, le=10, description="remove the image's own noise before imaging it again: "
+                                                                "non-local means at this many times its estimated "
+                                                                "deviation (0: keep it)")
+    sample_max_upsampling: float = Field(2.0, ge=1, le=100, description="refuse scans whose pixel is more than this "
+                                                                        "many times finer than the sample image's")
+    sample_max_field: float = Field(1.0, gt=0, le=100, description="refuse scans whose field is more than this many "
+                                                                   "times the sample image's (either axis)")
 
 
 class EstimatorSettings(BaseModel):

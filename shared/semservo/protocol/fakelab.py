@@ -52,11 +52,14 @@ class SerialLink(CommandReply):
     plugged: bool
 
 
-INFO = COMMANDS.add("info", NoArguments, OpenReply, "preset, world_id, serial pty path and TCP URL, scan endpoint")
+INFO = COMMANDS.add("info", NoArguments, OpenReply, "preset, world_id, sample_image (a real picture as the sample: its "
+                    "name, pixel size and its source, size, edges, noise as read and as used, magnifications allowed; "
+                    "null without one), serial pty path and TCP URL, scan endpoint")
 POSE = COMMANDS.add("pose", PoseRequest, Pose, "the true pose now, at a past simulated time, or averaged over a "
                                                "scan's interval; with the channel voltages")
 SET_ROTATION_STAGE = COMMANDS.add("set_rotation_stage", RotationStageRequest, OpenReply,
                                   "send the rotation-and-tilt stage towards these angles at its own speed, or halt "
                                   "it; says where it is, where it goes and when it gets there (settles_in_s)")
-SET_PRESET = COMMANDS.add("set_preset", PresetRequest, OpenReply, "switch the experimental condition")
+SET_PRESET = COMMANDS.add("set_preset", PresetRequest, OpenReply,
+                          "switch the experimental condition (a sample image stays the sample)")
 SERIAL_LINK = COMMANDS.add("serial_link", SerialLinkRequest, SerialLink, "pull or plug back the serial cable")

@@ -258,28 +258,48 @@ def summarize(result: dict) -> dict:
 
 # -- 5-DOF runs through the whole stack ----------------------------------------
 
+#: A 5-DOF run's settings (the README's Fig. 8 table): tolerances 0.3 px, 0.05 degree of
+#: gamma and 0.1 of tilt, at most 4 degrees per turn or tilt command.
+RUN_SETTINGS = {"tolerance_px": 0.3, "tolerance_deg": 0.05, "tolerance_tilt_deg": 0.1, "max_iterations": 600,
+                "max_turn_deg": 4.0}
+
+
 def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: float = 20.0,
-                  say: Callable[[str], None] = print) -> list[dict]:
+                  say: Callable[[str], None] = print, *, environment: dict[str, str] | None = None,
+                  run_settings: dict | None = None) -> list[dict]:
     """5-DOF runs through the whole stack on simulated hardware (started here, on fresh
-    loopback ports, its records in ``folder`` or a temporary one): one teach (frames and a
-    focus sweep) at the start pose, then per entry of ``initial`` (alpha, beta, gamma in
-    degrees, x, y in um, from the taught pose) a displacement and a run servoing x, y,
-    gamma, alpha and beta; ``say`` is told once per run. Each result carries the run's
-    state, iterations, wall time, the simulator's true final errors and the trajectory."""
+    loopback ports, its records in ``folder`` or a temporary one; ``environment``: more
+    SEMSERVO_* settings, e.g. a sample image): one teach (frames and a focus sweep) at the
+    start pose, then per entry of ``initial`` (alpha, beta, gamma in degrees, x, y in um,
+    from the taught pose) a displacement and a run servoing x, y, gamma, alpha and beta
+    (``run_settings`` over :data:`RUN_SETTINGS`); ``say`` is told once per run. Each result
+    carries the run's state, iterations, wall time, the simulator's true final errors
+    (``truth``: the stage against the taught pose; ``view_error_px``: how far the content
+    at the taught view's centre is from the centre, what the image shows, the tilt
+    cradle's pivot included) and the trajectory."""
     from semservo.client import Client
+    from semservo.config import connect
     from semservo.launcher import simulated_system
+    from semservo.transport import ControlClient
 
     if folder is None:
         with tempfile.TemporaryDirectory() as temporary:
-            return five_dof_runs(initial, Path(temporary), speedup, say)
+            return five_dof_runs(initial, Path(temporary), speedup, say, environment=environment,
+                                 run_settings=run_settings)
+    settings_of_runs = {**RUN_SETTINGS, **(run_settings or {})}
     results = []
-    with simulated_system(folder, speedup=speedup, SEMSERVO_FAKELAB__PRESET="tilts") as (_launcher, settings):
+    variables = {"SEMSERVO_FAKELAB__PRESET": "tilts", **(environment or {})}
+    with simulated_system(folder, speedup=speedup, **variables) as (_launcher, settings):
         lab = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=60)
+        fakelab = ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port), timeout_s=10, retries=2)
         try:
             deadline = time.monotonic() + 60
             while lab.status()["latest_frame_seq"] is None and time.monotonic() < deadline:
                 time.sleep(0.2)
-            lab.teach(frames=4, tilts=True)
+            reference = lab.teach(frames=4, tilts=True)
+            # The taught pose: over the scans of the frames the reference was made from.
+            scanned = reference.get("source_interval_s") or (reference.get("detail") or {}).get("source_interval_s")
+            taught_pose = _pose(fakelab.request("pose", interval_s=scanned)) if scanned else None
             taught = lab.stage()
             angles, positions = taught["rotation"]["angles_deg"], taught["positions_um"]
             for index, (alpha, beta, gamma, x_um, y_um) in enumerate(initial, 1):
@@ -289,25 +309,52 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
                 lab.rotate(relative=False, **{key: angles[key] + value for key, value in targets.items()})
                 time.sleep(25.0 / speedup + 0.5)  # let the stage arrive (4 degrees per second at most)
                 started = time.monotonic()
-                run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], tolerance_px=0.3, tolerance_deg=0.05,
-                                tolerance_tilt_deg=0.1, max_iterations=600, max_turn_deg=4.0)
+                run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
                 record = lab.wait(run["run_id"], timeout=900)
                 truth = record.get("truth") or {}
+                view = _view_error(fakelab, record, taught_pose)
                 results.append({"initial": [alpha, beta, gamma, x_um, y_um], "state": record["state"],
                                 "reason": record.get("reason"), "iterations": record["iterations"],
-                                "wall_s": time.monotonic() - started, "truth": truth,
+                                "wall_s": time.monotonic() - started, "truth": truth, "view_error_px": view,
                                 "tilt_iterations": sum(1 for r in record["trajectory"] if r.get("tilt_action") == "moved"),
                                 "trajectory": record["trajectory"]})
                 error = truth.get("error_deg", {})
+                view_text = f"view {math.hypot(*view):.3f} px" if view else "view unknown"
                 say(f"  run {index:2d}/{len(initial)} from ({alpha:+.1f}, {beta:+.1f}, {gamma:+.1f}) deg, ({x_um:+.1f}, "
                     f"{y_um:+.1f}) um: {record['state']} after {record['iterations']} iterations, "
                     f"{results[-1]['wall_s']:.0f} s; true error alpha {error.get('tilt_x_deg', math.nan):+.3f}, beta "
                     f"{error.get('tilt_y_deg', math.nan):+.3f}, gamma {error.get('rotation_deg', math.nan):+.4f} deg, "
-                    f"{truth.get('error_norm_px', math.nan):.2f} px"
+                    f"stage {truth.get('error_norm_px', math.nan):.2f} px, {view_text}"
                     + ("" if record["state"] == "converged" else f"\n    reason: {record.get('reason')}"))
         finally:
+            fakelab.close()
             lab.close()
     return results
+
+
+def _pose(answer: dict) -> Pose:
+    return Pose(**{key: float(answer[key]) for key in ("x_um", "y_um", "z_um", "rotation_deg", "tilt_x_deg",
+                                                        "tilt_y_deg")})
+
+
+def _view_error(fakelab, record: dict, taught: Pose | None) -> list[float] | None:
+    """The image-plane error (px) where the run left the sample: over the scans of the
+    frames after its last move (not scanned during it), where the content at the taught
+    view's centre is, from the simulator's true poses
+    (:func:`semservo.simulation.sem.view_error_px`); None when unknown."""
+    from semservo.simulation.sem import view_error_px
+
+    records = record.get("trajectory", [])
+    last_move = max((index for index, r in enumerate(records) if r.get("action") == "moved"
+                     or r.get("tilt_action") == "moved"), default=-1)
+    resting = [r for r in records[last_move + 1:] if r.get("frame_source_interval_s")
+               and not str(r.get("action", "")).startswith("held")] or \
+        [r for r in records[-1:] if r.get("frame_source_interval_s")]
+    if taught is None or not resting or not resting[-1].get("pixel_size_nm"):
+        return None
+    final = _pose(fakelab.request("pose", interval_s=[resting[0]["frame_source_interval_s"][0],
+                                                      resting[-1]["frame_source_interval_s"][1]]))
+    return list(view_error_px(final, taught, resting[-1]["pixel_size_nm"] / 1000))
 
 
 def plot_fig8(run: dict, path: Path) -> None:
