@@ -77,6 +77,16 @@ def test_convergence_is_judged_on_the_mean_or_on_each_frame():
     assert feed(make_run(converge_frames=2, hold=True), [0.01, 0.01, 0.01]) is None, "a hold goes on"
 
 
+def test_errors_either_side_of_the_target_do_not_average_to_convergence():
+    """A run overshooting across moves measured (+0.37, -0.31), (-0.07, +0.10), (-0.37,
+    +0.41) px: the mean vector is 0.07 px, the run 0.55 px from its goal."""
+    run = make_run(converge_frames=3)
+    errors = [(0.37, -0.31), (-0.07, 0.10), (-0.37, 0.41)]
+    for seq, (dx, dy) in enumerate(errors, 1):
+        verdict = judge(run, measure(run, estimate(dx, dy, seq=seq)))
+    assert verdict is None, "not converged: the errors' sizes average 0.45 px"
+
+
 def test_a_run_whose_error_stops_falling_fails_saying_so():
     """The run the issue found left servoing at 2.9 px after 329 iterations."""
     run = make_run(stall_after=20, max_iterations=10_000)
