@@ -21,9 +21,12 @@ ENV PYTHONUNBUFFERED=1 \
 RUN useradd --system --uid 1000 --groups dialout --create-home --home-dir /home/semservo semservo \
     && mkdir -p /data/runs && chown semservo:semservo /data/runs \
     && python3 -m venv /opt/semservo
-# The wheelhouse is mounted for this step only: the wheels do not stay in a layer.
+# The wheelhouse is mounted for this step only: the wheels do not stay in a layer. Its key
+# (the pins) is written into the image, which also makes it part of the step's cache key.
+ARG WHEELHOUSE=unknown
 RUN --mount=type=bind,target=/tmp/wheelhouse \
-    pip install --no-index --find-links /tmp/wheelhouse -r /tmp/wheelhouse/requirements.txt
+    pip install --no-index --find-links /tmp/wheelhouse -r /tmp/wheelhouse/requirements.txt \
+    && echo "$WHEELHOUSE" > /opt/semservo/wheelhouse-key
 USER semservo
 WORKDIR /data
 ENTRYPOINT []

@@ -90,7 +90,9 @@ def _run(command: list[str], *, env: dict | None = None, check: bool = True, cap
          timeout: float | None = None, input: bytes | None = None) -> subprocess.CompletedProcess:
     result = subprocess.run(command, env=env, capture_output=capture, timeout=timeout, input=input)
     if check and result.returncode != 0:
-        output = ((result.stderr or b"") + (result.stdout or b"")).decode(errors="replace").strip()
+        # stdout first: a build's own error (pip's, on stderr) is its last words, and the
+        # message keeps the tail.
+        output = ((result.stdout or b"") + (result.stderr or b"")).decode(errors="replace").strip()
         raise StackError(f"{' '.join(map(str, command[:4]))} ... failed ({result.returncode}): {output[-2000:]}")
     return result
 
@@ -332,8 +334,11 @@ def build_deps(engine: Engine, base: str, wheels: Path) -> str:
         return tag
     started = time.monotonic()
     say(f"building {tag}: the pinned dependencies on the base, from the wheelhouse (no network) ...")
-    engine.run("build", "--network", "none", "-f", str(dockerfile), "--build-arg", f"BASE={base}", "-t", tag,
-               str(wheels), timeout=1800)
+    # --no-cache: the wheels come in through a bind mount, which the engine's layer cache
+    # does not see, so a cached layer of other pins would be reused (it was: an image
+    # tagged for new pins held the old ones). The image is built once per tag anyway.
+    engine.run("build", "--no-cache", "--network", "none", "-f", str(dockerfile), "--build-arg", f"BASE={base}",
+               "--build-arg", f"WHEELHOUSE={wheels.name}", "-t", tag, str(wheels), timeout=1800)
     say(f"{tag} built in {time.monotonic() - started:.0f} s")
     _drop_superseded(engine, "semservo-deps", keep=tag)
     return tag

@@ -88,6 +88,12 @@ def _turned(x: float, y: float, theta: float) -> tuple[float, float]:
     return (x * np.cos(theta) + y * np.sin(theta) - x, -x * np.sin(theta) + y * np.cos(theta) - y)
 
 
+def _distinct(search: Search) -> bool:
+    """Whether the search's peak stands out of the noise (a confidence above zero), so
+    the sub-pixel fit is kept near it (:func:`.kept_near`)."""
+    return confidence_from_psr(search.psr) > 0.0
+
+
 def _motion(shift: Shift, angle: float, derotated: bool, search: Search, snr_db: float, filtered: bool,
             rotation_confidence: float = 1.0) -> Motion:
     """The estimate, its shift turned back into the current image's axes when it was
@@ -221,10 +227,10 @@ class MotionEstimator:
         if self.precision == "full":
             spectrum = self._full.spectrum(image, mean)
             search = self._half.search_full(spectrum)
-            shift = self._full.fit(spectrum, search.shift, filtered)
+            shift = self._full.fit(spectrum, search.shift, filtered, _distinct(search))
         else:
             search = self._half.search(self._half.spectrum_of(image, mean), self._half.reference_conjugate)
-            shift = self._fit_fast(image, mean, search.shift, filtered)
+            shift = self._fit_fast(image, mean, search.shift, filtered, _distinct(search))
         return _motion(shift, 0.0, False, search, snr_db, filtered)
 
     def _check(self, image) -> tuple[np.ndarray, FrameStatistics]:
@@ -242,12 +248,13 @@ class MotionEstimator:
         return array, statistics
 
     # -- translation --------------------------------------------------------------
-    def _fit_fast(self, image: np.ndarray, mean: float, shift: Shift, filtered: bool) -> Shift:
+    def _fit_fast(self, image: np.ndarray, mean: float, shift: Shift, filtered: bool,
+                  search_distinct: bool = True) -> Shift:
         """Steps 2 and 3 on the halved pair (``precision="fast"``): the full-resolution
         window moved by whole full-resolution pixels, then halved, so the scene
         weighting matches to within half a pixel."""
         if self._half.factor == 1:
-            return self._full.fit(self._full.spectrum(image, mean), shift, filtered)
+            return self._full.fit(self._full.spectrum(image, mean), shift, filtered, search_distinct)
         spectrum = self._half.apodized_spectrum(image, mean, int(round(shift.dy)), int(round(shift.dx)))
         half = self._half
 
@@ -256,7 +263,9 @@ class MotionEstimator:
             return Shift(fit.dy, fit.dx)
 
         band = half.filtered_fit_band if filtered else half.fit_band
-        return kept_near(shift, fitted, band, half.filtered_fit_band) if self._full.near_search else fitted(band)
+        if self._full.near_search and search_distinct:
+            return kept_near(shift, fitted, band, half.filtered_fit_band)
+        return fitted(band)
 
     # -- rotation, then translation ---------------------------------------------------
     def _estimate_with_rotation(self, image: np.ndarray, mean: float, snr_db: float, filtered: bool,
@@ -506,7 +515,7 @@ class MotionEstimator:
         derotated = abs(turn.angle) > DEROTATE_ABOVE_DEG
         if derotated:
             spectrum = self._full.spectrum(rotate_about_centre(image, -turn.angle, self._full.frame_buffer()), mean)
-        return _motion(self._full.fit(spectrum, turn.shift, filtered), turn.angle, derotated, turn.search, snr_db,
+        return _motion(self._full.fit(spectrum, turn.shift, filtered, _distinct(turn.search)), turn.angle, derotated, turn.search, snr_db,
                        filtered, rotation_confidence)
 
     def _estimate_small_with_rotation(self, image: np.ndarray, mean: float, angle: float, snr_db: float,
@@ -523,4 +532,4 @@ class MotionEstimator:
             derotated = True
             spectrum = self._full.spectrum(rotate_about_centre(image, -angle, self._full.frame_buffer()), mean)
             search = self._half.search_full(spectrum)
-        return _motion(self._full.fit(spectrum, search.shift, filtered), angle, derotated, search, snr_db, filtered)
+        return _motion(self._full.fit(spectrum, search.shift, filtered, _distinct(search)), angle, derotated, search, snr_db, filtered)

@@ -159,11 +159,14 @@ class FullResolution:
             self.moved_references[key] = conjugate
         return conjugate
 
-    def fit(self, spectrum: np.ndarray, shift: Shift, filtered: bool) -> Shift:
+    def fit(self, spectrum: np.ndarray, shift: Shift, filtered: bool, search_distinct: bool = True) -> Shift:
         """Steps 2 and 3 at full resolution: the band-limited correlation maximum of the
         frame's spectrum against the reference under the window moved by the
         whole-pixel shift (:meth:`moved_reference_conjugate`), near ``shift`` (see
-        :func:`kept_near`)."""
+        :func:`kept_near`) when the search's peak was distinct (``search_distinct``): a
+        search peak no sharper than the noise's is no anchor, and the fit, which weighs
+        the frequencies by their magnitude, finds the shift the phase-only search missed
+        (a smooth scene at 2 dB: the search 4.6 px off, the fit within 0.05 px)."""
         dy, dx = shift
         reference = self.moved_reference_conjugate(int(round(dy)), int(round(dx)))
 
@@ -172,7 +175,7 @@ class FullResolution:
             return Shift(fit.dy, fit.dx)
 
         band = self.filtered_fit_band if filtered else self.fit_band
-        if not self.near_search:
+        if not (self.near_search and search_distinct):
             return fitted(band)
         return kept_near(shift, fitted, band, self.filtered_fit_band)
 
