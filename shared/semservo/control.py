@@ -158,18 +158,21 @@ def displacement(previous_velocity: np.ndarray, velocity: np.ndarray, sampling_t
 
 @dataclass(frozen=True)
 class CameraToStage:
-    """^cV_p of eq. 36 for the planar axes: how a stage move shows in the image.
+    """^cV_p of eq. 36: how a stage move shows in the image, for every axis the laws drive.
 
     ``axis_signs``: +1 when moving the stage axis forward moves the content towards +x
     (right) / +y (down) of the image. ``orientation_deg``: the stage x axis seen in the
     image, counter-clockwise as displayed from the image's x axis. The pixel size comes
     with each frame (P = D / G, eq. 43), so a change of magnification needs nothing here.
+    ``rotation_sign``: +1 when a positive turn of the rotation stage turns the content
+    counter-clockwise. ``tilt_signs``: +1 when a positive stage tilt tilts the surface by
+    +alpha / +beta (:mod:`semservo.estimation.tilt`'s convention).
     """
 
     axis_signs: tuple[int, int] = (1, 1)
     orientation_deg: float = 0.0
-    rotation_sign: int = 1  # +1: a positive rotation stage turn turns content counter-clockwise
-    tilt_signs: tuple[int, int] = (1, 1)  # +1: a positive stage tilt tilts the surface by +alpha / +beta
+    rotation_sign: int = 1
+    tilt_signs: tuple[int, int] = (1, 1)
 
     def stage_move_um(self, content_dx_px: float, content_dy_px: float, pixel_size_nm: float) -> tuple[float, float]:
         """The stage move (um, stage axes) that moves the content by (dx, dy) px."""
@@ -189,10 +192,70 @@ class CameraToStage:
         image = to_image @ stage / (pixel_size_nm / 1000.0)
         return float(image[0]), float(image[1])
 
+    def stage_move(self, content: dict[str, float], pixel_size_nm: float | None = None) -> dict[str, float]:
+        """The stage displacement, by stage axis, that moves the content by ``content``:
+        "x", "y" in pixels (needs the pixel size), "rotation", "alpha", "beta" in
+        radians. Keys of the result: "x_um", "y_um", "rotation_deg", "tilt_x_deg",
+        "tilt_y_deg", each only for a degree of freedom in ``content``."""
+        move = {}
+        if "x" in content or "y" in content:
+            if pixel_size_nm is None:
+                raise ValueError("a translation needs the pixel size")
+            x_um, y_um = self.stage_move_um(content.get("x", 0.0), content.get("y", 0.0), pixel_size_nm)
+            if "x" in content:
+                move["x_um"] = x_um
+            if "y" in content:
+                move["y_um"] = y_um
+        if "rotation" in content:
+            move["rotation_deg"] = math.degrees(content["rotation"]) * self.rotation_sign
+        if "alpha" in content:
+            move["tilt_x_deg"] = math.degrees(content["alpha"]) * self.tilt_signs[0]
+        if "beta" in content:
+            move["tilt_y_deg"] = math.degrees(content["beta"]) * self.tilt_signs[1]
+        return move
+
 
 #: lambda T for which e_k+1 = (1 - a) e_k - a e_k-1, a = lambda T / 4, still approaches
 #: without overshoot: a = 3 - 2 sqrt(2) (see AdaptiveGain).
 NO_OVERSHOOT_GAIN_TIMES_T = 4 * (3 - 2 * math.sqrt(2))
+
+
+@dataclass(frozen=True)
+class LawStep:
+    """What one iteration of a law computed: the same record for every law
+    (:class:`ControlLaw`, :class:`TiltLaw`, :class:`semservo.position_law.PositionLaw`)."""
+
+    error: tuple[float, ...]  # e = s - s* (eq. 31) in the law's units (px, rad)
+    cost: float  # C = e^T e (eq. 32)
+    gain: float  # lambda (eq. 35), after the no-overshoot cap
+    velocity: tuple[float, ...]  # eq. 36
+    move: dict[str, float]  # stage displacement by axis: "x_um", "y_um", "rotation_deg", "tilt_x_deg", "tilt_y_deg"
+    integral: tuple[float, ...] | None = None
+
+    @classmethod
+    def idle(cls) -> "LawStep":
+        """Nothing to do (e.g. a tilts-only run between two focus sweeps)."""
+        return cls(error=(), cost=0.0, gain=0.0, velocity=(), move={})
+
+
+def velocity_and_displacement(error: np.ndarray, interaction: np.ndarray, gain: float, sampling_time_s: float,
+                              previous_velocity: np.ndarray | None) -> tuple[float, np.ndarray, np.ndarray]:
+    """The sequence both of the paper's laws share: the gain capped for the sampling
+    time, the velocity (eq. 36) and the displacement over the sampling time (eq. 37,
+    from the previous velocity, or the current one on the first iteration).
+
+    Eq. 37 scales the move with the sampling time, so a slow image source (or a
+    sped-up simulation that renders slower than it scans) would overshoot: the gain is
+    capped where the loop stops approaching monotonically. Returns (gain, velocity,
+    displacement)."""
+    gain = min(gain, NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
+    velocity = levenberg_marquardt_velocity(error, interaction, gain)
+    previous = previous_velocity if previous_velocity is not None else velocity
+    return gain, velocity, displacement(previous, velocity, sampling_time_s)
+
+
+def _floats(values) -> tuple[float, ...]:
+    return tuple(float(value) for value in values)
 
 
 @dataclass
@@ -232,35 +295,18 @@ class ControlLaw:
         return error + self.integral / self.integral_time_s
 
     def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
-             sampling_time_s: float) -> dict:
+             sampling_time_s: float) -> LawStep:
         """Error, cost, gain, camera velocity (eq. 30-36) and the stage displacement
-        (eq. 37): ``{"x_um", "y_um", "rotation_deg"}`` for the chosen DOFs."""
+        (eq. 37): ``move`` has "x_um", "y_um", "rotation_deg" for the chosen DOFs."""
         error = error_vector(dx_px, dy_px, rotation_deg, self.dofs)
         theta = math.radians(rotation_deg) if "rotation" in self.dofs else 0.0
-        interaction = interaction_matrix(self.dofs, theta)
-        gain = self.gain(error)
-        # Eq. 37 scales the move with the sampling time, so a slow image source (or a
-        # sped-up simulation that renders slower than it scans) would overshoot: the
-        # gain is capped where the loop stops approaching monotonically.
-        gain = min(gain, NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
-        velocity = levenberg_marquardt_velocity(self._with_integral(error, sampling_time_s), interaction, gain)
-        previous = self.previous_velocity if self.previous_velocity is not None else velocity
-        moved = displacement(previous, velocity, sampling_time_s)
+        gain, velocity, moved = velocity_and_displacement(
+            self._with_integral(error, sampling_time_s), interaction_matrix(self.dofs, theta), self.gain(error),
+            sampling_time_s, self.previous_velocity)
         self.previous_velocity = velocity
-        content = dict(zip(self.dofs, moved))
-        x_um, y_um = self.camera_to_stage.stage_move_um(content.get("x", 0.0), content.get("y", 0.0), pixel_size_nm)
-        move = {}
-        if "x" in self.dofs:
-            move["x_um"] = x_um
-        if "y" in self.dofs:
-            move["y_um"] = y_um
-        if "rotation" in self.dofs:
-            move["rotation_deg"] = math.degrees(content["rotation"]) * self.camera_to_stage.rotation_sign
-        return {
-            "error": error.tolist(), "cost": cost(error), "gain": gain,
-            "velocity": velocity.tolist(), "move": move,
-            "integral": None if self.integral is None else self.integral.tolist(),
-        }
+        move = self.camera_to_stage.stage_move(dict(zip(self.dofs, moved)), pixel_size_nm)
+        return LawStep(_floats(error), cost(error), gain, _floats(velocity), move,
+                       None if self.integral is None else _floats(self.integral))
 
 
 # --------------------------------------------------------------------------------------
@@ -287,16 +333,20 @@ class TiltLaw:
     rotation R_x(alpha) R_y(beta) between the current and the taught surface (eq. 30),
     its interaction matrix the x-y block of L_w (eq. 34), damped as eq. 36. It runs at
     the rate of the focus sweeps, with the time between two sweeps as its sampling time,
-    and keeps its own previous velocity for eq. 37."""
+    and keeps its own previous velocity for eq. 37. The tilt signs come from the
+    camera-to-stage transform (:attr:`CameraToStage.tilt_signs`)."""
 
     dofs: tuple[str, ...] = TILT_DEGREES_OF_FREEDOM
     gain: AdaptiveGain | ExponentialGain = field(default_factory=AdaptiveGain)
-    tilt_signs: tuple[int, int] = (1, 1)  # +1: a positive stage tilt tilts the surface by +alpha / +beta
+    camera_to_stage: CameraToStage = field(default_factory=CameraToStage)
     previous_velocity: np.ndarray | None = None
 
-    def step(self, alpha_deg: float, beta_deg: float, sampling_time_s: float) -> dict:
+    def reset(self) -> None:
+        self.previous_velocity = None
+
+    def step(self, alpha_deg: float, beta_deg: float, sampling_time_s: float) -> LawStep:
         """Error (rad), cost, gain, velocity (rad/s) and the stage's tilt move (degrees,
-        ``{"tilt_x_deg", "tilt_y_deg"}`` for the chosen DOFs)."""
+        ``move`` has "tilt_x_deg", "tilt_y_deg" for the chosen DOFs)."""
         from semservo.estimation.tilt import tilt_rotation  # the convention lives there
 
         unknown = set(self.dofs) - set(TILT_DEGREES_OF_FREEDOM)
@@ -309,12 +359,8 @@ class TiltLaw:
         index = [TILT_DEGREES_OF_FREEDOM.index(dof) for dof in self.dofs]
         error = vector[index]
         interaction = full[np.ix_(index, index)]
-        gain = min(self.gain(np.degrees(error)), NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
-        velocity = levenberg_marquardt_velocity(error, interaction, gain)
-        previous = self.previous_velocity if self.previous_velocity is not None else velocity
-        moved = displacement(previous, velocity, sampling_time_s)
+        gain, velocity, moved = velocity_and_displacement(error, interaction, self.gain(np.degrees(error)),
+                                                          sampling_time_s, self.previous_velocity)
         self.previous_velocity = velocity
-        axes = {"alpha": ("tilt_x_deg", self.tilt_signs[0]), "beta": ("tilt_y_deg", self.tilt_signs[1])}
-        move = {axes[dof][0]: math.degrees(value) * axes[dof][1] for dof, value in zip(self.dofs, moved)}
-        return {"error": error.tolist(), "cost": cost(error), "gain": gain, "velocity": velocity.tolist(),
-                "move": move}
+        move = self.camera_to_stage.stage_move(dict(zip(self.dofs, moved)))
+        return LawStep(_floats(error), cost(error), gain, _floats(velocity), move)

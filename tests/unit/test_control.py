@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from semservo.control import (
-    NO_OVERSHOOT_GAIN_TIMES_T, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, cost, error_vector,
-    interaction_matrix, levenberg_marquardt_velocity, theta_u_interaction,
+    NO_OVERSHOOT_GAIN_TIMES_T, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, LawStep, TiltLaw, cost,
+    error_vector, interaction_matrix, levenberg_marquardt_velocity, theta_u_interaction,
 )
 
 
@@ -62,7 +62,7 @@ def test_the_law_drives_a_simulated_plant_to_zero_without_overshoot():
     history = []
     for _ in range(40):
         step = law.step(content[0], content[1], 0.0, pixel_nm, sampling_time_s=0.9)
-        moved_px = CameraToStage().content_move_px(step["move"]["x_um"], step["move"]["y_um"], pixel_nm)
+        moved_px = CameraToStage().content_move_px(step.move["x_um"], step.move["y_um"], pixel_nm)
         content = content + np.array(moved_px)
         history.append(content.copy())
     history = np.array(history)
@@ -73,7 +73,7 @@ def test_the_law_drives_a_simulated_plant_to_zero_without_overshoot():
 def test_the_gain_is_capped_for_slow_sampling():
     law = ControlLaw(dofs=("x",), gain=AdaptiveGain(scale=1, minimum=5, maximum=5))
     step = law.step(10.0, 0.0, 0.0, 100.0, sampling_time_s=4.0)
-    assert step["gain"] == pytest.approx(NO_OVERSHOOT_GAIN_TIMES_T / 4.0)
+    assert step.gain == pytest.approx(NO_OVERSHOOT_GAIN_TIMES_T / 4.0)
 
 
 def drifting_plant(law: ControlLaw, iterations: int, drift_px_per_s: float = 0.05, sampling_time_s: float = 1.4):
@@ -82,7 +82,7 @@ def drifting_plant(law: ControlLaw, iterations: int, drift_px_per_s: float = 0.0
     history = []
     for _ in range(iterations):
         step = law.step(content[0], content[1], 0.0, 42.46, sampling_time_s=sampling_time_s)
-        moved_px = CameraToStage().content_move_px(step["move"]["x_um"], step["move"]["y_um"], 42.46)
+        moved_px = CameraToStage().content_move_px(step.move["x_um"], step.move["y_um"], 42.46)
         content = content + np.array(moved_px) + drift_px_per_s * sampling_time_s
         history.append(content.copy())
     return np.array(history)
@@ -105,3 +105,26 @@ def test_the_integral_does_not_wind_up_far_from_the_target():
     assert abs(law.integral[0]) <= law.integral_zone * law.integral_time_s
     law.reset()
     assert law.integral is None
+
+
+def test_both_laws_return_one_frozen_law_step():
+    planar = ControlLaw(dofs=("x", "y", "rotation"), integral_time_s=10.0).step(1.0, -2.0, 3.0, 100.0, 0.9)
+    tilt = TiltLaw(("alpha", "beta")).step(1.0, -0.5, 2.0)
+    for step in (planar, tilt):
+        assert isinstance(step, LawStep)
+        assert isinstance(step.error, tuple) and isinstance(step.velocity, tuple)
+        with pytest.raises(AttributeError):
+            step.gain = 1.0  # frozen
+    assert set(planar.move) == {"x_um", "y_um", "rotation_deg"} and planar.integral == (0.0, 0.0, 0.0)
+    assert set(tilt.move) == {"tilt_x_deg", "tilt_y_deg"} and tilt.integral is None
+    assert planar.cost == pytest.approx(cost(np.array(planar.error)))
+    idle = LawStep.idle()
+    assert idle.move == {} and idle.cost == 0.0 and idle.error == () and idle.velocity == ()
+
+
+def test_the_tilt_law_takes_its_signs_from_the_camera_to_stage_transform():
+    plain = TiltLaw(("alpha", "beta")).step(1.0, -0.5, 2.0)
+    flipped = TiltLaw(("alpha", "beta"), camera_to_stage=CameraToStage(tilt_signs=(-1, 1))).step(1.0, -0.5, 2.0)
+    assert flipped.move["tilt_x_deg"] == pytest.approx(-plain.move["tilt_x_deg"])
+    assert flipped.move["tilt_y_deg"] == pytest.approx(plain.move["tilt_y_deg"])
+    assert plain.move["tilt_x_deg"] < 0 < plain.move["tilt_y_deg"]  # drives alpha = 1, beta = -0.5 to zero

@@ -144,11 +144,11 @@ def run_trial(case: str, method: str, start_um: tuple[float, float], *, seed: in
         sampling = interval[1] - last_end if last_end is not None else 2 * (interval[1] - interval[0])
         last_end = interval[1]
         step = law.step(measured.dx, measured.dy, 0.0, pixel_nm, sampling)
-        move = step["move"]
+        move = dict(step.move)
         planar = math.hypot(move["x_um"], move["y_um"])
         if planar > settings.max_move_um:
             move = {key: value * settings.max_move_um / planar for key, value in move.items()}
-        record.update(cost=step["cost"], gain=step["gain"], voltages=lab.move(move["x_um"], move["y_um"]),
+        record.update(cost=step.cost, gain=step.gain, voltages=lab.move(move["x_um"], move["y_um"]),
                       action="moved")
         records.append(record)
         frame, interval = lab.scan()
