@@ -510,6 +510,10 @@ class PositionLaw:
     #: The fraction of a move's size the gain k does not explain (hysteresis minor loops,
     #: creep).
     unmodelled: float = 0.05
+    #: How much k may change per micrometre (or degree) of travel, relative to the model's
+    #: uncertainty: a piezo's gain varies along its stroke (a linear model's far more than
+    #: a calibrated model's), so what the last moves taught fades with the travel.
+    gain_walk: float = 0.05
     #: Converged when the error now plus this many of its standard deviations is within
     #: tolerance.
     margin: float = 1.0
@@ -612,6 +616,8 @@ class PositionLaw:
                                                               self.reversal_spread**2)
             if direction:
                 self._directions[axis] = direction
+        walk = (self.gain_walk * self.model_uncertainty * np.abs(commanded)) ** 2
+        self.covariance[2 * n:, 2 * n:] += np.diag(walk)
         per_move = self._content_per_move(self._pixel_size_nm)
         transition = np.eye(3 * n)
         transition[:n, 2 * n:] = per_move @ np.diag(commanded)
@@ -725,6 +731,8 @@ class PositionLaw:
             direction = int(np.sign(nominal[index]))
             if direction and self._directions.get(axis, direction) != direction:
                 spreads[index] = max(spreads[index], self.reversal_spread)
+        # The gain may wander over the travel of this move too.
+        spreads = np.hypot(spreads, self.gain_walk * self.model_uncertainty * np.abs(nominal / np.maximum(gains, 0.2)))
         commanded = nominal / np.maximum(gains + self.caution * spreads, 0.2)
         move = {axis: float(value) for axis, value, acting in zip(self.axes, commanded, act) if acting}
         planar_move = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))

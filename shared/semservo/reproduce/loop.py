@@ -95,6 +95,9 @@ class TrialSettings:
     tolerance_px: float = 0.1
     converge_frames: int = 3
     max_iterations: int = 150
+    #: Simulated seconds (scans) before the trial is given up, whatever the iterations
+    #: (None: the iteration limit alone): the same for every method.
+    time_budget_s: float | None = None
     lost_after: int = 5
     max_move_um: float = 10.0
     reference_frames: int = 4
@@ -184,7 +187,11 @@ def run_trial(case: str, method: str, start_um: tuple[float, float], *, seed: in
     outcome, reason = "failed", f"iteration limit ({settings.max_iterations}) reached"
     frame, interval = lab.scan()
     last_end = None
+    began = interval[0]
     for iteration in range(settings.max_iterations):
+        if settings.time_budget_s is not None and interval[1] - began > settings.time_budget_s:
+            reason = f"time budget ({settings.time_budget_s:g} s) spent"
+            break
         measured = measure(frame)
         record = {"iteration": iteration, "compute_ms": measured.compute_ms, "ok": measured.ok}
         if not measured.ok:
@@ -246,6 +253,8 @@ class TimedSettings:
     #: (:attr:`semservo.control.PositionLaw.converged`).
     converge_frames: int = 3
     max_iterations: int = 150  # fresh frames acted on
+    #: Simulated seconds before the run is given up (None: only the iteration limit).
+    time_budget_s: float | None = None
     lost_after: int = 5
     max_move_um: float = 10.0
     reference_frames: int = 4
@@ -303,8 +312,14 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     frame_time = lab.settings.frame_time_s
     pixel_nm = lab.pixel_um * 1000
 
+    towards = np.array(start_um) / max(float(np.hypot(*start_um)), 1e-12)
+    overshoot = [0.0]
+
     def true_error_px(interval) -> float:
-        return float(np.hypot(*(lab.true_pose(interval) - taught)) / lab.pixel_um)
+        error = (lab.true_pose(interval) - taught) / lab.pixel_um
+        # Overshoot: how far the content went past the target, along the start's direction.
+        overshoot[0] = max(overshoot[0], -float(error @ towards))
+        return float(np.hypot(*error))
 
     trace, records, recent = [], [], []
     scanned = fresh_used = iterations = lost = corrections = 0
@@ -360,6 +375,9 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
             break
         if converged_at is None and iterations >= settings.max_iterations:
             break
+        if converged_at is None and settings.time_budget_s is not None and t - started > settings.time_budget_s:
+            reason = f"time budget ({settings.time_budget_s:g} s) spent"
+            break
         sampling = interval[1] - last_end if last_end is not None else 2 * frame_time
         last_end = interval[1]
         try:
@@ -410,7 +428,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
                    "iterations": iterations, "true_error_px": true_error_px(final_interval)}
     result = {
         "case": case, "law": law, "method": method, "stage_model": stage_model, "start_um": list(start_um),
-        "seed": seed, "outcome": outcome, "reason": reason, **summary,
+        "seed": seed, "outcome": outcome, "reason": reason, **summary, "overshoot_px": overshoot[0],
         "frame_time_s": frame_time, "pixel_um": lab.pixel_um, "settings": asdict(settings),
         "records": records, "trace": trace,
     }
