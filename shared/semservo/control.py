@@ -737,9 +737,13 @@ class PositionLaw:
         move = {axis: float(value) for axis, value, acting in zip(self.axes, commanded, act) if acting}
         planar_move = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
         if planar_move > self.max_move_um:
-            for axis in ("x_um", "y_um"):
-                if axis in move:
-                    move[axis] *= self.max_move_um / planar_move
+            # Saturated: even the cautious move is beyond the limit, so the target lies
+            # beyond the limit's move too; go the limit's length towards it.
+            direction = {axis: float(value) for axis, value in zip(self.axes, nominal / np.maximum(gains, 0.2))
+                         if axis in ("x_um", "y_um") and axis in move}
+            length = math.hypot(*direction.values())
+            for axis, value in direction.items():
+                move[axis] = value * self.max_move_um / length
         if "rotation_deg" in move and abs(move["rotation_deg"]) > self.max_turn_deg:
             move["rotation_deg"] = math.copysign(self.max_turn_deg, move["rotation_deg"])
         fraction = float(np.mean([move[axis] / nominal[i] for i, axis in enumerate(self.axes)
