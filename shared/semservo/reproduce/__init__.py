@@ -268,7 +268,7 @@ BASELINE_OFFSETS, BASELINE_TRIALS = (0.05, 0.15), 5
 
 
 def time_to_target_trials(quick: bool, *, trials: int | None = None, cases=None, models=None,
-                          baseline: bool = True) -> list[dict]:
+                          baseline: bool = True, offsets=TIME_OFFSETS) -> list[dict]:
     """The trials of ``time_to_target``, each a dict of ``run_timed_trial``'s arguments and
     its key: every preset, offset and trial, the position law with every stage model, the
     paper's law with :data:`PAPER_LAW_MODELS` (the same start and seed for each), the
@@ -281,6 +281,8 @@ def time_to_target_trials(quick: bool, *, trials: int | None = None, cases=None,
         field = field_um(case)
         pixel = field / 512
         for offset_index, offset in enumerate(TIME_OFFSETS):
+            if offset not in offsets:
+                continue
             radius = 0.5 * pixel if offset == "0.5 px" else offset * field
             for trial in range(trials):
                 angle = np.random.default_rng([2028, offset_index, trial]).uniform(0, 2 * np.pi)
@@ -320,10 +322,10 @@ TIME_BUDGET_S = 150.0
 
 def experiment_time_to_target(quick: bool, progress: Callable[[int], Progress], *, checkpoint: Path | None = None,
                               workers: int = 1, trials: int | None = None, cases=None, models=None,
-                              baseline: bool = True) -> dict:
+                              baseline: bool = True, offsets=TIME_OFFSETS) -> dict:
     """Time to target (module docstring); each finished trial is appended to ``checkpoint``
     and skipped when the experiment runs again; ``workers`` processes run trials at once."""
-    jobs = time_to_target_trials(quick, trials=trials, cases=cases, models=models, baseline=baseline)
+    jobs = time_to_target_trials(quick, trials=trials, cases=cases, models=models, baseline=baseline, offsets=offsets)
     done = {}
     if checkpoint is not None and checkpoint.is_file():
         for line in checkpoint.read_text().splitlines():
@@ -353,7 +355,7 @@ def experiment_time_to_target(quick: bool, progress: Callable[[int], Progress], 
             keep(time_trial(job))
     bar.close()
     rows = [done[job["key"]] for job in jobs]
-    return {"offsets": list(TIME_OFFSETS), "trials": max(job["trial"] for job in jobs) + 1,
+    return {"offsets": [offset for offset in TIME_OFFSETS if offset in offsets], "trials": max(job["trial"] for job in jobs) + 1,
             "cases": list(dict.fromkeys(job["case"] for job in jobs)),
             "models": list(dict.fromkeys(job["stage_model"] for job in jobs)),
             "settings": {**loop.asdict(loop.TimedSettings(time_budget_s=TIME_BUDGET_S))}, "rows": rows}
