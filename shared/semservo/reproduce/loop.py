@@ -276,36 +276,58 @@ def _law_for(name: str, model: str, settings: TimedSettings, noise_px: float):
                     tolerance_px=settings.tolerance_px, max_move_um=settings.max_move_um)
 
 
-def teach(lab: Lab, settings, method: str = "semservo"):
+@dataclass(frozen=True)
+class Taught:
+    """What teaching at home left: the reference (and the mask a baseline sees in the mask
+    preset), the pose it was taught at, the estimate's noise per frame at rest (px) and
+    when teaching ended (simulated s). The same for every law, method and stage model of
+    one lab seed: trials share it rather than scan it again."""
+
+    reference: np.ndarray
+    mask: np.ndarray | None
+    taught_um: tuple[float, float]
+    noise_px: float
+    ended_s: float
+
+    def measure(self, method: str):
+        desired = self.reference if method == "semservo" or self.mask is None \
+            else self.mask.astype(np.float32) * 255  # what a baseline sees: the mask itself
+        return methods.make(method, desired, mask=self.mask)
+
+
+def teach(lab: Lab, settings) -> Taught:
     """The reference (``reference_frames`` scans at the reference dwell, averaged), the
-    pose it was taught at, the method taught it, and the estimate's noise per frame at
-    rest (px): the scatter of as many frames at the live dwell measured against it."""
+    pose it was taught at, and the estimate's noise per frame at rest: the scatter of as
+    many frames at the live dwell measured against it (semservo's estimator)."""
     frames, intervals = zip(*(lab.scan(lab.reference_dwell_ns) for _ in range(settings.reference_frames)))
     reference = np.mean(frames, axis=0, dtype=np.float32)
     taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
-    mask = None
-    desired = reference
-    if lab.preset.mask_reference:
-        mask = mask_of(reference)
-        desired = mask.astype(np.float32) * 255
-    measure = methods.make(method, desired if method != "semservo" else reference, mask=mask)
+    mask = mask_of(reference) if lab.preset.mask_reference else None
+    measure = methods.make("semservo", reference, mask=mask)
     at_rest = [measure(lab.scan()[0]) for _ in range(settings.reference_frames)]
     at_rest = np.array([(m.dx, m.dy) for m in at_rest if m.ok])
     noise_px = float(np.sqrt(np.mean(np.var(at_rest, axis=0, ddof=1)))) if len(at_rest) > 2 else 0.03
-    return reference, taught, measure, noise_px
+    return Taught(reference, mask, (float(taught[0]), float(taught[1])), noise_px, lab.clock.t)
 
 
 def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed: int = 1, stage_model: str = "calibrated",
-                    settings: TimedSettings = TimedSettings(), method: str = "semservo") -> dict:
+                    settings: TimedSettings = TimedSettings(), method: str = "semservo",
+                    taught: Taught | None = None) -> dict:
     """One trial on a continuously scanning SEM (module docstring): teach at home, jog by
     ``start_um``, servo with ``law`` ("paper" or "position") until converged (then, with
     ``hold_s``, hold that long), the scene is lost, the law refuses, or the iteration
-    limit. Returns the outcome, the fresh frames used, the frames scanned in all and the
+    limit or time budget. ``taught``: what :func:`teach` left in a lab of the same case
+    and seed (else it teaches). Returns the outcome, the fresh frames used, the frames scanned in all and the
     simulated seconds to the frame convergence was decided on, the true final error, and
     the true error (px) at the end of every scan against simulated time (``trace``)."""
     lab = Lab(case, seed, stage_model=stage_model)
-    reference, taught, measure, noise_px = teach(lab, settings, method)
-    controller = _law_for(law, stage_model, settings, noise_px)
+    if taught is None:
+        taught = teach(lab, settings)
+    else:  # taught in another lab of the same seed: this one starts where teaching ended
+        lab.clock.t = taught.ended_s
+    measure = taught.measure(method)
+    controller = _law_for(law, stage_model, settings, taught.noise_px)
+    taught_um = np.array(taught.taught_um)
     converge_frames = settings.converge_frames
     lab.move(*start_um)
     started = lab.clock.t + settings.start_after_s
@@ -316,7 +338,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     overshoot = [0.0]
 
     def true_error_px(interval) -> float:
-        error = (lab.true_pose(interval) - taught) / lab.pixel_um
+        error = (lab.true_pose(interval) - taught_um) / lab.pixel_um
         # Overshoot: how far the content went past the target, along the start's direction.
         overshoot[0] = max(overshoot[0], -float(error @ towards))
         return float(np.hypot(*error))

@@ -304,8 +304,7 @@ def time_to_target_model_lines(result: dict) -> list[str]:
                          f"({position['fresh_max']}) | {position['fresh'] / calibrated['fresh']:.2f} | "
                          f"{position['error_max']:.3f} | {position['overshoot_max']:.2f} | "
                          f"{position['converged']}/{position['n']} | "
-                         f"{paper['fresh']:g} | {paper['converged']}/{paper['n']} |" if paper else
-                         f"| {CASE_NUMBERS.get(case, '')} {case} | {MODEL_LABELS[model]} | ... |")
+                         + (f"{paper['fresh']:g} | {paper['converged']}/{paper['n']} |" if paper else "– | – |"))
     return lines
 
 
@@ -427,7 +426,8 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                   "The stage service maps micrometres to volts with a linear model from the nominal stroke "
                   "(100 um over 150 V; the position law is told its gain is 70 % uncertain) or with the lab's model "
                   "for a stage that moves 15 % more or less than this one (the law believes it calibrated). "
-                  "Overshoot: how far the content went past the target along the start's direction (true)."]
+                  "Overshoot: how far the content went past the target along the start's direction (true). The "
+                  "paper's law without a calibration on fewer trials per cell (the N in its column)."]
         lines += [""] + time_to_target_model_lines(timing)
         baseline = time_to_target_baseline_lines(timing)
         if len(baseline) > 2:
