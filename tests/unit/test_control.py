@@ -247,3 +247,21 @@ def test_laws_are_picked_by_name():
         make_law("fast")
     with pytest.raises(ValueError, match="drives"):
         PositionLaw(("x", "alpha"))
+
+
+def test_the_position_law_turns_the_rotation_too():
+    law = PositionLaw(("x", "y", "rotation"), noise_px=0.01, noise_deg=0.002)
+    camera = CameraToStage(axis_signs=(1, -1), orientation_deg=20.0, rotation_sign=-1)
+    law.camera_to_stage = camera
+    content, rotation, t = np.array([30.0, 12.0]), 2.0, 0.0
+    for index in range(8):
+        step = law.step(content[0], content[1], rotation, 177.0, frame_interval_s=(t, t + 0.46))
+        if law.converged:
+            break
+        moved = camera.content_move_px(step.move.get("x_um", 0.0), step.move.get("y_um", 0.0), 177.0)
+        content = content + 0.9 * np.array(moved)  # the stage makes 90 % of each move
+        rotation += 0.9 * step.move.get("rotation_deg", 0.0) * camera.rotation_sign
+        law.applied(step.move, at_s=t + 0.5)
+        t += 0.92
+    assert law.converged and index <= 5
+    assert np.hypot(*content) <= 0.1 and abs(rotation) <= 0.05
