@@ -592,8 +592,10 @@ class PositionLaw:
         return matrix
 
     def _predict(self, to_s: float | None) -> None:
-        if to_s is None or self._time is None or to_s <= self._time:
-            self._time = to_s if self._time is None else max(self._time, to_s or self._time)
+        if to_s is None:  # no clock: no drift
+            return
+        if self._time is None or to_s <= self._time:
+            self._time = to_s if self._time is None else self._time
             return
         n = len(self.dofs)
         dt = to_s - self._time
@@ -638,28 +640,32 @@ class PositionLaw:
         self.covariance = (self.covariance + self.covariance.T) / 2
 
     def _check_response(self, error: np.ndarray) -> None:
-        """The move just seen: its achieved part against the commanded, per axis."""
+        """The move just seen: the content's motion against the motion the move should
+        have made, for the planar axes together and for the rotation."""
         n = len(self.dofs)
         before, move = self._pending["before"], self._pending["move"]
-        per_move = self._content_per_move(self._pixel_size_nm)
-        for index, axis in enumerate(self.axes):
-            commanded = move.get(axis, 0.0)
-            expected = float(per_move[index, index] * commanded) if per_move[index, index] else 0.0
-            if abs(expected) <= 5 * float(self.noise()[index]):
+        commanded = np.array([move.get(axis, 0.0) for axis in self.axes])
+        expected = self._content_per_move(self._pixel_size_nm) @ commanded
+        achieved = error - before
+        for group, chosen in (("x/y", ~self._rotation), ("rotation", self._rotation)):
+            if not chosen.any():
                 continue
-            achieved = float(error[index] - before[index])
-            ratio = achieved / expected
+            size = float(np.hypot.reduce(expected[chosen]))
+            if size <= 5 * float(self.noise()[chosen].max()):
+                continue
+            ratio = float(achieved[chosen] @ expected[chosen]) / size**2
             if 0.2 <= ratio <= 5.0:
-                self._implausible[axis] = 0
+                self._implausible[group] = 0
                 continue
-            self._implausible[axis] = self._implausible.get(axis, 0) + 1
-            # Learn nothing from it: the gain is held where it was.
-            self.covariance[2 * n + index, :] = 0.0
-            self.covariance[:, 2 * n + index] = 0.0
-            self.covariance[2 * n + index, 2 * n + index] = self._pending["gain_variance"][index]
-            if self._implausible[axis] >= 2:
+            self._implausible[group] = self._implausible.get(group, 0) + 1
+            # Learn nothing from it: the gains are held where they were.
+            for index in np.flatnonzero(chosen):
+                self.covariance[2 * n + index, :] = 0.0
+                self.covariance[:, 2 * n + index] = 0.0
+                self.covariance[2 * n + index, 2 * n + index] = self._pending["gain_variance"][index]
+            if self._implausible[group] >= 2:
                 raise UnexpectedResponse(
-                    f"{axis}: the stage moved the content {ratio:+.2f} x the commanded move twice in a row "
+                    f"{group}: the stage moved the content {ratio:+.2f} x the commanded move twice in a row "
                     "(a wrong camera-to-stage sign, a blocked axis, or wrong estimates)")
 
     # -- the law ---------------------------------------------------------------------

@@ -209,7 +209,7 @@ def test_the_position_law_never_acts_on_a_refused_or_stale_frame():
 
 def test_a_stage_moving_the_wrong_way_stops_the_position_law():
     law = PositionLaw(("x", "y"))
-    with pytest.raises(UnexpectedResponse, match="x_um"):
+    with pytest.raises(UnexpectedResponse, match="x/y"):
         position_plant(law, (40.0, 0.0), gain=-1.0)
 
 
