@@ -285,7 +285,7 @@ class ControlLaw:
         self.previous_velocity = None
         self.integral = None
 
-    def applied(self, move: dict[str, float] | None) -> None:
+    def applied(self, move: dict[str, float] | None, at_s: float | None = None) -> None:
         """The move as the stage carried it out: nothing to learn for this law (the same
         call as :meth:`PositionLaw.applied`, so a caller treats every law alike)."""
 
@@ -302,9 +302,14 @@ class ControlLaw:
         return error + self.integral / self.integral_time_s
 
     def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
-             sampling_time_s: float) -> LawStep:
+             sampling_time_s: float, *, fresh: bool = True, confident: bool = True,
+             frame_interval_s: tuple[float, float] | None = None, now_s: float | None = None) -> LawStep:
         """Error, cost, gain, camera velocity (eq. 30-36) and the stage displacement
-        (eq. 37): ``move`` has "x_um", "y_um", "rotation_deg" for the chosen DOFs."""
+        (eq. 37): ``move`` has "x_um", "y_um", "rotation_deg" for the chosen DOFs. The
+        keywords are :meth:`PositionLaw.step`'s, so a caller treats both laws alike: a
+        frame not ``fresh`` or not ``confident`` is not acted on; the times are unused."""
+        if not fresh or not confident:
+            return LawStep.idle()
         error = error_vector(dx_px, dy_px, rotation_deg, self.dofs)
         theta = math.radians(rotation_deg) if "rotation" in self.dofs else 0.0
         gain, velocity, moved = velocity_and_displacement(

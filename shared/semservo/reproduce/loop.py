@@ -420,11 +420,8 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         sampling = interval[1] - last_end if last_end is not None else 2 * frame_time
         last_end = interval[1]
         try:
-            if law == "position":
-                step = controller.step(measured.dx, measured.dy, 0.0, pixel_nm, sampling, frame_interval_s=interval,
-                                       now_s=interval[1] + settings.latency_s)
-            else:
-                step = controller.step(measured.dx, measured.dy, 0.0, pixel_nm, sampling)
+            step = controller.step(measured.dx, measured.dy, 0.0, pixel_nm, sampling, frame_interval_s=interval,
+                                   now_s=interval[1] + settings.latency_s)
         except UnexpectedResponse as error:
             outcome, reason = "failed", str(error)
             record["action"] = "held: unexpected response"
@@ -453,10 +450,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         written_at = interval[1] + settings.latency_s
         record.update(cost=step.cost, gain=step.gain, move=move,
                       voltages=lab.move(move.get("x_um", 0.0), move.get("y_um", 0.0), at=written_at), action="moved")
-        if law == "position":
-            controller.applied(move, at_s=written_at)
-        else:
-            controller.applied(move)
+        controller.applied(move, at_s=written_at)
         settled_at = written_at + lab.settling.after_s(move)
         if converged_at is not None:
             corrections += 1
