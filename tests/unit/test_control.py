@@ -245,6 +245,14 @@ def test_laws_are_picked_by_name():
     assert isinstance(make_law("position", ("x", "y", "rotation")), PositionLaw)
     with pytest.raises(ValueError, match="unknown law"):
         make_law("fast")
+    # One call for either law: the paper's takes the position law's keywords too.
+    for name in LAWS:
+        law = make_law(name, ("x", "y"))
+        assert law.step(5.0, 0.0, 0.0, 177.0, 0.9, fresh=False) == LawStep.idle()
+        assert law.step(5.0, 0.0, 0.0, 177.0, 0.9, confident=False) == LawStep.idle()
+        step = law.step(5.0, 0.0, 0.0, 177.0, 0.9, frame_interval_s=(0.0, 0.45), now_s=0.5)
+        assert step.move["x_um"] < 0  # drives the content back
+        law.applied(step.move, at_s=0.5)
     with pytest.raises(ValueError, match="drives"):
         PositionLaw(("x", "alpha"))
 
