@@ -77,3 +77,14 @@ def test_the_experiment_keeps_each_trial_and_resumes(tmp_path, monkeypatch):
     json.dumps(again, default=reproduce._jsonable)
     report.plot_time_to_target(again, tmp_path / "time.png")
     assert (tmp_path / "time.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_trial_taught_in_another_lab_is_the_trial_taught_in_its_own():
+    # Trials of one seed share the teaching; the lab that starts from it continues the
+    # simulated SEM's charging and noise, so nothing differs (a fresh noise generator of
+    # the same seed would repeat the reference's own noise: a false correlation peak).
+    args = ("optimal", "position", start("optimal", 0.05))
+    own = loop.run_timed_trial(*args, seed=5)
+    taught = loop.teach(loop.Lab("optimal", 5), loop.TimedSettings())
+    shared = loop.run_timed_trial(*args, seed=5, taught=taught)
+    assert shared["trace"] == own["trace"] and shared["true_error_px"] == own["true_error_px"]

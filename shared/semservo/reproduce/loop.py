@@ -305,6 +305,21 @@ class Taught:
     taught_um: tuple[float, float]
     noise_px: float
     ended_s: float
+    #: The simulated SEM's charging of the sample when teaching ended (the scans so far
+    #: brightened the field they covered) and its noise generator's state: a lab that
+    #: starts here continues both (a fresh generator of the same seed would repeat the
+    #: noise of the reference's own scans, a false correlation peak).
+    charge: np.ndarray | None = None
+    noise_state: dict | None = None
+
+    def start(self, lab: "Lab") -> None:
+        """Put a fresh lab of the same case and seed where teaching left its own: its
+        frames are then the ones the teaching lab would have scanned."""
+        lab.clock.t = self.ended_s
+        if self.charge is not None:
+            lab.world.sem.charge = self.charge.copy()
+        if self.noise_state is not None:
+            lab.world.rng.bit_generator.state = self.noise_state
 
     def measure(self, method: str):
         desired = self.reference if method == "semservo" or self.mask is None \
@@ -324,7 +339,8 @@ def teach(lab: Lab, settings) -> Taught:
     at_rest = [measure(lab.scan()[0]) for _ in range(settings.reference_frames)]
     at_rest = np.array([(m.dx, m.dy) for m in at_rest if m.ok])
     noise_px = float(np.sqrt(np.mean(np.var(at_rest, axis=0, ddof=1)))) if len(at_rest) > 2 else 0.03
-    return Taught(reference, mask, (float(taught[0]), float(taught[1])), noise_px, lab.clock.t)
+    return Taught(reference, mask, (float(taught[0]), float(taught[1])), noise_px, lab.clock.t,
+                  lab.world.sem.charge.copy(), lab.world.rng.bit_generator.state)
 
 
 def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed: int = 1, stage_model: str = "calibrated",
@@ -341,7 +357,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     if taught is None:
         taught = teach(lab, settings)
     else:  # taught in another lab of the same seed: this one starts where teaching ended
-        lab.clock.t = taught.ended_s
+        taught.start(lab)
     measure = taught.measure(method)
     controller = _law_for(law, stage_model, settings, taught.noise_px)
     taught_um = np.array(taught.taught_um)
