@@ -18,6 +18,13 @@ through ``semservo.imagefiles``, data bars cropped. For each image:
   rotation      a centred square turned by known angles (-170 to +120 degrees, near
                 +-90 and small turns included) under moderate noise: semservo against
                 imreg_dft.
+  turn under    the same square turned by -20 to +20 degrees and its view moved by up to
+  a shift       a quarter of the field (semservo.pairs.turned_and_moved: the content
+                that enters comes from the rest of the image, mirrored beyond it): the
+                first estimate of a run that starts far from the goal.
+  hard frames   the translation pairs as a noisy, low-contrast frame (contrast cut to
+                0.3 and 0.2 about the mean, 200 and 100 electrons per grey level): every
+                method, and semservo's refusals.
   stress        the confidence where estimates do go wrong: the same pairs at a dose far
                 below any usable one, and a disc and a ring (no angle to tell) turned.
   consistency   the real drifted pair (A->B against -(B->A)) and the 2013 run (chains
@@ -53,7 +60,7 @@ import estimator as peers  # noqa: E402  (the methods of bench/estimator.py, the
 from semservo.config import find_recorded_run, find_sem_images  # noqa: E402
 from semservo.estimation import MotionEstimator, rotate_about_centre  # noqa: E402
 from semservo.imagefiles import read_sem_image  # noqa: E402
-from semservo.pairs import poisson_gaussian, shifted_pair  # noqa: E402
+from semservo.pairs import centred_window, poisson_gaussian, shifted_pair, turned_and_moved  # noqa: E402
 from services.controller.core import RunSettings  # noqa: E402
 
 #: What the estimator was developed on (its constants chosen on the 2013 frames; the
@@ -139,6 +146,46 @@ def run_translation(images: dict, count: int, rng, min_confidence: float, progre
     return results
 
 
+#: What a new user meets on a poor day: a real image at a fraction of its contrast (about
+#: its mean grey) and a low dose. (contrast kept, electrons per full-scale grey level, read noise)
+HARD_CONDITIONS = {
+    "low contrast (x0.3), 200 e": (0.3, 200, 2.0),
+    "low contrast (x0.2), 100 e": (0.2, 100, 2.0),
+}
+
+
+def run_translation_stress(images: dict, count: int, rng, min_confidence: float, progress) -> dict:
+    """The known-shift pairs as a noisy, low-contrast frame: each image's contrast cut to
+    a fraction about its mean, then Poisson-Gaussian noise at a low dose. Every method on
+    the same pairs; for semservo also the failures (> 1 px) it would act on
+    (confidence at least ``min_confidence``) and the estimates it refuses."""
+    results = {}
+    for name, image in images.items():
+        pairs = pairs_for(image, count, rng)
+        results[name] = {}
+        for condition, (contrast, electrons, read) in HARD_CONDITIONS.items():
+            errors: dict[str, list[float]] = {method: [] for method in peers.TRANSLATION_METHODS}
+            acted_on_failures = refused = 0
+            for pair in pairs:
+                faint = [pair.reference.mean() + contrast * (frame - pair.reference.mean())
+                         for frame in (pair.reference, pair.current)]
+                reference, current = (poisson_gaussian(frame, electrons, read, rng) for frame in faint)
+                for method, function in peers.TRANSLATION_METHODS.items():
+                    dx, dy = function(reference.copy(), current.copy())
+                    errors[method].append(float(np.hypot(dx - pair.dx, dy - pair.dy)))
+                motion = MotionEstimator(reference.copy(), rotation=False).estimate(current.copy())
+                if motion.confidence < min_confidence:
+                    refused += 1
+                elif np.hypot(motion.dx - pair.dx, motion.dy - pair.dy) > FAILURE_PX:
+                    acted_on_failures += 1
+            results[name][condition] = {
+                "pairs": len(pairs), "methods": {method: peers.summarize(values, FAILURE_PX)
+                                                 for method, values in errors.items()},
+                "semservo": {"failures_acted_on": acted_on_failures, "refused": refused}}
+        progress(f"translation on a noisy, low-contrast frame, {name}")
+    return results
+
+
 #: Far below any usable dose: where estimates go wrong, so the confidence can be judged.
 STRESS = (25, 8.0)  # electrons per full-scale grey level, read noise
 
@@ -211,6 +258,62 @@ def run_rotation(images: dict, rng, progress) -> dict:
     return results
 
 
+#: The turn under a view shift: turns within +-20 degrees (a run's start) and shifts of
+#: the view up to a quarter of the field, in two random directions each.
+SHIFT_FRACTIONS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25)
+SHIFT_ANGLES = (-20.0, -7.5, -2.0, -0.4, 0.3, 1.2, 5.0, 12.0, 20.0)
+SHIFT_DIRECTIONS = 2
+
+
+def run_turn_under_shift(images: dict, rng, min_confidence: float, progress, peer: bool = True) -> dict:
+    """The turn about the beam when the view has also moved (the first estimate of a run
+    that starts far from the goal): the centred square (384 px, or half the image's
+    shorter side) against itself turned by each angle and moved by each fraction of
+    the field (``semservo.pairs.turned_and_moved``; the content entering beyond the
+    image is mirrored), moderate noise. Per image and per fraction: error (degrees),
+    semservo's refusals (confidence under ``min_confidence``) and wrong turns (> 1
+    degree) it would act on; imreg_dft on the same pairs."""
+    import imreg_dft
+
+    results = {}
+    electrons, read, _, _ = CONDITIONS["moderate noise"]
+    for name, image in images.items():
+        side = min(384, min(image.shape) // 2 * 2)
+        reference = poisson_gaussian(centred_window(image, side), electrons, read, rng)
+        ours = MotionEstimator(reference.copy())
+        rows = {}
+        for fraction in SHIFT_FRACTIONS:
+            errors: dict[str, list[float]] = {"semservo": [], "imreg_dft.similarity": []}
+            accepted, refused, wrong_acted_on = [], 0, 0
+            for angle in SHIFT_ANGLES:
+                for _ in range(SHIFT_DIRECTIONS if fraction else 1):
+                    direction = rng.uniform(0, 2 * np.pi)
+                    dx, dy = fraction * side * np.cos(direction), fraction * side * np.sin(direction)
+                    current = poisson_gaussian(turned_and_moved(image, side, angle, dx, dy), electrons, read, rng)
+                    motion = ours.estimate(current.copy())
+                    error = abs((motion.rotation_deg - angle + 180) % 360 - 180)
+                    errors["semservo"].append(error)
+                    if motion.confidence >= min_confidence:
+                        accepted.append(error)
+                        wrong_acted_on += error > FAILURE_DEG
+                    else:
+                        refused += 1
+                    if peer:
+                        other = imreg_dft.similarity(reference.copy(), current.copy(), numiter=1,
+                                                     constraints={"scale": [1, 0]})
+                        errors["imreg_dft.similarity"].append(abs((-float(other["angle"]) - angle + 180) % 360 - 180))
+            rows[f"{fraction:g}"] = {method: peers.summarize(values, FAILURE_DEG) for method, values in errors.items()
+                                     if values}
+            rows[f"{fraction:g}"]["semservo accepted"] = {
+                **(peers.summarize(accepted, FAILURE_DEG) if accepted else {"mean": float("nan"), "max": float("nan")}),
+                "refused": refused, "wrong_acted_on": int(wrong_acted_on)}
+        everything = [row["semservo accepted"] for row in rows.values()]
+        results[name] = {"side_px": side, "fractions": rows}
+        progress(f"turn under a view shift, {name}: worst mean of accepted "
+                 f"{max(row['mean'] for row in everything):.3f} degree, refused {sum(r['refused'] for r in everything)}")
+    return results
+
+
 def run_consistency(progress) -> dict:
     before = grey(read_sem_image(find_sem_images() / "drift_pair_before.tif", data_bar=0).pixels)
     after = grey(read_sem_image(find_sem_images() / "drift_pair_after.tif", data_bar=0).pixels)
@@ -244,37 +347,73 @@ def run_consistency(progress) -> dict:
 
 
 def print_tables(results: dict) -> None:
+    """The tables of the cases that ran, markdown."""
     methods = list(peers.TRANSLATION_METHODS)
-    print("\n### Translation: mean error px (failures > 1 px) per image, all conditions")
-    print("| image | set | pairs | " + " | ".join(methods) + " | bad acted on | good refused |")
-    print("| --- " * (len(methods) + 5) + "|")
-    for name, row in results["translation"].items():
-        cells = [f"{row['methods'][m]['mean']:.3f} ({row['methods'][m]['failures']})" for m in methods]
-        confidence = row["confidence"]
-        print(f"| {name} | {'developed on' if name in TUNED_ON else 'held out'} | {row['pairs']} | " + " | ".join(cells)
-              + f" | {confidence['bad_acted_on']} | {confidence['good_refused']} of {confidence['good']} |")
-    print("\n### Rotation: mean error degrees (failures > 1 degree)")
-    print("| image | semservo | imreg_dft | semservo's failures at |")
-    print("| --- | --- | --- | --- |")
-    for name, row in results["rotation"].items():
-        ours, peer = row["semservo"], row["imreg_dft.similarity"]
-        print(f"| {name} | {ours['mean']:.3f} ({ours['failures']}) | {peer['mean']:.3f} ({peer['failures']}) | "
-              f"{', '.join(f'{angle:g}' for angle in ours['worst_deg']) or '-'} |")
-    electrons, read = STRESS
-    print(f"\n### Confidence where estimates go wrong ({electrons} electrons per grey level, read noise {read};"
-          " and scenes whose angle cannot be told)")
-    print("| case | estimates | off by > 0.5 px (or > 1 degree) | of those acted on | good refused |")
-    print("| --- | --- | --- | --- | --- |")
-    for name, row in results["confidence_stress"].items():
-        refused = "-" if row["good_refused"] is None else f"{row['good_refused']} of {row['good']}"
-        print(f"| {name} | {row['estimates']} | {row['bad']} | {row['bad_acted_on']} | {refused} |")
-    print("\n### Self-consistency (px): |A->B + B->A| on the real drifted pair and on 2013 frame pairs;"
-          " 2013 chains |ref->a + a->b - ref->b|")
-    print("| method | drift pair A->B | its asymmetry | 2013 asymmetry mean | max | 2013 chains mean | max |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    for method, row in results["consistency"].items():
-        print(f"| {method} | {row['A->B']} | {row['asymmetry_px']:.4f} | {row['asymmetry_2013_mean_px']:.4f} | "
-              f"{row['asymmetry_2013_max_px']:.4f} | {row['chain_2013_mean_px']:.4f} | {row['chain_2013_max_px']:.4f} |")
+    if "translation" in results:
+        print("\n### Translation: mean error px (failures > 1 px) per image, all conditions")
+        print("| image | set | pairs | " + " | ".join(methods) + " | bad acted on | good refused |")
+        print("| --- " * (len(methods) + 5) + "|")
+        for name, row in results["translation"].items():
+            cells = [f"{row['methods'][m]['mean']:.3f} ({row['methods'][m]['failures']})" for m in methods]
+            confidence = row["confidence"]
+            print(f"| {name} | {'developed on' if name in TUNED_ON else 'held out'} | {row['pairs']} | " + " | ".join(cells)
+                  + f" | {confidence['bad_acted_on']} | {confidence['good_refused']} of {confidence['good']} |")
+    if "rotation" in results:
+        print("\n### Rotation: mean error degrees (failures > 1 degree)")
+        print("| image | semservo | imreg_dft | semservo's failures at |")
+        print("| --- | --- | --- | --- |")
+        for name, row in results["rotation"].items():
+            ours, peer = row["semservo"], row["imreg_dft.similarity"]
+            print(f"| {name} | {ours['mean']:.3f} ({ours['failures']}) | {peer['mean']:.3f} ({peer['failures']}) | "
+                  f"{', '.join(f'{angle:g}' for angle in ours['worst_deg']) or '-'} |")
+    if "translation_stress" in results:
+        print("\n### Translation on a noisy, low-contrast frame: mean error px (failures > 1 px); semservo's failures"
+              " acted on (confidence >= min_confidence) and refusals")
+        print("| image | set | condition | pairs | " + " | ".join(methods) + " | semservo failures acted on | refused |")
+        print("| --- " * (len(methods) + 6) + "|")
+        for name, by_condition in results["translation_stress"].items():
+            for condition, row in by_condition.items():
+                cells = [f"{row['methods'][m]['mean']:.3f} ({row['methods'][m]['failures']})" for m in methods]
+                print(f"| {name} | {'developed on' if name in TUNED_ON else 'held out'} | {condition} | {row['pairs']} | "
+                      + " | ".join(cells) + f" | {row['semservo']['failures_acted_on']} | {row['semservo']['refused']} |")
+    if "turn_under_shift" in results:
+        print("\n### Turn about the beam under a view shift (degrees): mean / max error, semservo over the estimates it"
+              " accepts, its refusals and wrong turns (> 1 degree) acted on; imreg_dft on the same pairs")
+        fractions = list(next(iter(results["turn_under_shift"].values()))["fractions"])
+        print("| image | set | side px | " + " | ".join(f"shift {float(f) * 100:g} %" for f in fractions)
+              + " | refused | wrong acted on | imreg_dft (all shifts) |")
+        print("| --- " * (len(fractions) + 6) + "|")
+        for name, row in results["turn_under_shift"].items():
+            cells, refused, wrong, peer = [], 0, 0, []
+            for fraction in fractions:
+                accepted = row["fractions"][fraction]["semservo accepted"]
+                cells.append(f"{accepted['mean']:.3f} / {accepted['max']:.3f}")
+                refused += accepted["refused"]
+                wrong += accepted["wrong_acted_on"]
+                if "imreg_dft.similarity" in row["fractions"][fraction]:
+                    peer.append(row["fractions"][fraction]["imreg_dft.similarity"])
+            peer_cell = (f"{np.mean([p['mean'] for p in peer]):.3f} ({sum(p['failures'] for p in peer)} > 1 degree)"
+                         if peer else "-")
+            print(f"| {name} | {'developed on' if name in TUNED_ON else 'held out'} | {row['side_px']} | "
+                  + " | ".join(cells) + f" | {refused} | {wrong} | {peer_cell} |")
+    if "confidence_stress" in results:
+        electrons, read = STRESS
+        print(f"\n### Confidence where estimates go wrong ({electrons} electrons per grey level, read noise {read};"
+              " and scenes whose angle cannot be told)")
+        print("| case | estimates | off by > 0.5 px (or > 1 degree) | of those acted on | good refused |")
+        print("| --- | --- | --- | --- | --- |")
+        for name, row in results["confidence_stress"].items():
+            refused = "-" if row["good_refused"] is None else f"{row['good_refused']} of {row['good']}"
+            print(f"| {name} | {row['estimates']} | {row['bad']} | {row['bad_acted_on']} | {refused} |")
+    if "consistency" in results:
+        print("\n### Self-consistency (px): |A->B + B->A| on the real drifted pair and on 2013 frame pairs;"
+              " 2013 chains |ref->a + a->b - ref->b|")
+        print("| method | drift pair A->B | its asymmetry | 2013 asymmetry mean | max | 2013 chains mean | max |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        for method, row in results["consistency"].items():
+            print(f"| {method} | {row['A->B']} | {row['asymmetry_px']:.4f} | {row['asymmetry_2013_mean_px']:.4f} | "
+                  f"{row['asymmetry_2013_max_px']:.4f} | {row['chain_2013_mean_px']:.4f} | "
+                  f"{row['chain_2013_max_px']:.4f} |")
 
 
 def print_timing(timing: dict) -> None:
@@ -286,14 +425,19 @@ def print_timing(timing: dict) -> None:
         print(f"| {method} | {row['ms']:.2f} | {row['ratio']:.2f} | {low:.2f}-{high:.2f} |")
 
 
+CASES = ("translation", "rotation", "confidence_stress", "consistency", "timing", "turn_under_shift",
+         "translation_stress")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pairs", type=int, default=4, help="pairs per block factor and image (default 4)")
     parser.add_argument("--seed", type=int, default=14)
+    parser.add_argument("--only", nargs="+", choices=CASES, default=list(CASES),
+                        help="run these cases only (each keeps the random draws it has in a full run)")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "sem_images.json")
     args = parser.parse_args(argv)
-    rng = np.random.default_rng(args.seed)
     started = time.monotonic()
 
     def progress(text: str) -> None:
@@ -301,16 +445,30 @@ def main(argv=None) -> int:
 
     images = load_images()
     min_confidence = RunSettings().min_confidence
-    results = {
-        "tuned_on": list(TUNED_ON), "held_out": list(HELD_OUT), "min_confidence": min_confidence,
-        "translation": run_translation(images, args.pairs, rng, min_confidence, progress),
-        "rotation": run_rotation(images, rng, progress),
-        "confidence_stress": run_confidence_stress(images, args.pairs, rng, min_confidence, progress),
-        "consistency": run_consistency(progress),
-        "timing": peers.timed_in_clean_process(argparse.Namespace(data=find_recorded_run(), repeats=15), progress),
+    # One generator per case, seeded from --seed and the case's name: a case's pairs do
+    # not depend on which other cases run.
+    def rng(case: str) -> np.random.Generator:
+        return np.random.default_rng([args.seed, CASES.index(case)])
+
+    runs = {
+        "translation": lambda: run_translation(images, args.pairs, rng("translation"), min_confidence, progress),
+        "rotation": lambda: run_rotation(images, rng("rotation"), progress),
+        "confidence_stress": lambda: run_confidence_stress(images, args.pairs, rng("confidence_stress"),
+                                                           min_confidence, progress),
+        "consistency": lambda: run_consistency(progress),
+        "timing": lambda: peers.timed_in_clean_process(argparse.Namespace(data=find_recorded_run(), repeats=15),
+                                                       progress),
+        "turn_under_shift": lambda: run_turn_under_shift(images, rng("turn_under_shift"), min_confidence, progress),
+        "translation_stress": lambda: run_translation_stress(images, args.pairs, rng("translation_stress"),
+                                                             min_confidence, progress),
     }
+    results = {"tuned_on": list(TUNED_ON), "held_out": list(HELD_OUT), "min_confidence": min_confidence}
+    for case in CASES:
+        if case in args.only:
+            results[case] = runs[case]()
     print_tables(results)
-    print_timing(results["timing"])
+    if "timing" in results:
+        print_timing(results["timing"])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2))
     print(f"\nwrote {args.out}")

@@ -22,5 +22,6 @@ with Client() as lab:
             print(f"iteration {event['data']['iteration']:4d}: error {event['data']['error_px']:.3f} px")
         if time.monotonic() - started > duration_s:
             break
-    lab.stop("hold finished")
+    lab.stop("hold finished")  # a stop holds the stage, as every stop does ...
+    lab.resume()  # ... and the hold being over, the stage may move again (the next script's runs and jogs)
     print(f"held for {duration_s:g} s; largest error seen {worst:.3f} px")

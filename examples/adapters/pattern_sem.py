@@ -22,19 +22,26 @@ from semservo.instruments import AcquiredImage, ImageSourceAdapter, NotSupported
 
 class PatternSEM(ImageSourceAdapter):
     """Frames of a textured pattern that drifts ``drift_px_per_frame`` to the right per
-    frame; ``fail_every`` > 0 makes every n-th scan fail, as a real instrument's may."""
+    frame; ``fail_every`` > 0 makes every n-th scan fail, as a real instrument's may. Out
+    of focus (the working distance away from ``focus_mm``) the pattern blurs, a pixel of
+    blur per ``depth_of_field_um``: with :meth:`set_working_distance`, the image server
+    serves focus sweeps from it (the tilt measurement's)."""
 
     name = "pattern-sem"
 
     def __init__(self, *, rows: int = 256, cols: int = 256, pixel_size_nm: float = 50.0, dwell_ns: float = 200.0,
-                 drift_px_per_frame: float = 0.0, fail_every: int = 0, seed: int = 7):
+                 drift_px_per_frame: float = 0.0, fail_every: int = 0, seed: int = 7, focus_mm: float = 10.0,
+                 depth_of_field_um: float = 2.0):
         super().__init__(rows=rows, cols=cols, pixel_size_nm=pixel_size_nm, dwell_ns=dwell_ns,
-                         drift_px_per_frame=drift_px_per_frame, fail_every=fail_every, seed=seed)
+                         drift_px_per_frame=drift_px_per_frame, fail_every=fail_every, seed=seed, focus_mm=focus_mm,
+                         depth_of_field_um=depth_of_field_um)
+        self.focus_mm, self.depth_of_field_um = focus_mm, depth_of_field_um
         rng = np.random.default_rng(seed)
         # The "sample": smooth blobs at several scales, as SEM texture is.
         spectrum = np.fft.fft2(rng.standard_normal((rows, cols)))
         frequency = np.hypot(*np.meshgrid(np.fft.fftfreq(rows), np.fft.fftfreq(cols), indexing="ij"))
         self.sample_spectrum = spectrum / (0.02 + frequency) ** 1.5
+        self.frequency = frequency
         self.rows, self.cols = rows, cols
         self.pixel_size_nm, self.dwell_ns = pixel_size_nm, dwell_ns
         self.drift, self.fail_every = drift_px_per_frame, fail_every
@@ -48,7 +55,9 @@ class PatternSEM(ImageSourceAdapter):
         started = time.time_ns()
         shift = self.drift * self.scans
         phase = np.exp(-2j * np.pi * np.fft.fftfreq(self.cols)[None, :] * shift)  # a sub-pixel shift, exactly
-        image = np.fft.ifft2(self.sample_spectrum * phase).real
+        blur_px = abs(self.working_distance_mm - self.focus_mm) * 1000 / self.depth_of_field_um
+        defocus = np.exp(-2 * (np.pi * blur_px * self.frequency) ** 2)  # a Gaussian probe, wider out of focus
+        image = np.fft.ifft2(self.sample_spectrum * phase * defocus).real
         image = (image - image.min()) / (np.ptp(image) or 1.0) * 60000
         return AcquiredImage(
             pixels=image.astype(np.uint16), acquired_at_ns=time.time_ns(), scan_started_at_ns=started,

@@ -11,20 +11,37 @@ from typing import Any
 
 import numpy as np
 
+from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
 from semservo.estimation.tilt import (TiltEstimate, depth_map, egi_tilt_between, estimate_tilt, plan_sweep,
                            undo_foreshortening)
 from semservo.imagefiles import ImageFileError, read_image
-from semservo.messages import MotionEstimate
+from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
 from semservo.wire import Frame
 
 
-class TeachError(ValueError):
+class TeachError(CommandError):
     """A teach request that cannot be honoured; the previous reference is kept."""
+
+    code_name = "bad_request"
+
+    def __init__(self, message: str):
+        super().__init__(self.code_name, message)
+
+    def __str__(self) -> str:
+        return self.message
 
 
 class NotEnoughFrames(TeachError):
     """Fewer frames have arrived than the teach asks to average: ask again shortly."""
+
+    code_name = "not_enough_frames"
+
+
+class NoTiltReference(TeachError):
+    """The tilts cannot be measured: no taught focus sweep for this reference (yet)."""
+
+    code_name = "no_tilt_reference"
 
 
 @dataclass
@@ -35,22 +52,32 @@ class Reference:
     pixel_size_nm: float | None
     taught_at_ns: int
     detail: dict[str, Any] = field(default_factory=dict)
+    acquisition: dict[str, Any] = field(default_factory=dict)  # what its source says of the acquisition
 
     def describe(self) -> dict:
         return {"id": self.id, "kind": self.kind, "shape": list(self.shape), "pixel_size_nm": self.pixel_size_nm,
-                "taught_at_ns": self.taught_at_ns, **self.detail}
+                "taught_at_ns": self.taught_at_ns, "acquisition": dict(self.acquisition), **self.detail}
 
 
-def decode_upload(encoded: str) -> np.ndarray:
-    """Pixels of a base64-encoded PNG or TIFF upload."""
+def acquisition_of(frame: Frame | None) -> dict[str, Any]:
+    """The acquisition fields a frame's source knows (absent: not known)."""
+    if frame is None:
+        return {}
+    return {key: getattr(frame.header, key) for key in ACQUISITION_FIELDS if getattr(frame.header, key) is not None}
+
+
+def decode_upload(encoded: str, *, with_metadata: bool = False):
+    """Pixels of a base64-encoded PNG or TIFF upload (and, ``with_metadata``, what the
+    file says of its acquisition)."""
     try:
         raw = base64.b64decode(encoded, validate=True)
     except (ValueError, TypeError) as error:
         raise TeachError(f"image_b64 is not base64: {error}") from None
     try:
-        return read_image(raw)[0]
+        pixels, metadata = read_image(raw)
     except ImageFileError as error:
         raise TeachError(str(error)) from None
+    return (pixels, metadata) if with_metadata else pixels
 
 
 #: The smallest polygon a mask reference may be drawn from (square pixels): below this
@@ -110,6 +137,12 @@ class EstimatorCore:
         self.last_tilt: dict | None = None  # the latest tilt measurement against the reference
         self.tilt_sequence = 0
         self.tilt_error: str | None = None
+        #: The taught pose's focus sweep after a teach with tilts: it runs in the background
+        #: (``services.estimator.tilts``); its state, scans done and outcome.
+        self.tilt_teach: dict | None = None
+        #: What the reference looks like (the taught image; for a mask, the live frame it
+        #: was drawn on): the gateway and the dashboard show it.
+        self.reference_pixels: np.ndarray | None = None
 
     # -- tilts (focus sweeps) ----------------------------------------------------
     def next_sweep(self) -> list[float]:
@@ -142,14 +175,18 @@ class EstimatorCore:
             raise TeachError(f"focus sweep: {error}") from None
         return estimate, depth_map(sweep, working_distances, kernel)
 
-    def teach_tilt(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None) -> dict:
-        """The taught pose's sweep (with the reference image just taught): refused with
-        the reason when it cannot tell the tilts (a flat scene, focus outside it)."""
+    def teach_tilt(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None,
+                   reference_id: str | None = None) -> dict:
+        """The taught pose's sweep (with the reference image just taught, ``reference_id``
+        when given): refused with the reason when it cannot tell the tilts (a flat scene,
+        focus outside it, a depth of field too large for the field's depth)."""
         if self.reference is None:
             raise TeachError("teach an image before its tilt sweep")
+        if reference_id is not None and reference_id != self.reference.id:
+            raise TeachError(f"reference {reference_id} was replaced by {self.reference.id} during its focus sweep")
         estimate, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
         if estimate.confidence <= 0:
-            raise TeachError(f"the reference's focus sweep cannot tell the tilts: {estimate.reason}")
+            raise NoTiltReference(f"the reference's focus sweep cannot tell the tilts: {estimate.reason}")
         self.tilt_reference = TiltReference(self.reference.id, depths, estimate, pixel_size_nm / 1000, len(sweep),
                                             tuple(float(value) for value in working_distances))
         self.last_tilt = None
@@ -166,7 +203,7 @@ class EstimatorCore:
         reason given). With ``method="egi"`` the rotation between the two EGIs."""
         reference = self.tilt_reference
         if reference is None or self.reference is None or reference.reference_id != self.reference.id:
-            raise TeachError("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
+            raise NoTiltReference("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
         started = time.perf_counter()
         estimate, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
         if self.tilt_settings.method == "egi":
@@ -197,7 +234,8 @@ class EstimatorCore:
         return result
 
     # -- teaching -------------------------------------------------------------
-    def _install(self, pixels: np.ndarray, kind: str, pixel_size_nm: float | None, mask=None, **detail) -> dict:
+    def _install(self, pixels: np.ndarray, kind: str, pixel_size_nm: float | None, mask=None, *,
+                 acquisition: dict | None = None, shown: np.ndarray | None = None, **detail) -> dict:
         try:
             estimator = MotionEstimator(pixels, rotation=self.rotation, mask=mask, precision=self.precision,
                                         fft_effort=self.fft_effort)
@@ -205,10 +243,11 @@ class EstimatorCore:
             raise TeachError(str(error)) from None
         # Only now, with the new estimator built, is the old reference replaced.
         self.estimator = estimator
-        self.tilt_reference, self.last_tilt = None, None  # a new reference needs its own sweep
+        self.tilt_reference, self.last_tilt, self.tilt_teach = None, None, None  # a new reference needs its own sweep
+        self.reference_pixels = np.array(pixels if shown is None else shown)
         self.reference = Reference(
             id=uuid.uuid4().hex[:12], kind=kind, shape=pixels.shape, pixel_size_nm=pixel_size_nm,
-            taught_at_ns=time.time_ns(), detail=detail,
+            taught_at_ns=time.time_ns(), detail=detail, acquisition=acquisition or {},
         )
         self.counters["references_taught"] += 1
         return self.reference.describe()
@@ -234,15 +273,25 @@ class EstimatorCore:
         # On the source's clock (the fake lab's simulated time), when the reference was
         # scanned: what the simulator's truth for the taught pose is averaged over.
         scanned = [intervals[0][0], intervals[-1][1]] if all(intervals) else None
-        return self._install(pixels, "frame", frame.header.pixel_size_nm, frame_seq=frame.header.seq,
-                             source=frame.header.source, frames_averaged=frames, source_interval_s=scanned)
+        return self._install(pixels, "frame", frame.header.pixel_size_nm, acquisition=acquisition_of(frame),
+                             frame_seq=frame.header.seq, source=frame.header.source, frames_averaged=frames,
+                             source_interval_s=scanned)
 
-    def teach_image(self, pixels: np.ndarray, label: str = "upload") -> dict:
+    def teach_image(self, pixels: np.ndarray, label: str = "upload", acquisition: dict | None = None,
+                    source_interval_s: list[float] | None = None) -> dict:
+        """An image as the reference (an upload, a file, a stored target, a one-off slow
+        scan): it must be of the current scan's size. Its pixel size is the live
+        frames' (the scale the run measures in) unless the image says its own."""
         if self.latest is not None and pixels.shape != self.latest.pixels.shape:
             rows, cols = self.latest.pixels.shape
             raise TeachError(f"image is {pixels.shape[1]} x {pixels.shape[0]}, the current scan is {cols} x {rows}")
-        pixel_size = self.latest.header.pixel_size_nm if self.latest is not None else None
-        return self._install(pixels, "image", pixel_size, label=label)
+        known = dict(acquisition or {})
+        pixel_size = known.get("pixel_size_nm") or (self.latest.header.pixel_size_nm if self.latest is not None
+                                                    else None)
+        detail = {"label": label}
+        if source_interval_s is not None:
+            detail["source_interval_s"] = list(source_interval_s)
+        return self._install(pixels, "image", pixel_size, acquisition=known or acquisition_of(self.latest), **detail)
 
     def teach_mask(self, *, polygon=None, mask: np.ndarray | None = None) -> dict:
         """A mask reference (paper case 6) drawn on the latest frame's shape and levels."""
@@ -274,7 +323,7 @@ class EstimatorCore:
                                  f"{MIN_MASK_AREA_PX}")
         detail = {"polygon": [list(point) for point in shape_mask]} if polygon is not None else {}
         return self._install(np.array(self.latest.pixels), "mask", self.latest.header.pixel_size_nm,
-                             mask=shape_mask, **detail)
+                             mask=shape_mask, acquisition=acquisition_of(self.latest), **detail)
 
     def warm_up(self) -> None:
         """Compile the per-frame kernels now (numba compiles on first use, seconds when
@@ -292,7 +341,13 @@ class EstimatorCore:
             raise TeachError("rotation is off in this estimator's configuration (SEMSERVO_ESTIMATOR__ROTATION)")
         if tilts and (self.tilt_reference is None or self.reference is None
                       or self.tilt_reference.reference_id != self.reference.id):
-            raise TeachError("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
+            teach = self.tilt_teach
+            if teach is not None and self.reference is not None and teach["reference_id"] == self.reference.id:
+                if teach["state"] == "sweeping":
+                    raise NoTiltReference(f"no tilt reference yet: the taught pose's focus sweep is still scanning "
+                                          f"({teach['scanned']} of {teach['frames']} frames); start when it is done")
+                raise NoTiltReference(f"no tilt reference: the taught pose's focus sweep failed: {teach['error']}")
+            raise NoTiltReference("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
         self.measure_rotation = self.rotation if rotation is None else bool(rotation)
         self.measure_tilts = bool(tilts)
         if self.measure_tilts:
@@ -303,7 +358,8 @@ class EstimatorCore:
         had = self.reference is not None
         self.estimator = None
         self.reference = None
-        self.tilt_reference, self.last_tilt, self.measure_tilts = None, None, False
+        self.reference_pixels = None
+        self.tilt_reference, self.last_tilt, self.measure_tilts, self.tilt_teach = None, None, False, None
         return {"cleared": had}
 
     # -- per frame ------------------------------------------------------------
@@ -356,9 +412,16 @@ class EstimatorCore:
                 "tilt_frames": tilt["frames"], "tilt_sweep_s": tilt["sweep_s"],
                 "tilt_source_interval_s": tilt["source_interval_s"]}
 
+    def describe_reference(self) -> dict | None:
+        """The reference as the protocol reports it, with its tilt sweep's progress."""
+        if self.reference is None:
+            return None
+        teach = self.tilt_teach if self.tilt_teach and self.tilt_teach["reference_id"] == self.reference.id else None
+        return {**self.reference.describe(), **({"tilt_teach": dict(teach)} if teach else {})}
+
     def report(self) -> dict:
         return {
-            "reference": self.reference.describe() if self.reference else None,
+            "reference": self.describe_reference(),
             "rotation": self.rotation,
             "measure_rotation": self.measure_rotation,
             "measure_tilts": self.measure_tilts,

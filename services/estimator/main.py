@@ -1,5 +1,6 @@
-"""Estimator process: image server frames (latest only) -> core -> motion on PUB;
-teach / clear / report on the control socket.
+"""Estimator process: image server frames (latest only) -> core -> motion on PUB; the
+commands (declared in :mod:`semservo.protocol.estimator`, answered by
+:mod:`services.estimator.commands`) on the control socket.
 
 Run it with ``semservo service estimator``; settings ``SEMSERVO_ESTIMATOR__*``.
 """
@@ -8,16 +9,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-from pathlib import Path
 
 from semservo.config import Settings, connect
-from semservo.imagefiles import ImageFileError, read_image
 from semservo.logs import configure
 from semservo.messages import MOTION_TOPIC
 from semservo.service import ServiceRuntime
-from semservo.transport import BadRequest, CommandError, ControlClient, FrameSubscriber, MessagePublisher
-from services.estimator.core import EstimatorCore, NotEnoughFrames, TeachError, TiltSettings, decode_upload
-from services.estimator.tilts import SweepFailed, TiltTracker, run_sweep
+from semservo.transport import ControlClient, FrameSubscriber, MessagePublisher
+from services.estimator.commands import Estimator, handlers
+from services.estimator.core import EstimatorCore, TiltSettings
+from services.estimator.tilts import TiltTracker
 
 log = logging.getLogger("estimator")
 
@@ -55,77 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     runtime.report_errors_from(lambda: frames.last_error or core.tilt_error)
     log.info("frames from %s, motion on %s", frames_endpoint, motion.endpoint)
 
-    def taught(result: dict) -> dict:
-        runtime.state = "running"
-        log.info("taught reference %s (%s)", result["id"], result["kind"])
-        return result
-
-    def teach(args: dict) -> dict:
-        tilts = args.pop("tilts", False)
-        if not isinstance(tilts, bool):
-            raise BadRequest("tilts must be true or false")
-        if tilts and tracker.busy:
-            raise CommandError("busy", "a focus sweep is running (tilts are being measured): stop the run first")
-        result = _teach(args)
-        if tilts:  # the taught pose's focus sweep, now, before anything moves
-            try:
-                with tracker.lock:
-                    sweep, result_of_sweep = run_sweep(tracker.client(), core.next_sweep(), config.sweep_timeout_s)
-                    result = core.teach_tilt(sweep, result_of_sweep["working_distances_um"],
-                                             result_of_sweep["pixel_size_nm"])
-            except SweepFailed as error:
-                raise CommandError("sweep_failed", f"the reference image is taught, but its focus sweep failed: "
-                                                   f"{error}") from None
-            except TeachError as error:
-                raise CommandError("no_tilt_reference", f"the reference image is taught, but not its tilts: "
-                                                        f"{error}") from None
-        return result
-
-    def _teach(args: dict) -> dict:
-        try:
-            if "image_b64" in args:
-                return taught(core.teach_image(decode_upload(args["image_b64"]), label=str(args.get("label", "upload"))))
-            if "path" in args:
-                if not isinstance(args["path"], str):
-                    raise TeachError("path must be a file path (text)")
-                try:
-                    pixels, _ = read_image(Path(args["path"]))
-                except ImageFileError as error:
-                    raise TeachError(str(error)) from None
-                return taught(core.teach_image(pixels, label=str(args["path"])))
-            if "polygon" in args:
-                return taught(core.teach_mask(polygon=args["polygon"]))
-            if "mask_b64" in args:
-                return taught(core.teach_mask(mask=decode_upload(args["mask_b64"])))
-            return taught(core.teach_latest(frames=args.get("frames", 1)))
-        except NotEnoughFrames as error:  # its own code: a caller may wait and ask again
-            raise CommandError("not_enough_frames", str(error)) from None
-        except TeachError as error:
-            raise BadRequest(str(error)) from None
-
-    def clear(_args: dict) -> dict:
-        runtime.state = "idle"
-        return core.clear()
-
-    runtime.control.register("teach", teach)
-    def measure(args: dict) -> dict:
-        rotation, tilts = args.get("rotation"), args.get("tilts")
-        for name, value in (("rotation", rotation), ("tilts", tilts)):
-            if value is not None and not isinstance(value, bool):
-                raise BadRequest(f"{name} must be true, false or null")
-        try:
-            result = core.measure(rotation, tilts)
-        except TeachError as error:
-            code = "no_tilt_reference" if tilts and "tilt reference" in str(error) else "bad_request"
-            raise CommandError(code, str(error)) from None
-        tracker.wake()
-        return result
-
-    runtime.control.register("clear", clear)
-    runtime.control.register("measure", measure)
-    runtime.control.register("report", lambda _args: core.report())
+    handlers.bind(runtime.control, Estimator(core, tracker))
     runtime.details = lambda: {
-        "reference": core.reference.describe() if core.reference else "none taught: publishing nothing",
+        "reference": core.describe_reference() or "none taught: publishing nothing",
         "last_latency_ms": core.last_estimate.latency_ms if core.last_estimate else None,
         "last_estimation_ms": core.last_estimate.estimation_ms if core.last_estimate else None,
         "last_snr_db": core.last_estimate.snr_db if core.last_estimate else None,
@@ -148,8 +80,12 @@ def main(argv: list[str] | None = None) -> int:
 
     runtime.add_reader(frames.socket, on_frame)
     tracker.start()
+
+    def step() -> None:
+        runtime.state = "running" if core.reference is not None else "idle"  # idle: publishing nothing
+
     try:
-        return runtime.run()
+        return runtime.run(step)
     finally:
         tracker.stop()
         motion.close()

@@ -1,10 +1,15 @@
 """Tilts, one focus sweep after another, in a thread of its own (section II-B-2).
 
 A sweep takes seconds of scanning; the estimator keeps measuring every streamed frame
-meanwhile. While tilts are measured (``measure {tilts: true}``, set by a run that servoes
-them) the tracker asks the image server for a sweep planned from the last one, waits
-for it, measures the tilts against the taught sweep, and starts the next. Every motion
-estimate carries the latest tilt measurement; the controller acts on each one once.
+meanwhile, and its control socket keeps answering. The tracker runs two kinds of job:
+
+* **the taught pose's sweep**, after a teach with tilts (:meth:`TiltTracker.teach`): the
+  teach answers at once, and ``report``'s reference says how far the sweep is
+  (``tilt_teach``: sweeping, scanned of frames; done; or failed with the reason);
+* **tracking**, while tilts are measured (``measure {tilts: true}``, set by a run that
+  servoes them): a sweep planned from the last one, measured against the taught sweep,
+  then the next. Every motion estimate carries the latest tilt measurement; the
+  controller acts on each one once.
 """
 
 from __future__ import annotations
@@ -14,7 +19,8 @@ import threading
 import time
 from typing import Callable
 
-from semservo.transport import CommandError, ControlClient, ServiceUnavailable
+from semservo.errors import CommandError, ServiceUnavailable
+from semservo.transport import ControlClient
 from services.imageserver.sweep import decode_sweep
 
 log = logging.getLogger("estimator.tilts")
@@ -24,12 +30,14 @@ POLL_S = 0.05
 
 
 class SweepFailed(RuntimeError):
-    """The image server could not sweep (no scanning source, a failed scan, timeout)."""
+    """The image server could not sweep (no source that can focus, a failed scan, timeout)."""
 
 
 def run_sweep(client: ControlClient, working_distances_um: list[float], timeout_s: float,
-              cancelled: Callable[[], bool] = lambda: False):
-    """One focus sweep through the image server: (frames, the sweep's reply)."""
+              cancelled: Callable[[], bool] = lambda: False,
+              progress: Callable[[int, int], None] = lambda scanned, frames: None):
+    """One focus sweep through the image server: (frames, the sweep's reply).
+    ``progress(scanned, frames)`` is told as the scans come in."""
     try:
         started = client.request("start_sweep", working_distances_um=list(working_distances_um))
         deadline = time.monotonic() + timeout_s
@@ -41,6 +49,7 @@ def run_sweep(client: ControlClient, working_distances_um: list[float], timeout_
                 return decode_sweep(reply), reply
             if reply["state"] == "failed":
                 raise SweepFailed(reply.get("error", "the image server's sweep failed"))
+            progress(int(reply.get("scanned", 0)), int(reply.get("frames", len(working_distances_um))))
             if time.monotonic() > deadline:
                 raise SweepFailed(f"no sweep after {timeout_s:g} s ({reply.get('scanned')} of "
                                   f"{reply.get('frames')} frames scanned)")
@@ -54,10 +63,11 @@ class TiltTracker:
         self.core = core
         self.make_client = make_client
         self.timeout_s = timeout_s
-        self.lock = threading.Lock()  # one sweep at a time: a teach's or the tracker's
+        self.lock = threading.Lock()  # one sweep at a time
         self._client: ControlClient | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._teach_for: str | None = None  # the reference whose taught-pose sweep is due
         self._thread = threading.Thread(target=self._run, name="tilt-tracker", daemon=True)
         self.busy = False
 
@@ -72,32 +82,84 @@ class TiltTracker:
     def wake(self) -> None:
         self._wake.set()
 
+    def teach(self, reference_id: str, frames: int) -> dict:
+        """Sweep the focus at the taught pose of ``reference_id``, in the background; the
+        state (``core.tilt_teach``) says how far it is."""
+        self.core.tilt_teach = {"state": "sweeping", "reference_id": reference_id, "scanned": 0, "frames": frames,
+                                "error": None, "code": None}
+        self._teach_for = reference_id
+        self.wake()
+        return dict(self.core.tilt_teach)
+
+    def teach_cancel(self) -> None:
+        """A reference taught without tilts replaces one whose sweep was still scanning."""
+        self._teach_for = None
+
     def _run(self) -> None:
         while not self._stop.is_set():
-            if not self.core.measure_tilts:
+            if self._teach_for is None and not self.core.measure_tilts:
                 self._wake.wait(0.5)
                 self._wake.clear()
                 continue
-            try:
-                with self.lock:
-                    self.busy = True
-                    plan = self.core.next_sweep()
-                    sweep, reply = run_sweep(self.client(), plan, self.timeout_s,
-                                             cancelled=lambda: self._stop.is_set() or not self.core.measure_tilts)
-                    if self.core.measure_tilts:
-                        result = self.core.tilt_from_sweep(
-                            sweep, reply["working_distances_um"], reply["pixel_size_nm"],
-                            scan_started_at_ns=reply.get("scan_started_at_ns"),
-                            source_interval_s=reply.get("source_interval_s"), took_s=reply.get("took_s"))
-                        self.core.tilt_error = None if result["confidence"] > 0 else \
-                            f"tilts not measured: {result['reason']}"
-            except Exception as error:  # noqa: BLE001 - say why, wait, try again; never die
-                if self.core.measure_tilts:
-                    self.core.tilt_error = f"tilt measurement failed: {error}"
-                    log.warning("%s", self.core.tilt_error)
-                self._stop.wait(1.0)
-            finally:
-                self.busy = False
+            with self.lock:
+                self.busy = True
+                try:
+                    if self._teach_for is not None:
+                        self._teach_sweep(self._teach_for)
+                    else:
+                        self._track()
+                finally:
+                    self.busy = False
+
+    def _teach_sweep(self, reference_id: str) -> None:
+        core = self.core
+        state = core.tilt_teach
+
+        def replaced() -> bool:
+            return self._stop.is_set() or self._teach_for != reference_id
+
+        def progress(scanned: int, frames: int) -> None:
+            if not replaced():
+                state.update(scanned=scanned, frames=frames)
+
+        try:
+            sweep, reply = run_sweep(self.client(), core.next_sweep(), self.timeout_s, cancelled=replaced,
+                                     progress=progress)
+            core.teach_tilt(sweep, reply["working_distances_um"], reply["pixel_size_nm"], reference_id=reference_id)
+            state.update(state="done", scanned=len(sweep), frames=len(sweep))
+            log.info("taught the tilts of reference %s (%d frames)", reference_id, len(sweep))
+        except SweepFailed as error:
+            state.update(state="failed", code="sweep_failed", error=f"the focus sweep failed: {error}")
+        except CommandError as error:  # the sweep cannot tell the tilts, or the reference changed
+            state.update(state="failed", code="no_tilt_reference" if error.code != "bad_request" else "replaced",
+                         error=error.message)
+        except Exception as error:  # noqa: BLE001 - said, and the tracker lives on
+            log.exception("the taught pose's sweep failed")
+            state.update(state="failed", code="sweep_failed", error=f"{type(error).__name__}: {error}")
+        finally:
+            if self._teach_for == reference_id:
+                self._teach_for = None
+        if state["state"] == "failed":
+            log.warning("reference %s: %s", reference_id, state["error"])
+
+    def _track(self) -> None:
+        core = self.core
+        try:
+            plan = core.next_sweep()
+            sweep, reply = run_sweep(self.client(), plan, self.timeout_s,
+                                     cancelled=lambda: self._stop.is_set() or not core.measure_tilts
+                                     or self._teach_for is not None)
+            if core.measure_tilts:
+                result = core.tilt_from_sweep(
+                    sweep, reply["working_distances_um"], reply["pixel_size_nm"],
+                    scan_started_at_ns=reply.get("scan_started_at_ns"),
+                    source_interval_s=reply.get("source_interval_s"), took_s=reply.get("took_s"))
+                core.tilt_error = None if result["confidence"] > 0 else f"tilts not measured: {result['reason']}"
+        except Exception as error:  # noqa: BLE001 - say why, wait, try again; never die
+            if core.measure_tilts:
+                core.tilt_error = f"tilt measurement failed: {error}"
+                log.warning("%s", core.tilt_error)
+            self._stop.wait(1.0)
 
     def stop(self) -> None:
         self._stop.set()

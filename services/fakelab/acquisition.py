@@ -66,10 +66,11 @@ def encode_fei_tiff(pixels: np.ndarray, metadata_text: str) -> bytes:
 class FolderWriter:
     """Scans the world continuously and saves each frame to ``folder`` in ``chunks``
     writes, ``chunk_pause_s`` apart, a frame every ``interval_s`` at most (wall time; in
-    a thread of its own)."""
+    a thread of its own). It keeps the last ``keep`` frames it saved and deletes its own
+    older ones (an SEM's autosave folder would grow by gigabytes an hour); None keeps all."""
 
     def __init__(self, world: World, folder: Path, *, chunks: int = 4, chunk_pause_s: float = 0.01,
-                 interval_s: float = 0.1, request: ScanRequest | None = None, counters=None):
+                 interval_s: float = 0.1, request: ScanRequest | None = None, counters=None, keep: int | None = 200):
         self.world = world
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -79,6 +80,8 @@ class FolderWriter:
         self.request = request or ScanRequest()
         self.counters = counters if counters is not None else {}
         self.saved = 0
+        self.keep = keep
+        self.deleted = 0
         self.last_error: str | None = None
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name="save-frames", daemon=True)
@@ -117,6 +120,11 @@ class FolderWriter:
                     break
         self.saved += 1
         self.counters["frames_saved"] = self.saved
+        if self.keep is not None and self.saved > self.keep:
+            # Its own oldest frame only (files it did not write are not its to delete).
+            (self.folder / f"frame{self.saved - self.keep - 1:06d}.tif").unlink(missing_ok=True)
+            self.deleted += 1
+            self.counters["frames_deleted"] = self.deleted
         return path
 
     def stop(self) -> None:

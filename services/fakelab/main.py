@@ -1,7 +1,9 @@
 """Fake lab process: one simulated world, the NV 40/3 emulator on a pseudo-terminal and
 TCP, a scan socket for the image server's ``sim`` source, the control socket (health,
 true pose, rotation stage, presets) and, with ``save_frames_dir``, the SEM saving every
-frame to a folder as a vendor's software does (for the ``watch`` source).
+frame to a folder as a vendor's software does (for the ``watch`` source). With
+``--sample-image FILE`` (``SEMSERVO_FAKELAB__SAMPLE_IMAGE``) a real SEM picture is the
+sample, under the preset's optics (:mod:`semservo.simulation.sample_image`).
 
 Run it with ``semservo fakelab`` (prints where the serial device is) or
 ``semservo service fakelab``; settings ``SEMSERVO_FAKELAB__*``.
@@ -11,11 +13,10 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import threading
 import time
-from dataclasses import asdict
 
-import numpy as np
 import pydantic
 import zmq
 
@@ -23,11 +24,11 @@ from semservo.config import Settings, connect
 from semservo.logs import configure
 from semservo.messages import Reply, ScanRequest
 from semservo.service import ServiceRuntime
-from semservo.simulation.sem import SEM
+from semservo.simulation import sample_image
 from semservo.simulation.world import PRESETS, World
-from semservo.transport import BadRequest, number
 from semservo.wire import encode_frame, frame_header
 from services.fakelab.acquisition import FolderWriter
+from services.fakelab.commands import FakeLab, handlers
 from services.fakelab.emulator import ChannelState, NV403Emulator
 from services.fakelab.scan import scan_settings
 from services.fakelab.serial_links import PseudoTerminalLink, TcpLink
@@ -44,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preset", choices=sorted(PRESETS), help="experimental condition (default: settings)")
     parser.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
     parser.add_argument("--no-pty", action="store_true", help="no pseudo-terminal (TCP only)")
+    sample_image.add_arguments(parser)
     return parser
 
 
@@ -118,13 +120,30 @@ class ScanServer:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    settings = Settings()
+    # The sample-image options are settings (SEMSERVO_FAKELAB__SAMPLE_*): one validation.
+    os.environ.update(sample_image.environment_from_arguments(args))
+    try:
+        settings = Settings()
+    except pydantic.ValidationError as error:
+        raise SystemExit(f"fakelab: bad settings: {error}") from None
     configure(settings.log_level)
     config = settings.fakelab
     preset_name = args.preset or config.preset
     if preset_name not in PRESETS:
         raise SystemExit(f"unknown preset {preset_name!r}; presets: {', '.join(sorted(PRESETS))}")
-    world = World(PRESETS[preset_name], speedup=args.speedup or config.speedup, seed=config.seed)
+    try:
+        sample = sample_image.from_settings(config)
+        world = World(PRESETS[preset_name], speedup=args.speedup or config.speedup, seed=config.seed,
+                      sample_image=sample)
+    except sample_image.SampleImageError as error:
+        raise SystemExit(f"fakelab: sample image refused: {error}") from None
+    if sample is not None:
+        description = sample.describe()
+        log.info("sample: the picture %s, %d x %d px at %.4g nm/px (%s), %s edges, %s; noise %.4f -> %.4f (yield); "
+                 "magnifications x%.4g..x%.4g", sample.name, sample.shape[1], sample.shape[0], sample.pixel_um * 1000,
+                 sample.pixel_size_from, sample.edges,
+                 f"heights 0..{sample.height_range_um:g} um" if sample.height_um is not None else "flat",
+                 sample.noise_before, sample.noise_after, *description["magnification_range"])
 
     channels = {channel: ChannelState(knob_voltage=world.voltage(channel)) for channel in (0, 1, 2)}
 
@@ -134,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     plugged = threading.Event()
     plugged.set()
     pty = None if args.no_pty else PseudoTerminalLink(make_emulator, plugged).start()
-    tcp = TcpLink(make_emulator, settings.bind_host, config.serial_tcp_port, plugged).start()
+    tcp = TcpLink(make_emulator, config.serial_bind_host or settings.bind_host, config.serial_tcp_port, plugged).start()
     runtime = ServiceRuntime("fakelab", settings, settings.bind(config.control_port))
     scanner = ScanServer(world, settings.bind(config.scan_port), runtime.context, settings.max_message_bytes,
                          runtime.counters).start()
@@ -142,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     if config.save_frames_dir is not None:  # the SEM's software saving to a folder, for the watch source
         saver = FolderWriter(world, config.save_frames_dir, chunks=config.save_chunks,
                              chunk_pause_s=config.save_chunk_pause_s, interval_s=config.save_interval_s,
-                             counters=runtime.counters).start()
+                             counters=runtime.counters, keep=config.save_keep).start()
     runtime.report_errors_from(lambda: scanner.last_error or (saver and saver.last_error))
     # Said plainly on stdout: this is what a user plugs a stage service or a script into.
     if pty is not None:
@@ -151,79 +170,11 @@ def main(argv: list[str] | None = None) -> int:
     log.info("SEM scans on %s, preset %s (%s), speed-up x%g", connect(config.host, config.scan_port),
              preset_name, world.preset.description, world.speedup)
 
-    def describe(_args: dict) -> dict:
-        return {**world.describe(), "serial_pty": pty.path if pty else None,
-                "serial_tcp": tcp.url.replace(settings.bind_host, config.host),
-                "scan_endpoint": connect(config.host, config.scan_port)}
-
-    def pose(args: dict) -> dict:
-        """The true pose now, or at a past simulated time ``t_s`` (e.g. when a frame was
-        scanned: frame labels carry it), or averaged over a scan ``interval_s`` (t0, t1):
-        what a frame shows, with the vibration averaged out as the scan averages it."""
-        if "interval_s" in args:
-            interval = args["interval_s"]
-            if not isinstance(interval, list) or len(interval) != 2:
-                raise BadRequest("interval_s must be two numbers (simulated seconds)")
-            start, end = (simulated_time(value, "interval_s") for value in interval)
-            if start > end:
-                raise BadRequest(f"interval_s must be ordered, got {start:g} > {end:g}")
-            samples = [asdict(world.pose(t)) for t in np.linspace(start, end, 64)]
-            return {"interval_s": [start, end], "world_id": world.id,
-                    **{key: float(np.mean([sample[key] for sample in samples])) for key in samples[0]}}
-        when = simulated_time(args["t_s"], "t_s") if "t_s" in args else world.now()
-        return {"t_s": when, "world_id": world.id, **asdict(world.pose(when)),
-                "voltages": [world.voltage(channel) for channel in (0, 1, 2)]}
-
-    def simulated_time(value, name: str) -> float:
-        """A past simulated time: a finite number of seconds from 0 to now."""
-        value, now = number(value, name, "simulated seconds"), world.now()
-        if value > now:
-            raise BadRequest(f"{name} {value!r} is in the future (now {now:.3f} s)")
-        if value < 0:
-            raise BadRequest(f"{name} must be a past simulated time, 0..{now:.3f} s, got {value!r}")
-        return value
-
-    def set_rotation_stage(args: dict) -> dict:
-        """``set_rotation_stage {rotation_deg?, tilt_x_deg?, tilt_y_deg?, halt?}``: send
-        the rotation-and-tilt stage towards these angles (it moves at its own speed), or
-        halt it; always says where it is, where it is going and when it gets there."""
-        halt = args.pop("halt", False)
-        if not isinstance(halt, bool):
-            raise BadRequest("halt must be true or false")
-        angles = {key: number(value, key, "degrees") for key, value in args.items()}
-        try:
-            if halt:
-                world.halt_rotation_stage()
-            world.set_rotation_stage(**angles)
-        except (TypeError, ValueError) as error:
-            raise BadRequest(str(error)) from None
-        return {**world.rotation_stage, "targets_deg": world.goniometer.targets(),
-                "settles_in_s": world.rotation_stage_settles_in_s()}
-
-    def set_preset(args: dict) -> dict:
-        name = args.get("preset")
-        if not isinstance(name, str) or name not in PRESETS:
-            raise BadRequest(f"preset must be one of {', '.join(sorted(PRESETS))}")
-        with world.lock, world.render_lock:  # not while a frame renders with the old SEM
-            world.preset = PRESETS[name]
-            world.sem = SEM.for_preset(world.preset, world.seed)
-        return describe({})
-
-    def serial_link(args: dict) -> dict:
-        """Pull (``{"plugged": false}``) or plug back the serial cable."""
-        if "plugged" in args:
-            if not isinstance(args["plugged"], bool):
-                raise BadRequest("plugged must be true or false")
-            (plugged.set if args["plugged"] else plugged.clear)()
-            log.warning("serial cable %s", "plugged in" if args["plugged"] else "PULLED")
-        return {"plugged": plugged.is_set()}
-
-    runtime.control.register("info", describe)
-    runtime.control.register("serial_link", serial_link)
-    runtime.control.register("pose", pose)
-    runtime.control.register("set_rotation_stage", set_rotation_stage)
-    runtime.control.register("set_preset", set_preset)
-    runtime.details = lambda: {"preset": world.preset.name, "world_id": world.id,
+    lab = FakeLab(world, plugged, lambda: {"serial_pty": pty.path if pty else None,
+                                           "serial_tcp": tcp.url.replace(settings.bind_host, config.host),
+                                           "scan_endpoint": connect(config.host, config.scan_port)})
+    handlers.bind(runtime.control, lab)
+    runtime.details = lambda: {"preset": world.preset.name, "world_id": world.id, "sample": world.preset.scene,
                                "serial_pty": pty.path if pty else None, "serial_tcp": tcp.url, "frames": world.frames,
                                "scanning": scanner.healthy}
 

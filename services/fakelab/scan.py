@@ -1,5 +1,6 @@
 """What the simulated SEM scans for a request: the request's settings, the preset's
-where the request leaves them unset, within what the simulator can render."""
+where the request leaves them unset, within what the simulator can render (with a
+sample image: what the picture allows, :meth:`SampleImage.check_scan`)."""
 
 from __future__ import annotations
 
@@ -13,11 +14,18 @@ SIMULATED_MAGNIFICATION = (200.0, 200_000.0)
 
 
 def scan_settings(world: World, request: ScanRequest) -> ScanSettings:
+    """The scan a request asks for, or ValueError saying why the simulated SEM cannot
+    make it: a magnification outside what it renders, or, with a sample image, a scan
+    finer than the picture's detail or wider than the picture allows."""
     preset = world.preset
-    low, high = SIMULATED_MAGNIFICATION
-    if request.magnification is not None and not low <= request.magnification <= high:
-        raise ValueError(f"the simulated SEM images magnifications {low:g}..{high:g}x, "
-                         f"not {request.magnification:g}x")
+    if world.sample_image is not None:
+        # The picture sets the bounds (SampleImageError is a ValueError, with what to do).
+        world.sample_image.check_scan(request.magnification or preset.magnification, request.rows, request.cols)
+    else:
+        low, high = SIMULATED_MAGNIFICATION
+        if request.magnification is not None and not low <= request.magnification <= high:
+            raise ValueError(f"the simulated SEM images magnifications {low:g}..{high:g}x, "
+                             f"not {request.magnification:g}x")
     return ScanSettings(
         dwell_ns=request.dwell_ns or preset.dwell_ns,
         magnification=request.magnification or preset.magnification,

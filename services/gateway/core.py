@@ -1,13 +1,19 @@
-"""The gateway's core: one object that knows every service through small ports, keeps
-the latest frame, records runs as their events arrive, and answers what the REST API
-asks. No HTTP here (``app.py``) and no sockets of its own (``main.py`` wires them), so
-it is tested with the real services and no web server.
+"""The gateway's core: one object that knows every service through typed ports, keeps the
+latest frame, records runs as their events arrive, stores targets, and answers what the
+REST API asks. No HTTP here (``api/``) and no sockets of its own (``main.py`` wires
+them), so it is tested with the real services, or in-process ports, and no web server.
+
+The reference has one owner: the estimator. The gateway follows it (whoever taught it:
+this API, ``semservo teach``, a stored target) and keeps only what it needs to show and
+judge it: its pixels for the PNG endpoints and, on simulated hardware, the true pose it
+was taught at.
 """
 
 from __future__ import annotations
 
 import base64
 import io
+import json
 import logging
 import threading
 import time
@@ -15,15 +21,22 @@ from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
+import tifffile
 from PIL import Image
 
 from semservo.control import CameraToStage
+from semservo.errors import BadRequest, CommandError, ServiceUnavailable
 from semservo.imagefiles import ImageFileError, read_image, write_image
 from semservo.messages import ACQUISITION_FIELDS, ControllerEvent
-from semservo.transport import CommandError, ServiceUnavailable
+from semservo.protocol import Command, Port
+from semservo.protocol import controller as controller_protocol
+from semservo.protocol import estimator as estimator_protocol
+from semservo.protocol import fakelab as fakelab_protocol
+from semservo.protocol import imageserver as imageserver_protocol
+from semservo.protocol import stage as stage_protocol
+from semservo.protocol.controller import RunSettings
 from semservo.wire import Frame
 from services.gateway.records import FINISHED, RunStore
 
@@ -53,30 +66,9 @@ RECONCILE_EVERY_S = 1.0
 #: stage's watchdog has held the stage by then.
 CONTROLLER_LOST_AFTER_S = 5.0
 
-
-class Port(Protocol):
-    def request(self, command: str, args: dict | None = None) -> dict: ...
-
-
-class GatewayError(Exception):
-    """What the API turns into a 4xx/5xx body: ``status``, machine ``code``, words."""
-
-    def __init__(self, status: int, code: str, message: str, **extra):
-        super().__init__(message)
-        self.status, self.code, self.message, self.extra = status, code, message, extra
-
-
-def call(port: Port | None, service: str, command: str, args: dict | None = None) -> dict:
-    """A service command, its failures as :class:`GatewayError` naming the service."""
-    if port is None:
-        raise GatewayError(503, f"{service}_unavailable", f"the {service} service is not configured")
-    try:
-        return port.request(command, args or {})
-    except ServiceUnavailable as error:
-        raise GatewayError(503, f"{service}_unavailable", f"the {service} service does not answer: {error}") from None
-    except CommandError as error:
-        status = 409 if error.code in ("busy",) else 422 if error.code == "bad_request" else 409
-        raise GatewayError(status, error.code, f"{service}: {error.message}", service=service) from None
+#: A stored target's file: a TIFF of the reference's pixels whose description holds the
+#: target as JSON under this key.
+TARGET_FILE_KEY = "semservo_target"
 
 
 def to_png(pixels: np.ndarray, *, signed: bool = False) -> bytes:
@@ -137,20 +129,35 @@ class GatewayCore:
         self.frame_rate = FrameRate()
         self.counters: Counter = Counter()
         self.reference_pixels: np.ndarray | None = None
-        self.reference: dict | None = None
+        self.reference: dict | None = None  # the estimator's reference, as the gateway last saw it
         self.taught_truth: dict | None = None  # simulated hardware: the true pose of the reference
         self.last_status: dict = {"state": "idle"}
-        self.last_estimate: dict | None = None
         self.latencies_ms: deque = deque(maxlen=1000)
         self.health_lock = threading.Lock()
         self._health_cache: tuple[float, dict] = (-1e9, {})
         self.reconcile_lock = threading.Lock()
+        self.reference_lock = threading.Lock()
         self._reconciled_at = -1e9
         self._controller_silent_since: float | None = None
         self._truth_attempts: dict[str, int] = {}
+        self._pending_truth: dict[str, dict] = {}  # a reference taught from a stored target: its target's truth
         saved = store.reference()
         if saved is not None:  # a restarted gateway knows the last reference and its truth
             self.reference, self.taught_truth = saved
+
+    # -- talking to the services -------------------------------------------------------
+    def ask(self, service: str, command: Command, request=None, /, **fields):
+        """A service's command, typed; its failures as :class:`CommandError` naming the
+        service (``<service>_unavailable`` when it does not answer: a 503)."""
+        port = self.ports.get(service)
+        if port is None:
+            raise CommandError(f"{service}_unavailable", f"the {service} service is not configured")
+        try:
+            return port.call(command, request, **fields)
+        except ServiceUnavailable as error:
+            raise CommandError(f"{service}_unavailable", f"the {service} service does not answer: {error}") from None
+        except CommandError as error:
+            raise CommandError(error.code, f"{service}: {error.message}", service=service, **error.extra) from None
 
     # -- streams (called by main's threads) -------------------------------------
     def on_frame(self, frame: Frame) -> None:
@@ -179,8 +186,6 @@ class GatewayCore:
             self.counters["iterations"] += 1
             if data.get("latency_ms") is not None:
                 self.latencies_ms.append(data["latency_ms"])
-            if "error_px" in data:
-                self.last_estimate = data
         elif event.kind == "status":
             self.last_status = data
             self.store.add_event(run_id, now_ns, "status", data)
@@ -188,24 +193,29 @@ class GatewayCore:
                 self.finish(run_id)
         self.broadcast({"kind": event.kind, "run_id": run_id, "data": data})
 
+    # -- run records -----------------------------------------------------------------
+    def _controller_record(self, run_id: str | None = None) -> dict:
+        reply = self.ask("controller", controller_protocol.RUN, id=run_id)
+        return reply.model_dump(mode="json")
+
     def _record_start(self, run_id: str) -> None:
         try:
-            record = call(self.ports.get("controller"), "controller", "run")
-        except GatewayError:
+            record = self._controller_record()
+        except CommandError:
             record = {}
         if record.get("id") != run_id:
             record = {"id": run_id, "started_at_ns": time.time_ns(), "settings": {}}
-        self.store.start_run(run_id, started_at_ns=record["started_at_ns"], settings=record.get("settings", {}),
-                             reference=self.reference if self.reference and
-                             self.reference.get("id") == record.get("reference_id") else
-                             {"id": record.get("reference_id")})
+        reference = self.reference if self.reference and self.reference.get("id") == record.get("reference_id") \
+            else {"id": record.get("reference_id")}
+        self.store.start_run(run_id, started_at_ns=record["started_at_ns"], settings=record.get("settings") or {},
+                             reference=reference)
 
     def finish(self, run_id: str) -> bool:
         """A run ended: complete its rows from the controller's own record (events can be
         missed on PUB/SUB, and the gateway may have been down). True when recorded."""
         try:
-            record = call(self.ports.get("controller"), "controller", "run", {"id": run_id})
-        except GatewayError as error:
+            record = self._controller_record(run_id)
+        except CommandError as error:
             log.warning("cannot complete run %s yet: %s", run_id, error.message)
             return False
         return self._complete(run_id, record)
@@ -247,10 +257,10 @@ class GatewayCore:
 
     def _stage_log(self, since_ns: int, until_ns: int | None = None) -> list[dict] | None:
         try:
-            entries = call(self.ports.get("stage"), "stage", "log", {"since_ns": int(since_ns)})["entries"]
-        except GatewayError:
+            entries = self.ask("stage", stage_protocol.LOG, since_ns=int(since_ns)).entries
+        except CommandError:
             return None
-        return [entry for entry in entries if until_ns is None or entry["time_ns"] <= until_ns]
+        return [entry.model_dump() for entry in entries if until_ns is None or entry.time_ns <= until_ns]
 
     def reconcile(self, active_run_id: str | None, controller_up: bool) -> None:
         """Complete every record that is not: runs still ``servoing`` here that the
@@ -280,8 +290,8 @@ class GatewayCore:
                                                  f"watchdog holds the stage", provisional=True)
                 else:
                     try:
-                        record = call(self.ports.get("controller"), "controller", "run", {"id": run["id"]})
-                    except GatewayError as error:
+                        record = self._controller_record(run["id"])
+                    except CommandError as error:
                         if error.code == "no_such_run" and run["state"] == "servoing":
                             self._record_failed(run, "the controller has no record of this run (its records were "
                                                      "lost?)", provisional=False)
@@ -311,11 +321,10 @@ class GatewayCore:
         """On simulated hardware: the true pose over the scans of the run's last three
         fresh frames (what it judged convergence on) against the true pose over the
         reference's scans, in um and px; or (None, why not, worth asking again)."""
-        fakelab = self.ports.get("fakelab")
         fresh = [r for r in record.get("records", []) if r.get("frame_source_interval_s")
                  and not r.get("action", "").startswith("held")]
         scans = [r["frame_source_interval_s"] for r in fresh[-3:]]
-        if fakelab is None or not scans:
+        if self.ports.get("fakelab") is None or not scans:
             return None, None, False
         saved = self.store.reference(record.get("reference_id"))
         taught = saved[1] if saved is not None else None
@@ -324,12 +333,13 @@ class GatewayCore:
         if "unknown" in taught:
             return None, taught["unknown"], False
         try:
-            pose = fakelab.request("pose", {"interval_s": [scans[0][0], scans[-1][1]]})
+            pose = self.ports["fakelab"].call(fakelab_protocol.POSE, interval_s=[scans[0][0], scans[-1][1]])
         except ServiceUnavailable as error:
             log.warning("no truth from the fake lab yet: %s", error)
             return None, f"the simulated lab did not answer for the final pose: {error}", True
         except CommandError as error:
             return None, f"the simulated lab refused the final pose: {error.message}", False
+        pose = pose.model_dump()
         if pose.get("world_id") != taught.get("world_id"):
             return None, ("the simulated lab restarted since the reference was taught: the run's end and its "
                           "reference are in two different simulated worlds"), False
@@ -342,77 +352,119 @@ class GatewayCore:
                  "error_norm_px": float(np.hypot(*error_um) / pixel_um), "pixel_size_um": pixel_um,
                  "error_deg": angles}, None, False)
 
+    # -- the reference: the estimator's ------------------------------------------------
+    def follow_reference(self, described: dict | None) -> None:
+        """The estimator's reference (as it describes it) becomes the one the gateway
+        shows and judges runs by: its pixels fetched once per reference, its true pose
+        recorded (simulated hardware). Whoever taught it: this API, ``semservo teach``,
+        a stored target."""
+        if not described:
+            return
+        with self.reference_lock:
+            if self.reference is not None and self.reference.get("id") == described["id"] \
+                    and self.reference_pixels is not None:
+                self.reference = {**self.reference, **described}  # e.g. its tilt sweep's progress
+                return
+            try:
+                image = self.ask("estimator", estimator_protocol.REFERENCE_IMAGE, id=described["id"])
+            except CommandError as error:
+                log.warning("cannot fetch the reference's pixels: %s", error.message)
+                return
+            pixels = np.frombuffer(base64.b64decode(image.pixels_b64), dtype=np.dtype(image.dtype)).reshape(image.shape)
+            truth = self._pending_truth.pop(described["id"], None) or self._taught_truth(described)
+            with self.lock:
+                self.reference, self.reference_pixels = dict(described), pixels
+                self.taught_truth = truth
+            self.store.save_reference(described, truth, described.get("taught_at_ns") or time.time_ns())
+            self.counters["references_taught"] += 1
+        self.broadcast({"kind": "reference", "run_id": None, "data": described})
+
+    def _taught_truth(self, reference: dict) -> dict | None:
+        fakelab = self.ports.get("fakelab")
+        if fakelab is None:
+            return None
+        scanned = reference.get("source_interval_s")
+        if reference.get("kind") == "image" and not scanned:
+            # An uploaded image may have been taken anywhere: where is unknown to the simulator.
+            return {"reference_id": reference["id"], "unknown": "the reference is an uploaded image: where it was "
+                                                                "imaged is unknown to the simulator"}
+        try:
+            if scanned:
+                pose = fakelab.call(fakelab_protocol.POSE, interval_s=list(scanned))
+            else:  # a mask drawn on the live image: the stage stands where it was taught
+                now = fakelab.call(fakelab_protocol.POSE).t_s
+                pose = fakelab.call(fakelab_protocol.POSE, interval_s=[max(now - 0.5, 0.0), now])
+        except (ServiceUnavailable, CommandError):
+            return None
+        pose = pose.model_dump()
+        return {"reference_id": reference["id"], "x_um": pose["x_um"], "y_um": pose["y_um"],
+                "world_id": pose.get("world_id"),
+                **{key: pose[key] for key in ("rotation_deg", "tilt_x_deg", "tilt_y_deg") if key in pose}}
+
+    def current_reference(self) -> dict:
+        """The taught reference (the estimator's, followed at once)."""
+        try:
+            described = self.ask("estimator", estimator_protocol.REPORT).reference
+        except CommandError:
+            described = None
+        if described is not None:
+            self.follow_reference(described.model_dump(mode="json", exclude_none=True))
+        if self.reference is None or described is None:
+            raise CommandError("no_reference", "no reference is taught: teach one first (POST /teach)")
+        return self.reference
+
     # -- teaching -------------------------------------------------------------
     def teach(self, *, frames: int = 1, image: bytes | None = None, mask: bytes | None = None,
               polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None,
               tilts: bool = False) -> dict:
         """Teach the estimator; a refusal keeps the previous reference (the estimator
         installs a new one only when it is built). ``dwell_ns``: scan the reference once
-        at that dwell (a slow, high-quality reference, paper case 5)."""
+        at that dwell (a slow, high-quality reference, paper case 5). ``tilts``: the
+        estimator then sweeps the focus at the taught pose, in the background (the
+        reference's ``tilt_teach`` says how far)."""
         self._refuse_during_run("teaching a new reference")
-        estimator = self.ports.get("estimator")
-        call(estimator, "estimator", "health")  # a dead estimator is named in a second, not after the teach timeout
+        self.ask("estimator", estimator_protocol.REPORT)  # a dead estimator is named at once, not after a timeout
         latest = self.latest
-        scanned_interval = None
-        acquisition = {} if latest is None else {key: getattr(latest.header, key) for key in ACQUISITION_FIELDS
-                                                 if getattr(latest.header, key) is not None}
         if tilts and (image is not None or mask is not None or polygon is not None or dwell_ns is not None):
-            raise GatewayError(422, "invalid", "tilts are taught with the live frames (a focus sweep at the taught "
-                                               "pose), not with an upload, a mask or a one-off scan", field="tilts")
+            raise BadRequest("tilts are taught with the live frames (a focus sweep at the taught pose), not with an "
+                             "upload, a mask or a one-off scan", field="tilts")
+        scanned_interval = None
         if dwell_ns is not None:
-            scan = call(self.ports.get("imageserver"), "imageserver", "scan_once", {"dwell_ns": dwell_ns})
-            image = base64.b64decode(scan["image_b64"])
+            scan = self.ask("imageserver", imageserver_protocol.SCAN_ONCE, dwell_ns=dwell_ns)
+            image = base64.b64decode(scan.image_b64)
             label = label or f"one scan at {dwell_ns:g} ns/px"
-            scanned_interval = scan.get("source_interval_s")
+            scanned_interval = scan.source_interval_s
         if image is not None or mask is not None:
             try:
-                pixels, from_file = read_image(image if image is not None else mask)
+                pixels, _ = read_image(image if image is not None else mask)
             except ImageFileError as error:
-                raise GatewayError(422, "unreadable_image", f"the upload is not a readable PNG/TIFF: {error}") from None
+                raise CommandError("unreadable_image", f"the upload is not a readable PNG/TIFF: {error}") from None
             if latest is not None and pixels.shape != latest.pixels.shape:
-                raise GatewayError(422, "wrong_size", f"the image is {pixels.shape[1]} x {pixels.shape[0]}, the "
-                                                      f"current scan is {latest.pixels.shape[1]} x {latest.pixels.shape[0]}")
+                raise CommandError("wrong_size", f"the image is {pixels.shape[1]} x {pixels.shape[0]}, the current "
+                                                 f"scan is {latest.pixels.shape[1]} x {latest.pixels.shape[0]}")
             if image is not None:
-                result = call(estimator, "estimator", "teach", {"image_b64": png_b64(pixels), "label": label or "upload"})
-                reference_pixels = pixels
-                acquisition = from_file  # what the uploaded (or scanned) file says of itself
+                # The file goes as it came: its own metadata (pixel size, ...) goes with it.
+                reply = self.ask("estimator", estimator_protocol.TEACH, image_b64=base64.b64encode(image).decode(),
+                                 label=label or "upload", source_interval_s=scanned_interval)
             else:
-                result = call(estimator, "estimator", "teach", {"mask_b64": png_b64((pixels > 0).astype(np.uint8) * 255)})
-                reference_pixels = latest.pixels if latest is not None else pixels
+                reply = self.ask("estimator", estimator_protocol.TEACH,
+                                 mask_b64=png_b64((pixels > 0).astype(np.uint8) * 255))
         elif polygon is not None:
-            result = call(estimator, "estimator", "teach", {"polygon": polygon})
-            reference_pixels = latest.pixels if latest is not None else None
+            reply = self.ask("estimator", estimator_protocol.TEACH, polygon=polygon)
         else:
-            result = self._teach_live(frames, tilts)
-            reference_pixels = self.latest.pixels if self.latest is not None else None
-        # The acquisition the reference was made at (pixel size, magnification, working
-        # distance...), as far as its source knows it: it goes with every run's record.
-        result = {**result, "acquisition": acquisition}
-        with self.lock:
-            self.reference = result
-            self.reference_pixels = None if reference_pixels is None else np.array(reference_pixels)
-        if image is not None and scanned_interval is None:
-            # An uploaded image may have been taken anywhere: where is unknown to the simulator.
-            self.taught_truth = {"reference_id": result["id"], "unknown": "the reference is an uploaded image: where "
-                                                                          "it was imaged is unknown to the simulator"}
-        else:
-            self.taught_truth = self._taught_truth({**result, "source_interval_s": scanned_interval}
-                                                   if scanned_interval else result)
-        self.store.save_reference(result, self.taught_truth, time.time_ns())
-        self.counters["references_taught"] += 1
-        self.broadcast({"kind": "reference", "run_id": None, "data": result})
-        return result
+            reply = self._teach_live(frames, tilts)
+        described = reply.model_dump(mode="json", exclude_none=True)
+        self.follow_reference(described)
+        return self.reference if self.reference and self.reference["id"] == described["id"] else described
 
-    def _teach_live(self, frames: int, tilts: bool = False) -> dict:
+    def _teach_live(self, frames: int, tilts: bool = False):
         """Teach from the live frames, waiting (up to ``TEACH_FRAMES_WAIT_S``) for as many
-        as asked to average: a system that has just started has sent fewer. With
-        ``tilts``, the estimator also sweeps the focus at the taught pose."""
+        as asked to average: a system that has just started has sent fewer."""
         deadline = self.clock() + TEACH_FRAMES_WAIT_S
         while True:
             try:
-                return call(self.ports.get("estimator"), "estimator", "teach",
-                            {"frames": frames, **({"tilts": True} if tilts else {})})
-            except GatewayError as error:
+                return self.ask("estimator", estimator_protocol.TEACH, frames=frames, tilts=tilts)
+            except CommandError as error:
                 if error.code != "not_enough_frames" or self.clock() > deadline:
                     raise
             time.sleep(0.1)
@@ -422,56 +474,131 @@ class GatewayCore:
         is a 503 when ``controller_required``, else no run (none can move the stage then:
         its watchdog holds it)."""
         try:
-            status = call(self.ports.get("controller"), "controller", "status")
-        except GatewayError:
+            status = self.ask("controller", controller_protocol.STATUS)
+        except CommandError:
             if controller_required:
                 raise
             return None
-        return status.get("run_id") if status.get("state") == "servoing" else None
+        return status.run_id if status.state == "servoing" else None
 
     def _refuse_during_run(self, what: str, *, controller_required: bool = False) -> None:
         run_id = self._active_run(controller_required=controller_required)
         if run_id is not None:
-            raise GatewayError(409, "run_active", f"{what} is refused while run {run_id} is servoing; "
-                                                  f"POST /stop first", run_id=run_id)
+            raise CommandError("run_active", f"{what} is refused while run {run_id} is servoing; POST /stop first",
+                               run_id=run_id)
 
-    def _taught_truth(self, reference: dict) -> dict | None:
-        fakelab = self.ports.get("fakelab")
-        if fakelab is None:
-            return None
+    # -- stored targets --------------------------------------------------------------
+    def save_target(self, name: str, note: str = "", replace: bool = False) -> dict:
+        """The taught reference stored under ``name`` with the stage's pose now and the
+        acquisition it was taught at (its pixels, for a run that comes back to it)."""
+        reference = self.current_reference()
+        if self.reference_pixels is None:
+            raise CommandError("no_reference", "the reference's pixels are not here yet; try again in a moment")
+        if not replace and self.store.target(name) is not None:
+            raise CommandError("target_exists", f"a target {name!r} exists: choose another name, or replace=true",
+                               field="name")
+        stage = self.ask("stage", stage_protocol.STATE)
+        pose = {"positions_um": stage.positions_um, "voltages": stage.voltages,
+                "rotation_deg": stage.rotation.angles_deg if stage.rotation else None}
+        self.store.save_target(name=name, note=note, created_at_ns=time.time_ns(), reference=reference, stage=pose,
+                               acquisition=reference.get("acquisition", {}), truth=self.taught_truth,
+                               pixels=self.reference_pixels)
+        return self.target(name)
+
+    def target(self, name: str) -> dict:
+        target = self.store.target(name)
+        if target is None:
+            raise CommandError("no_such_target", f"no stored target {name!r}", field="name")
+        return target
+
+    def target_pixels(self, name: str) -> np.ndarray:
+        pixels = self.store.target_pixels(name)
+        if pixels is None:
+            raise CommandError("no_such_target", f"no stored target {name!r}", field="name")
+        return pixels
+
+    def export_target(self, name: str) -> bytes:
+        """A stored target as one file: a TIFF of its reference's pixels, the target (its
+        stage pose, acquisition, reference) as JSON in the TIFF's description."""
+        target, pixels = self.target(name), self.target_pixels(name)
+        saved = {key: target[key] for key in ("name", "note", "created_at_ns", "reference", "stage", "acquisition")}
+        buffer = io.BytesIO()
+        tifffile.imwrite(buffer, pixels, description=json.dumps({TARGET_FILE_KEY: saved}), metadata=None)
+        return buffer.getvalue()
+
+    def import_target(self, data: bytes, *, name: str | None = None, replace: bool = False) -> dict:
+        """A target from a file :meth:`export_target` wrote (another gateway's, days ago)."""
         try:
-            scanned = reference.get("source_interval_s")
-            if scanned:
-                pose = fakelab.request("pose", {"interval_s": scanned})
-            else:  # a mask drawn on the live image: the stage stands where it was taught
-                now = fakelab.request("pose", {})["t_s"]
-                pose = fakelab.request("pose", {"interval_s": [max(now - 0.5, 0.0), now]})
-        except (ServiceUnavailable, CommandError):
-            return None
-        return {"reference_id": reference["id"], "x_um": pose["x_um"], "y_um": pose["y_um"],
-                "world_id": pose.get("world_id"),
-                **{key: pose[key] for key in ("rotation_deg", "tilt_x_deg", "tilt_y_deg") if key in pose}}
+            with tifffile.TiffFile(io.BytesIO(data)) as tiff:
+                pixels = tiff.pages[0].asarray()
+                saved = json.loads(tiff.pages[0].description)[TARGET_FILE_KEY]
+        except (ValueError, KeyError, TypeError, IndexError, tifffile.TiffFileError) as error:
+            raise CommandError("bad_target_file", f"not a semservo target file (a TIFF from GET "
+                                                  f"/targets/NAME/export): {type(error).__name__}: {error}") from None
+        name = name or saved.get("name")
+        if not isinstance(name, str) or not name:
+            raise CommandError("bad_target_file", "the target file names no target")
+        if not replace and self.store.target(name) is not None:
+            raise CommandError("target_exists", f"a target {name!r} exists: replace=true to overwrite it", field="name")
+        self.store.save_target(name=name, note=str(saved.get("note", "")), created_at_ns=int(saved["created_at_ns"]),
+                               reference=saved["reference"], stage=saved.get("stage", {}),
+                               acquisition=saved.get("acquisition", {}), truth=None, pixels=np.asarray(pixels))
+        return self.target(name)
+
+    def delete_target(self, name: str) -> dict:
+        target = self.target(name)
+        self.store.delete_target(name)
+        return target
+
+    def go_to_target(self, name: str, settings: dict, *, approach: bool = True, resume: bool = False) -> dict:
+        """Back to a stored target: (``approach``) the stage to its stored positions, open
+        loop through its model and every rule; its reference taught (the stored image);
+        then a run positions on the image."""
+        target, pixels = self.target(name), self.target_pixels(name)
+        self._refuse_during_run(f"going to target {name!r}", controller_required=True)
+        latest = self.latest
+        if latest is not None and pixels.shape != latest.pixels.shape:
+            raise CommandError("wrong_size", f"target {name!r} was taught on a {pixels.shape[1]} x {pixels.shape[0]} "
+                                             f"scan; the current scan is {latest.pixels.shape[1]} x "
+                                             f"{latest.pixels.shape[0]}: set the scan as it was "
+                                             f"({target['acquisition']})")
+        self._check_stage_may_move(resume)
+        if approach and target["stage"].get("positions_um"):
+            positions = {axis: value for axis, value in target["stage"]["positions_um"].items()}
+            self.move(positions, relative=False)
+        buffer = io.BytesIO()
+        tifffile.imwrite(buffer, pixels, description=json.dumps({"semservo": target["acquisition"]}), metadata=None)
+        reply = self.ask("estimator", estimator_protocol.TEACH, image_b64=base64.b64encode(buffer.getvalue()).decode(),
+                         label=f"target {name}")
+        described = reply.model_dump(mode="json", exclude_none=True)
+        truth = self.store.target_truth(name)
+        if truth is not None and "unknown" not in truth:
+            self._pending_truth[described["id"]] = {**truth, "reference_id": described["id"]}
+        self.follow_reference({**described, "target": name})
+        return self.start(settings, resume=resume)
 
     # -- images ---------------------------------------------------------------
     def latest_png(self) -> bytes:
         frame = self.latest
         if frame is None:
-            raise GatewayError(404, "no_frame", "no frame has arrived yet: is the image server running?")
+            raise CommandError("no_frame", "no frame has arrived yet: is the image server running?")
         return to_png(frame.pixels)
 
     def reference_png(self) -> bytes:
+        self._follow_estimator()
         if self.reference_pixels is None:
-            raise GatewayError(404, "no_reference", "no reference taught through the gateway yet")
+            raise CommandError("no_reference", "no reference is taught")
         return to_png(self.reference_pixels)
 
     def difference_png(self) -> bytes:
         """I - I* with both levelled to zero mean and unit spread (the SEM's brightness
         and contrast may differ between them)."""
+        self._follow_estimator()
         frame, reference = self.latest, self.reference_pixels
         if frame is None or reference is None:
-            raise GatewayError(404, "no_difference", "the difference needs a live frame and a taught reference")
+            raise CommandError("no_difference", "the difference needs a live frame and a taught reference")
         if frame.pixels.shape != reference.shape:
-            raise GatewayError(409, "wrong_size", "the scan changed size since teaching; teach again")
+            raise CommandError("scan_changed", "the scan changed size since teaching; teach again")
 
         def levelled(pixels):
             values = pixels.astype(np.float32)
@@ -479,8 +606,18 @@ class GatewayCore:
 
         return to_png(levelled(frame.pixels) - levelled(reference), signed=True)
 
+    def _follow_estimator(self) -> None:
+        """The estimator's reference, from its health (cached): a teach by anyone is seen."""
+        estimator = self.health(("estimator",)).get("estimator", {})
+        described = estimator.get("details", {}).get("reference")
+        if isinstance(described, dict):
+            self.follow_reference(described)
+        elif estimator.get("up") and described is not None:  # "none taught": restarted, or cleared
+            with self.lock:
+                self.reference, self.reference_pixels = None, None
+
     # -- stage and runs -------------------------------------------------------
-    def move(self, targets: dict[str, float], relative: bool) -> dict:
+    def move(self, targets: dict[str, float], relative: bool):
         """A jog or move. Refused during a run (it would fight the controller); the stage
         refuses it too while a run's controller has it armed."""
         self._refuse_during_run("moving the stage")
@@ -489,81 +626,84 @@ class GatewayCore:
         deadline = self.clock() + JOG_RATE_WAIT_S
         while True:
             try:
-                return call(self.ports.get("stage"), "stage", "move", {"targets": targets, "relative": relative,
-                                                                        "owner": "gateway"})
-            except GatewayError as error:
+                return self.ask("stage", stage_protocol.MOVE, targets=targets, relative=relative, owner="gateway")
+            except CommandError as error:
                 if error.code != "rate_limit" or self.clock() > deadline:
                     raise
             time.sleep(0.05)
 
-    def rotate(self, targets: dict[str, float], relative: bool) -> dict:
+    def rotate(self, targets: dict[str, float], relative: bool):
         """A turn or tilt of the rotation-and-tilt stage, through the stage service (its
         travel, step and owner rules). Refused during a run, as a jog is."""
         self._refuse_during_run("turning the stage")
-        return call(self.ports.get("stage"), "stage", "rotate", {"targets": targets, "relative": relative,
-                                                                  "owner": "gateway"})
+        return self.ask("stage", stage_protocol.ROTATE, targets=targets, relative=relative, owner="gateway")
 
-    def center(self, x_px: float, y_px: float) -> dict:
+    def center(self, x_px: float, y_px: float):
         """Move the stage so the live image's point (x, y) comes to the centre (click to
         move), through the camera-to-stage transform and the frame's pixel size."""
         frame = self.latest
         if frame is None:
-            raise GatewayError(409, "no_frame", "no live frame to click on yet")
+            raise CommandError("no_live_frame", "no live frame to click on yet")
         rows, cols = frame.pixels.shape
         if not (0 <= x_px < cols and 0 <= y_px < rows):
             # 409, not 422: the point is well formed; the current scan is what it misses.
-            raise GatewayError(409, "outside_image", f"({x_px:.1f}, {y_px:.1f}) is outside the current "
-                                                     f"{cols} x {rows} image", field="x_px")
+            raise CommandError("outside_image", f"({x_px:.1f}, {y_px:.1f}) is outside the current {cols} x {rows} "
+                                                f"image", field="x_px")
         if frame.header.pixel_size_nm is None:
-            raise GatewayError(409, "pixel_size_unknown", "the live frames carry no pixel size, so a click cannot "
-                                                          "become a stage move: set SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM")
+            raise CommandError("pixel_size_unknown", "the live frames carry no pixel size, so a click cannot become a "
+                                                     "stage move: set SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM")
         x_um, y_um = self.camera.stage_move_um(cols / 2 - x_px, rows / 2 - y_px, frame.header.pixel_size_nm)
         return self.move({"x": x_um, "y": y_um}, relative=True)
 
-    def resume(self) -> dict:
+    def resume(self):
         """Let a stopped or held stage move again (a run cannot be active then)."""
         self._refuse_during_run("resuming the stage", controller_required=True)
-        return call(self.ports.get("stage"), "stage", "resume")
+        return self.ask("stage", stage_protocol.RESUME)
 
-    def stage_state(self) -> dict:
-        return call(self.ports.get("stage"), "stage", "state")
+    def stage_state(self):
+        return self.ask("stage", stage_protocol.STATE)
+
+    def _check_stage_may_move(self, resume: bool) -> None:
+        """A stage an operator stopped stays stopped unless ``resume`` says the operator
+        lets it move again."""
+        stage = self.ask("stage", stage_protocol.STATE)
+        if stage.state == "stopped":
+            if not resume:
+                raise CommandError("stage_stopped", f"the stage is stopped ({stage.reason}); POST /stage/resume first, "
+                                                    f"or start with ?resume=true")
+            self.ask("stage", stage_protocol.RESUME)
 
     def start(self, settings: dict, *, resume: bool = False) -> dict:
         """Start a run. A stage an operator stopped stays stopped: the start is refused
         (409 ``stage_stopped``) unless ``resume`` says the operator lets it move again. A
         stage held by its watchdog (a controller died, or the stage service restarted
         mid-run) is claimed by the new run's controller."""
-        controller = self.ports.get("controller")
         self._refuse_during_run("starting a run", controller_required=True)
-        stage = call(self.ports.get("stage"), "stage", "state")
-        if stage.get("state") == "stopped":
-            if not resume:
-                raise GatewayError(409, "stage_stopped", f"the stage is stopped ({stage.get('reason')}); "
-                                                         f"POST /stage/resume first, or start with ?resume=true")
-            call(self.ports.get("stage"), "stage", "resume")
+        self._check_stage_may_move(resume)
+        run_settings = RunSettings.model_validate_json(json.dumps(settings))
         try:
-            started = call(controller, "controller", "start", settings)
-        except GatewayError as error:
+            started = self.ask("controller", controller_protocol.START, run_settings)
+        except CommandError as error:
             if error.code == "busy":
-                raise GatewayError(409, "run_active", error.message, run_id=call(controller, "controller",
-                                                                                 "status").get("run_id")) from None
+                status = self.ask("controller", controller_protocol.STATUS)
+                raise CommandError("run_active", error.message, run_id=status.run_id) from None
             raise
-        self._record_start(started["run_id"])
-        return started
+        self._record_start(started.run_id)
+        return {"run_id": started.run_id, "state": started.state}
 
     def stop(self, reason: str) -> dict:
         """Stop at once: the stage first (it refuses moves from then on), then the run."""
         stage_error = None
         try:
-            call(self.ports.get("stage"), "stage", "stop", {"reason": reason})
-        except GatewayError as error:
+            self.ask("stage", stage_protocol.STOP, reason=reason)
+        except CommandError as error:
             stage_error = error.message
         try:
-            status = call(self.ports.get("controller"), "controller", "stop", {"reason": reason})
-        except GatewayError as error:
+            status = self.ask("controller", controller_protocol.STOP, reason=reason).model_dump(mode="json")
+        except CommandError as error:
             if stage_error is not None:
-                raise GatewayError(503, "stop_failed", f"neither the stage nor the controller answered: "
-                                                       f"{stage_error}; {error.message}") from None
+                raise CommandError("stop_failed", f"neither the stage nor the controller answered: {stage_error}; "
+                                                  f"{error.message}") from None
             status = {"state": "stopped", "reason": reason, "controller": error.message}
         return {**status, "stage_stopped": stage_error is None, "stage_error": stage_error}
 
@@ -576,20 +716,23 @@ class GatewayCore:
             if self.clock() - cached_at < HEALTH_TTL_S and set(names) <= set(report) | set(
                     name for name in names if self.ports.get(name) is None):
                 return {name: report[name] for name in names if name in report}
-            report = self._ask_health(names)
-            self._health_cache = (self.clock(), report)
-            return report
+            fresh = self._ask_health(names)
+            self._health_cache = (self.clock(), {**(report if self.clock() - cached_at < HEALTH_TTL_S else {}),
+                                                 **fresh})
+            return fresh
 
     def _ask_health(self, names: tuple[str, ...]) -> dict[str, dict]:
+        from semservo.protocol import HEALTH
+
         report = {}
         for name in names:
             port = self.ports.get(name)
             if port is None:
                 continue
             try:
-                health = port.request("health", {})
-                report[name] = {"up": True, "state": health["state"], "last_error": health.get("last_error"),
-                                "details": health.get("details", {})}
+                health = port.call(HEALTH)
+                report[name] = {"up": True, "state": health.state, "last_error": health.last_error,
+                                "details": health.details}
             except ServiceUnavailable as error:
                 report[name] = {"up": False, "state": "down", "last_error": str(error), "details": {}}
             except CommandError as error:
@@ -602,7 +745,14 @@ class GatewayCore:
         run = controller.get("details", {}) if controller.get("up") else {}
         stage = services.get("stage", {}).get("details", {})
         latencies = np.array(self.latencies_ms) if self.latencies_ms else None
-        estimator = services.get("estimator", {}).get("details", {})
+        estimator = services.get("estimator", {})
+        estimator_details = estimator.get("details", {})
+        described = estimator_details.get("reference")
+        if isinstance(described, dict):
+            self.follow_reference(described)
+        elif estimator.get("up") and described is not None:
+            with self.lock:
+                self.reference, self.reference_pixels = None, None
         run_id = run.get("run_id")
         if run_id and run.get("state") in FINISHED and not self.store.is_complete(run_id):
             # The run's last event was missed (PUB/SUB drops, or the gateway was down
@@ -611,10 +761,12 @@ class GatewayCore:
                 self._record_start(run_id)
             self.finish(run_id)
         self.reconcile(run_id if run.get("state") == "servoing" else None, bool(controller.get("up")))
+        latest = self.latest
         return {
             "state": run.get("state", "unknown" if not controller.get("up") else "idle"),
             "reason": run.get("reason", ""),
             "run_id": run.get("run_id"),
+            "dofs": run.get("dofs", []),
             "iteration": run.get("iteration", 0),
             "error_px": run.get("error_px"),
             "error_um": run.get("error_um"),
@@ -623,17 +775,20 @@ class GatewayCore:
             "rotation_deg": run.get("rotation_deg"),
             "alpha_deg": run.get("alpha_deg"),
             "beta_deg": run.get("beta_deg"),
-            "tilt": estimator.get("last_tilt"),
+            "fresh_frames": run.get("fresh_frames", 0),
+            "time_to_target_s": run.get("time_to_target_s"),
+            "tilt": estimator_details.get("last_tilt"),
             "last_latency_ms": run.get("last_latency_ms"),
             "latency_p50_ms": None if latencies is None else float(np.percentile(latencies, 50)),
             "latency_p99_ms": None if latencies is None else float(np.percentile(latencies, 99)),
-            "estimation_ms": estimator.get("last_estimation_ms"),
-            "snr_db": estimator.get("last_snr_db"),
+            "estimation_ms": estimator_details.get("last_estimation_ms"),
+            "snr_db": estimator_details.get("last_snr_db"),
             "frame_rate": round(self.frame_rate.rate(self.clock()), 2),
-            "latest_frame_seq": self.latest.header.seq if self.latest is not None else None,
-            "frame_acquisition": {} if self.latest is None else {
-                key: getattr(self.latest.header, key) for key in ACQUISITION_FIELDS
-                if getattr(self.latest.header, key) is not None},
+            "latest_frame_seq": latest.header.seq if latest is not None else None,
+            "frame_acquisition": {} if latest is None else {
+                key: getattr(latest.header, key) for key in ACQUISITION_FIELDS
+                if getattr(latest.header, key) is not None},
+            "frame_shape": None if latest is None else list(latest.pixels.shape),
             "reference": self.reference,
             "stage": {"link": stage.get("link"), "state": stage.get("state"), "reason": stage.get("reason"),
                       "voltages": stage.get("voltages"), "positions_um": stage.get("positions_um")},
@@ -642,3 +797,14 @@ class GatewayCore:
             "down": [name for name, value in services.items() if not value["up"]],
             "degraded": [name for name, value in services.items() if value["up"] and value["state"] == "degraded"],
         }
+
+
+def reference_view(reference: dict | None) -> dict | None:
+    """A reference as the API shows it (:class:`semservo.api.TeachResult`)."""
+    if reference is None:
+        return None
+    fields = ("id", "kind", "shape", "pixel_size_nm", "taught_at_ns", "acquisition", "tilt", "tilt_teach", "target")
+    detail = {key: value for key, value in reference.items() if key not in fields}
+    return {**{key: reference[key] for key in fields if reference.get(key) is not None},
+            "thumbnail_url": "/reference.png", "detail": detail, "acquisition": reference.get("acquisition") or {}}
+

@@ -21,10 +21,10 @@ from pathlib import Path
 import uvicorn
 
 from semservo.config import Settings, connect
-from semservo.control import CameraToStage
 from semservo.logs import configure
-from semservo.security import is_loopback
 from semservo.messages import CONTROLLER_TOPIC, ControllerEvent
+from semservo.protocol import ServicePort
+from semservo.security import is_loopback
 from semservo.service import ServiceRuntime
 from semservo.transport import ControlClient, FrameSubscriber, MessageSubscriber
 from services.gateway.app import create_app
@@ -35,28 +35,6 @@ log = logging.getLogger("gateway")
 
 #: The dashboard's files (vendored: no CDN), served at ``/``.
 DASHBOARD = Path(__file__).parent / "dashboard"
-
-
-#: Commands that do real work before answering get longer than the 1 s default: a
-#: teach plans its FFTs, a finished run's record carries every iteration.
-# A teach with tilts waits for the taught pose's focus sweep (the estimator gives up at 120 s).
-SLOW_COMMANDS_S = {"teach": 130.0, "start": 15.0, "run": 5.0, "log": 5.0, "scan_once": 90.0}
-
-
-class LockedPort:
-    """A control client shared by threads, one request at a time."""
-
-    def __init__(self, client: ControlClient):
-        self.client = client
-        self.lock = threading.Lock()
-
-    def request(self, command: str, args: dict | None = None) -> dict:
-        with self.lock:
-            return self.client.request(command, timeout_s=SLOW_COMMANDS_S.get(command), **(args or {}))
-
-    def close(self) -> None:
-        with self.lock:
-            self.client.close()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,9 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     runtime = ServiceRuntime("gateway", settings, settings.bind(config.control_port))
     timeout = min(settings.request_timeout_s, 1.0)
 
-    def port(host: str, control_port: int) -> LockedPort:
-        return LockedPort(ControlClient(connect(host, control_port), timeout_s=timeout, retries=1,
-                                        context=runtime.context))
+    def port(host: str, control_port: int) -> ServicePort:
+        # Shared: HTTP requests arrive on many threads, a ZeroMQ socket serves one at a time.
+        return ServicePort(ControlClient(connect(host, control_port), timeout_s=timeout, retries=1,
+                                         context=runtime.context), shared=True)
 
     ports = {
         "fakelab": port(settings.fakelab.host, settings.fakelab.control_port),
@@ -92,10 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         "controller": port(settings.controller.host, settings.controller.control_port),
     }
     store = RunStore(config.database)
-    camera = CameraToStage(tuple(settings.controller.axis_signs), settings.controller.orientation_deg,
-                           settings.controller.rotation_sign)
     core = GatewayCore(ports, store, frames_dir=config.database.parent / "frames" if config.save_frames else None,
-                       camera=camera)
+                       camera=settings.controller.camera_to_stage())
     app = create_app(core, api_token=token, max_upload_bytes=config.max_upload_bytes,
                      static_dir=DASHBOARD if DASHBOARD.is_dir() else None)
     core.broadcast = app.state.publish
@@ -124,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     runtime.report_errors_from(lambda: frames.last_error)
 
     server = uvicorn.Server(uvicorn.Config(app, host=config.http_host, port=config.http_port, log_level="warning",
-                                           access_log=False, lifespan="on"))
+                                           access_log=False, lifespan="on", timeout_graceful_shutdown=2))
     http = threading.Thread(target=server.run, name="http", daemon=True)
     http.start()
     # Healthy means serving HTTP: health is answered only from runtime.run() on.
@@ -159,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         runtime.run(step)
         return 1 if http_failed.is_set() else 0
     finally:
+        app.state.listeners.close_all()  # open dashboards say goodbye, so the server need not wait for them
         server.should_exit = True
         http.join(timeout=5)
         frames.close()

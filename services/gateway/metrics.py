@@ -9,6 +9,8 @@ from prometheus_client.registry import CollectorRegistry
 
 import numpy as np
 
+from semservo.protocol import HEALTH
+
 
 class GatewayCollector:
     def __init__(self, core):
@@ -30,9 +32,8 @@ class GatewayCollector:
                                       "frame published -> voltage command written (last 1000 moves)")
         latency.add_metric([], count_value=len(latencies), sum_value=float(np.sum(latencies)) / 1000 if latencies else 0.0)
         yield latency
-        estimate = core.last_estimate or {}
-        error = GaugeMetricFamily("semservo_error_px", "translation error of the last estimate in the run")
-        error.add_metric([], float(estimate.get("error_px") or 0.0))
+        error = GaugeMetricFamily("semservo_error_px", "translation error of the run's last fresh estimate")
+        error.add_metric([], float(core.last_status.get("error_px") or 0.0))
         yield error
         up = GaugeMetricFamily("semservo_service_up", "1 when the service answers health", labels=["service"])
         dropped = CounterMetricFamily("semservo_dropped", "messages a service dropped, by reason",
@@ -41,12 +42,12 @@ class GatewayCollector:
             if port is None:
                 continue
             try:
-                health = port.request("health", {})
+                health = port.call(HEALTH)
             except Exception:  # a down service is a 0, never a failed scrape
                 up.add_metric([name], 0)
                 continue
             up.add_metric([name], 1)
-            for key, value in health.get("counters", {}).items():
+            for key, value in health.counters.items():
                 if key.startswith("dropped_"):
                     dropped.add_metric([name, key.removeprefix("dropped_")], value)
         yield up

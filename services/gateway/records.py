@@ -13,7 +13,10 @@ import io
 import json
 import sqlite3
 import threading
+import time
 from pathlib import Path
+
+import numpy as np
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -57,6 +60,18 @@ CREATE TABLE IF NOT EXISTS refs (
     taught_at_ns INTEGER NOT NULL,
     reference TEXT NOT NULL,
     truth TEXT
+);
+CREATE TABLE IF NOT EXISTS targets (
+    name TEXT PRIMARY KEY,
+    note TEXT NOT NULL DEFAULT '',
+    created_at_ns INTEGER NOT NULL,
+    reference TEXT NOT NULL,
+    stage TEXT NOT NULL,
+    acquisition TEXT NOT NULL,
+    truth TEXT,
+    dtype TEXT NOT NULL,
+    shape TEXT NOT NULL,
+    pixels BLOB NOT NULL
 );
 CREATE INDEX IF NOT EXISTS iterations_by_run ON iterations(run_id, iteration);
 """
@@ -187,9 +202,9 @@ class RunStore:
         with self.lock:
             rows = self.db.execute(
                 "SELECT id, reference_id, started_at_ns, finished_at_ns, state, reason, iterations, final_error_px, "
-                "truth FROM runs ORDER BY started_at_ns DESC LIMIT ? OFFSET ?", (limit, offset)).fetchall()
-        return [{**{key: row[key] for key in row.keys() if key != "truth"},
-                 "truth": json.loads(row["truth"]) if row["truth"] else None} for row in rows]
+                "truth, settings, outcome FROM runs ORDER BY started_at_ns DESC LIMIT ? OFFSET ?",
+                (limit, offset)).fetchall()
+        return [_summary({key: row[key] for key in row.keys()}) for row in rows]
 
     def get_run(self, run_id: str) -> dict | None:
         with self.lock:
@@ -200,14 +215,53 @@ class RunStore:
                 "SELECT record FROM iterations WHERE run_id = ? ORDER BY iteration, t_ns", (run_id,)).fetchall()
             commands = self.db.execute(
                 "SELECT entry FROM stage_commands WHERE run_id = ? ORDER BY position", (run_id,)).fetchall()
-        run = {key: row[key] for key in row.keys()}
-        for key in ("settings", "reference", "outcome", "truth"):
-            run[key] = json.loads(run[key]) if run[key] else None
+        run = _summary({key: row[key] for key in row.keys()})
+        run["reference"] = json.loads(row["reference"]) if row["reference"] else None
         run["trajectory"] = [json.loads(r["record"]) for r in iterations]
         run["stage_commands"] = [json.loads(r["entry"]) for r in commands]
         return run
 
+    # -- stored targets -------------------------------------------------------
+    def save_target(self, *, name: str, note: str, created_at_ns: int, reference: dict, stage: dict,
+                    acquisition: dict, truth: dict | None, pixels: np.ndarray) -> None:
+        pixels = np.ascontiguousarray(pixels)
+        with self.lock:
+            self.db.execute(
+                "INSERT OR REPLACE INTO targets (name, note, created_at_ns, reference, stage, acquisition, truth, "
+                "dtype, shape, pixels) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (name, note, created_at_ns, json.dumps(reference), json.dumps(stage), json.dumps(acquisition),
+                 json.dumps(truth), str(pixels.dtype), json.dumps(list(pixels.shape)), pixels.tobytes()))
+
+    def targets(self) -> list[dict]:
+        with self.lock:
+            rows = self.db.execute("SELECT name, note, created_at_ns, reference, stage, acquisition FROM targets "
+                                   "ORDER BY created_at_ns DESC").fetchall()
+        return [_target(row) for row in rows]
+
+    def target(self, name: str) -> dict | None:
+        with self.lock:
+            row = self.db.execute("SELECT name, note, created_at_ns, reference, stage, acquisition FROM targets "
+                                  "WHERE name = ?", (name,)).fetchone()
+        return None if row is None else _target(row)
+
+    def target_pixels(self, name: str) -> np.ndarray | None:
+        with self.lock:
+            row = self.db.execute("SELECT dtype, shape, pixels FROM targets WHERE name = ?", (name,)).fetchone()
+        if row is None:
+            return None
+        return np.frombuffer(row["pixels"], dtype=np.dtype(row["dtype"])).reshape(json.loads(row["shape"])).copy()
+
+    def target_truth(self, name: str) -> dict | None:
+        with self.lock:
+            row = self.db.execute("SELECT truth FROM targets WHERE name = ?", (name,)).fetchone()
+        return json.loads(row["truth"]) if row is not None and row["truth"] else None
+
+    def delete_target(self, name: str) -> None:
+        with self.lock:
+            self.db.execute("DELETE FROM targets WHERE name = ?", (name,))
+
     def csv(self, run_id: str) -> str | None:
+        """One row per iteration: the paper's Fig. 9 quantities."""
         run = self.get_run(run_id)
         if run is None:
             return None
@@ -226,3 +280,29 @@ class RunStore:
                              record.get("beta_deg"), record.get("tilt_action"), turn.get("rotation_deg"),
                              turn.get("tilt_x_deg"), turn.get("tilt_y_deg")])
         return out.getvalue()
+
+
+def _summary(row: dict) -> dict:
+    """A run's row as the API lists it: its columns, with the DOFs and duration that
+    people sort and read runs by."""
+    settings = json.loads(row.pop("settings")) if row.get("settings") else {}
+    outcome = json.loads(row["outcome"]) if row.get("outcome") else None
+    truth = row.get("truth")
+    end_ns = row["finished_at_ns"] or (time.time_ns() if row["state"] == "servoing" else None)
+    return {**row, "settings": settings, "outcome": outcome,
+            "truth": json.loads(truth) if isinstance(truth, str) else truth,
+            "dofs": list(settings.get("dofs") or []),
+            "duration_s": None if end_ns is None else round((end_ns - row["started_at_ns"]) / 1e9, 3),
+            "fresh_frames": (outcome or {}).get("fresh_frames"),
+            "time_to_target_s": (outcome or {}).get("time_to_target_s")}
+
+
+def _target(row) -> dict:
+    from urllib.parse import quote
+
+    name = row["name"]
+    path = quote(name, safe="")
+    return {"name": name, "note": row["note"], "created_at_ns": row["created_at_ns"],
+            "reference": json.loads(row["reference"]), "stage": json.loads(row["stage"]),
+            "acquisition": json.loads(row["acquisition"]), "thumbnail_url": f"/targets/{path}/thumbnail.png",
+            "export_url": f"/targets/{path}/export"}

@@ -80,12 +80,18 @@ class ImageServerCore:
         self.pacer = Pacer(fps, self.pacer.next_due)
 
     def seconds_until_due(self, now: float | None = None) -> float | None:
-        """Seconds until the next frame is due; None once the source is exhausted. A
-        background source that had nothing ready is asked again within 5 ms."""
+        """Seconds until the next frame is due; None when there is nothing to do until
+        the source says it has a frame (its ``notify``), or once it is exhausted. A source
+        that had nothing ready is asked again when it says (``wake_in_s``: e.g. a
+        watched file's settle time), never on a short poll."""
         if self.exhausted:
             return None
         due = self.pacer.seconds_until_due(time.monotonic() if now is None else now)
-        return min(due, 0.005) if self.waiting_for_source else due
+        if not self.waiting_for_source:
+            return due
+        wake_in_s = getattr(self.source, "wake_in_s", None)
+        hint = wake_in_s() if callable(wake_in_s) else None
+        return None if hint is None else max(due, hint)
 
     def next_frame(self, now: float | None = None) -> tuple[int, AcquiredImage] | None:
         """The (sequence number, image) to publish now, or None if none is due."""

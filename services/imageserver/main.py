@@ -1,32 +1,33 @@
-"""Image server process: source -> core -> PUB socket; commands on the control socket.
+"""Image server process: source -> core -> PUB socket; the commands (declared in
+:mod:`semservo.protocol.imageserver`, answered by :mod:`services.imageserver.commands`)
+on the control socket.
 
 Run it with ``semservo service imageserver [options]``; options override the
 ``SEMSERVO_IMAGESERVER__*`` settings. Sources: ``sim`` (default; the fake lab's SEM),
 ``replay`` (a folder of frames; implied by ``--replay-dir``), ``watch`` (the folder an
 SEM saves into; implied by ``--watch-dir``) and ``adapter`` (a lab's own class).
+
+The loop sleeps until there is work: a command, the next frame due (replay), or a
+source that says it has a frame (the simulated SEM's and an adapter's acquisition
+threads, a watched folder's events) through a pipe the poller watches.
 """
 
 from __future__ import annotations
 
 import argparse
-import base64
-import io
 import logging
+import os
 import time
 from pathlib import Path
 
-from PIL import Image
-
 from semservo.config import Settings, connect
-from semservo.instruments import NotSupported
 from semservo.logs import configure
 from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
-from semservo.transport import BadRequest, CommandError, FramePublisher, number
+from semservo.transport import FramePublisher
+from services.imageserver.commands import ImageServer, handlers
 from services.imageserver.core import FreezeWatch, ImageServerCore
-from services.imageserver.sources import (BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable,
-                                         adapter_source, set_scan)
-from services.imageserver.sweep import FocusSweeps
+from services.imageserver.sources import BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable, adapter_source
 from services.imageserver.watch import WatchSource
 
 log = logging.getLogger("imageserver")
@@ -79,8 +80,36 @@ def source_name(settings: Settings, args: argparse.Namespace) -> str:
                            else "adapter" if args.adapter else settings.imageserver.source)
 
 
-def make_source(settings: Settings, args: argparse.Namespace):
-    """The source the settings and options name, ready to acquire."""
+class Wakeup:
+    """A pipe the poller watches: a source's threads write a byte when a frame (or an
+    error) is ready, and the loop wakes at once instead of polling."""
+
+    def __init__(self):
+        self.read_fd, self.write_fd = os.pipe()
+        os.set_blocking(self.read_fd, False)
+        os.set_blocking(self.write_fd, False)
+
+    def notify(self) -> None:
+        try:
+            os.write(self.write_fd, b"!")
+        except (BlockingIOError, OSError):  # full (a wake-up is pending anyway), or closed at exit
+            pass
+
+    def drain(self) -> None:
+        try:
+            while os.read(self.read_fd, 4096):
+                pass
+        except BlockingIOError:
+            pass
+
+    def close(self) -> None:
+        for fd in (self.read_fd, self.write_fd):
+            os.close(fd)
+
+
+def make_source(settings: Settings, args: argparse.Namespace, notify=None):
+    """The source the settings and options name, ready to acquire; ``notify`` is told
+    when it has a frame."""
     config = settings.imageserver
     source = source_name(settings, args)
     fps = args.fps or config.fps
@@ -100,7 +129,7 @@ def make_source(settings: Settings, args: argparse.Namespace):
         return BackgroundAcquisition(
             SimSource(connect(settings.fakelab.host, settings.fakelab.scan_port), request,
                       timeout_s=config.scan_timeout_s, max_message_bytes=settings.max_message_bytes),
-            fps=fps,
+            fps=fps, notify=notify,
         )
     if source == "watch":
         folder = args.watch_dir or config.watch_dir
@@ -108,13 +137,14 @@ def make_source(settings: Settings, args: argparse.Namespace):
             raise SystemExit("the watch source needs a folder: --watch-dir or SEMSERVO_IMAGESERVER__WATCH_DIR")
         return WatchSource(folder, pattern=args.glob or config.watch_glob, existing=config.watch_existing,
                            settle_s=config.watch_settle_s, give_up_s=config.watch_give_up_s,
-                           polling=config.watch_polling, overrides=overrides, fallbacks=fallbacks, data_bar=data_bar)
+                           polling=config.watch_polling, overrides=overrides, fallbacks=fallbacks, data_bar=data_bar,
+                           notify=notify)
     if source == "adapter":
         spec = args.adapter or config.adapter
         if not spec:
             raise SystemExit("the adapter source needs a class: --adapter or SEMSERVO_IMAGESERVER__ADAPTER "
                              "(an entry point of semservo.image_sources or package.module:ClassName)")
-        return adapter_source(spec, dict(config.adapter_options), fps)
+        return adapter_source(spec, dict(config.adapter_options), fps, notify=notify)
     return ReplaySource(
         args.replay_dir or config.replay_dir,
         pattern=args.glob or config.replay_glob,
@@ -130,114 +160,22 @@ def main(argv: list[str] | None = None) -> int:
     config = settings.imageserver
 
     runtime = ServiceRuntime("imageserver", settings, settings.bind(config.control_port))
+    wakeup = Wakeup()
     try:
-        source = make_source(settings, args)
+        source = make_source(settings, args, notify=wakeup.notify)
     except (OSError, ValueError, TypeError) as error:  # a missing folder, a bad adapter: say which, and stop
         log.error("cannot start the %s source: %s", source_name(settings, args), error)
         return 2
-    fps = WATCH_MAX_FPS if isinstance(source, WatchSource) else args.fps or config.fps
+    # A watched folder publishes every complete file as it comes: the pacer only caps the rate.
+    fps = WATCH_MAX_FPS if not getattr(source, "paced", True) else args.fps or config.fps
     core = ImageServerCore(source, fps=fps)
     publisher = FramePublisher(settings.bind(config.frames_port), context=runtime.context)
     log.info("publishing %s on %s at %.1f fps", source.describe(), publisher.endpoint, core.pacer.fps)
-
-    def info(_args: dict) -> dict:
-        return {
-            **source.describe(),
-            "fps": core.pacer.fps,
-            "frames_endpoint": connect(config.host, config.frames_port),
-            "published": publisher.sent,
-            "next_seq": core.seq,
-        }
-
-    def set_fps(args: dict) -> dict:
-        try:
-            core.set_fps(number(args.get("fps"), "fps", "frames per second"))
-        except ValueError as error:
-            raise BadRequest(f"fps: {error}") from None
-        return {"fps": core.pacer.fps}
-
-    def scan_once(args: dict) -> dict:
-        """One frame scanned with other settings (e.g. a slow dwell for a high-quality
-        reference, paper case 5), returned as a 16-bit PNG in base64 with its header;
-        the stream goes on with the usual settings. Only the scanning (sim) source can."""
-        if not isinstance(source, BackgroundAcquisition) or not isinstance(source.source, SimSource):
-            raise BadRequest("scan_once needs a scanning source (sim); a replay cannot scan")
-        changes = {key: number(args[key], key) for key in ("dwell_ns", "magnification") if args.get(key) is not None}
-        try:
-            request = ScanRequest.model_validate({**source.source.request.model_dump(), **changes})
-        except ValueError as error:
-            raise BadRequest(f"scan settings: {error}") from None
-        one_off = SimSource(source.source.endpoint, request, timeout_s=max(config.scan_timeout_s, 60.0),
-                            max_message_bytes=settings.max_message_bytes, context=runtime.context)
-        try:
-            image = one_off.acquire()
-        except SourceUnavailable as error:
-            raise BadRequest(str(error)) from None
-        finally:
-            one_off.close()
-        buffer = io.BytesIO()
-        Image.fromarray(image.pixels).save(buffer, format="PNG")
-        return {"image_b64": base64.b64encode(buffer.getvalue()).decode(), "dwell_ns": image.dwell_ns,
-                "magnification": image.magnification, "pixel_size_nm": image.pixel_size_nm,
-                "source_interval_s": image.source_interval_s}
-
-    def scan_settings(args: dict) -> dict:
-        """``set_scan {dwell_ns?, magnification?, working_distance_mm?, working_distance_um?}``:
-        the frames that follow, on a source that can (the simulated SEM: dwell,
-        magnification and its focus offset in um; a lab's adapter: what it implements)."""
-        values = {key: number(args[key], key)
-                  for key in ("dwell_ns", "magnification", "working_distance_mm", "working_distance_um")
-                  if args.get(key) is not None}
-        if not values:
-            raise BadRequest("set_scan needs dwell_ns, magnification, working_distance_mm or working_distance_um")
-        try:
-            return set_scan(source, **values)
-        except NotSupported as error:
-            raise BadRequest(str(error)) from None
-        except ValueError as error:  # the source refused the value
-            raise BadRequest(f"scan settings: {error}") from None
-
-    sweeps = None
-    if isinstance(source, BackgroundAcquisition) and isinstance(source.source, SimSource):
-        sweep_source = SimSource(source.source.endpoint, source.source.request,
-                                 timeout_s=max(config.scan_timeout_s, 60.0),
-                                 max_message_bytes=settings.max_message_bytes)  # its own socket, in its own thread
-
-        def scan_at(working_distance_um: float):
-            request = source.source.request.model_copy(update={"working_distance_um": working_distance_um})
-            return sweep_source.acquire_with(request)
-
-        sweeps = FocusSweeps(scan_at)
-
-    def start_sweep(args: dict) -> dict:
-        """``start_sweep {working_distances_um: [...]}``: scan the field at each working
-        distance (um offsets from the nominal focus, larger deeper) in the background;
-        fetch the frames with ``sweep {sweep_id}``. Only a scanning source can."""
-        if sweeps is None:
-            raise BadRequest(f"focus sweeps need a scanning source (sim); the {source.name} source cannot focus")
-        try:
-            return sweeps.start(args.get("working_distances_um"))
-        except ValueError as error:
-            raise BadRequest(str(error)) from None
-        except RuntimeError as error:
-            raise CommandError("busy", str(error)) from None
-
-    def sweep(args: dict) -> dict:
-        if sweeps is None:
-            raise BadRequest(f"focus sweeps need a scanning source (sim), not {source.name}")
-        try:
-            return sweeps.result(args.get("sweep_id"))
-        except KeyError as error:
-            raise CommandError("no_such_sweep", str(error.args[0])) from None
-
-    runtime.control.register("start_sweep", start_sweep)
-    runtime.control.register("sweep", sweep)
-    runtime.control.register("info", info)
-    runtime.control.register("set_scan", scan_settings)
-    runtime.control.register("set_fps", set_fps)
-    runtime.control.register("scan_once", scan_once)
+    server = ImageServer(core, frames_endpoint=connect(config.host, config.frames_port),
+                         published=lambda: publisher.sent)
+    handlers.bind(runtime.control, server)
     runtime.details = lambda: {"source": source.name, "fps": core.pacer.fps, "next_seq": core.seq,
-                               **({"watch": source.describe()} if isinstance(source, WatchSource) else {})}
+                               **({"watch": source.describe()} if not getattr(source, "paced", True) else {})}
 
     retry_at = 0.0
     freeze = FreezeWatch()
@@ -247,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         """A source that stopped delivering (a hung SEM, a dead simulator) is degraded.
         A watched folder is not: an SEM that saves nothing for a while is simply not
         scanning (a run waiting for frames fails on its own estimate timeout, saying so)."""
-        if isinstance(source, WatchSource):
+        if getattr(source, "idle_is_normal", False):
             return False
         silent = None if core.exhausted else freeze.silent_for(time.monotonic(), started)
         if silent is not None and runtime.state != "degraded":
@@ -292,15 +230,18 @@ def main(argv: list[str] | None = None) -> int:
         wait = core.seconds_until_due()
         return None if wait is None else min(wait, 0.5)
 
+    def on_wakeup() -> None:
+        wakeup.drain()  # the step that follows every poll publishes what is ready
+
+    runtime.add_reader(wakeup.read_fd, on_wakeup)
     try:
         return runtime.run(step)
     finally:
-        if sweeps is not None:
-            sweeps.close()
-            sweep_source.close()
+        server.close()
         if hasattr(source, "close"):
             source.close()
         publisher.close()
+        wakeup.close()
         runtime.context.destroy(linger=0)  # closes what is still open: term() would wait on it
 
 

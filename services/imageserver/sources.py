@@ -9,10 +9,12 @@ the watched folder (:class:`services.imageserver.watch.WatchSource`) plug in whe
 
 from __future__ import annotations
 
+import contextlib
+import inspect
 import logging
 import threading
 import time
-import inspect
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -22,15 +24,14 @@ import zmq
 from semservo.config import pixel_size_nm
 from semservo.imagefiles import DataBar, ImageFileError, list_frames, read_sem_image
 from semservo.instruments import (IMAGE_SOURCE_GROUP, AcquiredImage, ImageSource, NotReady, NotSupported,
-                                  SourceUnavailable,
-                                  load_plugin)
+                                  SourceUnavailable, capabilities, load_plugin)
 from semservo.sem_metadata import ImageMetadata
 from semservo.messages import ACQUISITION_FIELDS, Reply, ScanRequest
 from semservo.transport import ControlClient, RequestCancelled, ServiceUnavailable
 from semservo.wire import WireError, decode_frame
 
 __all__ = ["AcquiredImage", "BackgroundAcquisition", "FrameSource", "NotReady", "ReplaySource", "SimSource",
-           "SourceUnavailable", "adapter_source", "merge_metadata", "set_scan"]
+           "SourceUnavailable", "adapter_source", "focus_session", "merge_metadata", "set_scan"]
 
 log = logging.getLogger("imageserver")
 
@@ -134,19 +135,39 @@ class BackgroundAcquisition:
     call). The thread paces itself at ``fps`` at most.
     """
 
-    def __init__(self, source, fps: float):
+    def __init__(self, source, fps: float, notify: Callable[[], None] | None = None):
         self.source = source
         self.name = source.name
         # The sources here take ``cancelled`` (asked while they wait); a lab's adapter need not.
         self._takes_cancel = "cancelled" in inspect.signature(source.acquire).parameters
         self.fps = fps
+        #: Told (from the acquisition thread) when a frame or an error is ready: the image
+        #: server then wakes, instead of asking again and again.
+        self.notify = notify or (lambda: None)
         self._latest: AcquiredImage | None = None
+        self._last_published: AcquiredImage | None = None
         self._error: Exception | None = None
         self._ended = False
         self._lock = threading.Lock()
+        #: Held around each acquisition; a focus sweep on a source that scans one thing at a
+        #: time holds it for the whole sweep (the stream pauses).
+        self.instrument = threading.RLock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"acquire-{source.name}", daemon=True)
         self._thread.start()
+
+    def capabilities(self) -> set[str]:
+        return capabilities(self.source)
+
+    @property
+    def inner(self):
+        """The source this acquisition runs."""
+        return self.source
+
+    @property
+    def last_image(self) -> AcquiredImage | None:
+        """The last frame handed out (its acquisition: e.g. the working distance)."""
+        return self._last_published
 
     def _run(self) -> None:
         next_due = time.monotonic()
@@ -156,7 +177,11 @@ class BackgroundAcquisition:
                 return
             next_due = max(next_due + 1.0 / self.fps, time.monotonic())
             try:
-                image = self.source.acquire(cancelled=self._stop.is_set) if self._takes_cancel else self.source.acquire()
+                with self.instrument:
+                    if self._stop.is_set():
+                        return
+                    image = self.source.acquire(cancelled=self._stop.is_set) if self._takes_cancel \
+                        else self.source.acquire()
             except NotReady:
                 if self._stop.is_set():  # cancelled: we are stopping
                     return
@@ -164,20 +189,24 @@ class BackgroundAcquisition:
             except SourceUnavailable as error:
                 with self._lock:
                     self._error = error
+                self.notify()
                 self._stop.wait(1.0)
                 continue
             except Exception as error:  # noqa: BLE001 - a lab's adapter may fail any way: say so, keep going
                 log.exception("the %s source failed", self.name)
                 with self._lock:
                     self._error = SourceUnavailable(f"the {self.name} source failed: {type(error).__name__}: {error}")
+                self.notify()
                 self._stop.wait(1.0)
                 continue
             if image is None:  # the source has ended
                 with self._lock:
                     self._ended = True
+                self.notify()
                 return
             with self._lock:
                 self._latest = image  # an error not yet reported stays: acquire raises it next
+            self.notify()
 
     def acquire(self) -> AcquiredImage | None:
         with self._lock:
@@ -187,6 +216,7 @@ class BackgroundAcquisition:
             else:
                 self._error = None
         if image is not None:
+            self._last_published = image
             return image
         if error is not None:
             raise error
@@ -221,6 +251,9 @@ class SimSource:
 
     name = "sim"
 
+    def capabilities(self) -> set[str]:
+        return {"scan_settings", "focus", "focus_offset", "focus_beside_stream", "scan_once"}
+
     def __init__(self, endpoint: str, request: ScanRequest, *, timeout_s: float = 10.0,
                  max_message_bytes: int = 64 * 2**20, context: zmq.Context | None = None):
         self.endpoint = endpoint
@@ -242,12 +275,42 @@ class SimSource:
         raises :class:`NotReady`."""
         return self.acquire_with(self.request, cancelled)
 
+    def scan_at_focus(self, offset_um: float, nominal_mm: float | None = None) -> AcquiredImage:
+        """One frame focused ``offset_um`` from the nominal working distance (the
+        simulated SEM's focus offset): a frame of a focus sweep. The simulated SEM
+        scans it beside the stream, on a socket of its own (sweeps run in their own
+        thread)."""
+        request = self.request.model_copy(update={"working_distance_um": offset_um})
+        return self._acquire(request, self._side_client(), timeout_s=max(self.timeout_s, 60.0))
+
+    def scan_once(self, *, dwell_ns: float | None = None, magnification: float | None = None) -> AcquiredImage:
+        """One frame with other scan settings (a slow dwell for a high-quality
+        reference, paper case 5); the stream goes on with its own."""
+        changes = {key: value for key, value in (("dwell_ns", dwell_ns), ("magnification", magnification))
+                   if value is not None}
+        request = ScanRequest.model_validate({**self.request.model_dump(), **changes})
+        client = ControlClient(self.endpoint, timeout_s=max(self.timeout_s, 60.0), retries=1,
+                               max_message_bytes=self.max_message_bytes)
+        try:
+            return self._acquire(request, client, timeout_s=max(self.timeout_s, 60.0))
+        finally:
+            client.close()
+
+    def _side_client(self) -> ControlClient:
+        if getattr(self, "_sweep_client", None) is None:
+            self._sweep_client = ControlClient(self.endpoint, timeout_s=max(self.timeout_s, 60.0), retries=1,
+                                               max_message_bytes=self.max_message_bytes)
+        return self._sweep_client
+
     def acquire_with(self, request: ScanRequest, cancelled=None) -> AcquiredImage:
         """One frame scanned with ``request`` (e.g. at another working distance)."""
+        return self._acquire(request, self.client, self._timeout(), cancelled)
+
+    def _acquire(self, request: ScanRequest, client: ControlClient, timeout_s: float, cancelled=None) -> AcquiredImage:
         started = time.monotonic()
         try:
-            parts = self.client.request_parts(request.model_dump_json().encode(), timeout_s=self._timeout(),
-                                              cancelled=cancelled)
+            parts = client.request_parts(request.model_dump_json().encode(), timeout_s=timeout_s,
+                                         cancelled=cancelled)
         except RequestCancelled:
             raise NotReady from None
         except ServiceUnavailable as error:
@@ -284,11 +347,17 @@ class SimSource:
         self.typical_scan_s = None  # another dwell: another scan time
         return {key: getattr(self.request, key) for key in ("dwell_ns", "magnification", "working_distance_um")}
 
+    def set_focus_offset(self, working_distance_um: float) -> dict:
+        """Focus the frames that follow ``working_distance_um`` from the nominal focus."""
+        return self.set_scan(working_distance_um=working_distance_um)
+
     def close(self) -> None:
         self.client.close()
+        if getattr(self, "_sweep_client", None) is not None:
+            self._sweep_client.close()
 
 
-def adapter_source(spec: str, options: dict, fps: float):
+def adapter_source(spec: str, options: dict, fps: float, notify: Callable[[], None] | None = None):
     """A lab's image source (:class:`semservo.instruments.ImageSourceAdapter`), named
     by an entry point of ``semservo.image_sources`` or ``package.module:ClassName`` and
     made with ``options``; a blocking one runs in a background thread."""
@@ -300,28 +369,70 @@ def adapter_source(spec: str, options: dict, fps: float):
         if not callable(getattr(source, method, None)):
             raise TypeError(f"{spec!r} has no {method}(): see semservo.instruments.ImageSource")
     blocking = getattr(source, "blocking", True)
-    return BackgroundAcquisition(source, fps=fps) if blocking else source
+    return BackgroundAcquisition(source, fps=fps, notify=notify) if blocking else source
+
+
+def _inner(source):
+    """The source a background acquisition runs (or the source itself)."""
+    return getattr(source, "inner", source)
+
+
+def _nominal_working_distance(source, target) -> float:
+    try:
+        return float(target.working_distance())
+    except NotSupported:
+        last = getattr(source, "last_image", None)
+        if last is None or last.working_distance_mm is None:
+            raise NotSupported(f"the {source.name} source does not say its working distance (neither "
+                               "working_distance() nor its frames): a focus sweep has no centre") from None
+        return float(last.working_distance_mm)
+
+
+@contextlib.contextmanager
+def focus_session(source) -> Iterator[Callable[[float], AcquiredImage]]:
+    """Scan frames at focus offsets (um from the working distance now, larger deeper) on
+    any source that can focus (``"focus" in capabilities(source)``): yields the scan
+    function, ``scan(offset_um) -> AcquiredImage``. A source that scans one thing at a
+    time (a lab's adapter: one beam) has its stream paused for the sweep and its focus
+    set back afterwards; one that can scan beside the stream (``focus_beside_stream``:
+    the simulated SEM) scans the sweep meanwhile. Raises :class:`NotSupported` for a
+    source that cannot focus."""
+    found = capabilities(source)
+    if "focus" not in found:
+        raise NotSupported(f"the {source.name} source cannot focus, so it cannot sweep the focus (the tilts are "
+                           "measured from focus sweeps)")
+    target = _inner(source)
+    if "focus_beside_stream" in found:
+        yield lambda offset_um: target.scan_at_focus(offset_um, None)
+        return
+    with getattr(source, "instrument", contextlib.nullcontext()):
+        nominal = _nominal_working_distance(source, target)
+        try:
+            yield lambda offset_um: target.scan_at_focus(offset_um, nominal)
+        finally:
+            target.set_working_distance(nominal)
 
 
 def set_scan(source, *, dwell_ns: float | None = None, magnification: float | None = None,
              working_distance_mm: float | None = None, working_distance_um: float | None = None) -> dict:
-    """Change the scan settings (and the focus, for the tilt measurement) of the frames
-    that follow, on a source that can: the simulated SEM (dwell, magnification) or a
-    lab's adapter (what it implements). Raises :class:`~semservo.instruments.NotSupported` saying what
-    the source cannot do."""
-    target = source.source if isinstance(source, BackgroundAcquisition) else source
+    """Change the scan settings (and the focus) of the frames that follow, on a source
+    that can: ``scan_settings`` (dwell, magnification), ``focus`` (the working distance,
+    mm), ``focus_offset`` (the simulated SEM's offset from its nominal focus, um).
+    Raises :class:`~semservo.instruments.NotSupported` saying what the source cannot do."""
+    found, target = capabilities(source), _inner(source)
     result: dict = {}
     if dwell_ns is not None or magnification is not None:
-        if not callable(getattr(target, "set_scan", None)):
+        if "scan_settings" not in found:
             raise NotSupported(f"the {source.name} source cannot change its scan settings")
         result.update(target.set_scan(dwell_ns=dwell_ns, magnification=magnification))
-    if working_distance_um is not None:  # the simulated SEM's focus offset
-        if not isinstance(target, SimSource):
+    if working_distance_um is not None:
+        if "focus_offset" not in found:
             raise NotSupported(f"working_distance_um is the simulated SEM's focus offset; the {source.name} source "
                                "takes working_distance_mm")
-        result.update(target.set_scan(working_distance_um=working_distance_um))
+        result.update(target.set_focus_offset(working_distance_um))
     if working_distance_mm is not None:
-        if not callable(getattr(target, "set_working_distance", None)):
-            raise NotSupported(f"the {source.name} source cannot set the focus")
+        if "focus" not in found or "focus_offset" in found:
+            raise NotSupported(f"the {source.name} source cannot set the focus"
+                               + (" in mm (it takes working_distance_um)" if "focus_offset" in found else ""))
         result["working_distance_mm"] = target.set_working_distance(working_distance_mm)
     return result

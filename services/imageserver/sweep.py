@@ -4,18 +4,21 @@ a series of working distances, in a thread of its own, while the frame stream go
 A sweep takes several scans; the control socket must stay responsive meanwhile, so a
 sweep is started (``start_sweep``), runs in the background, and its frames are fetched
 when it is done (``sweep``). One sweep at a time; the last one's result is kept until
-the next starts. No sockets here: ``scan(working_distance_um)`` acquires one frame.
+the next starts. No sockets here: ``session()`` opens a focus session on the source
+(:func:`services.imageserver.sources.focus_session`), whose ``scan(offset_um)``
+acquires one frame.
 """
 
 from __future__ import annotations
 
 import base64
+import contextlib
 import logging
 import math
 import threading
 import time
 import uuid
-from typing import Callable
+from typing import Callable, ContextManager
 
 import numpy as np
 
@@ -23,8 +26,9 @@ from semservo.instruments import AcquiredImage
 
 log = logging.getLogger("imageserver.sweep")
 
-#: The most frames one sweep may ask for (a sweep of 60 frames is minutes of scanning).
-MAX_SWEEP_FRAMES = 60
+from semservo.protocol.imageserver import MAX_SWEEP_FRAMES
+
+ScanAt = Callable[[float], AcquiredImage]
 
 
 def check_working_distances(values) -> list[float]:
@@ -45,8 +49,9 @@ def check_working_distances(values) -> list[float]:
 
 
 class FocusSweeps:
-    def __init__(self, scan: Callable[[float], AcquiredImage]):
-        self.scan = scan
+    def __init__(self, session: Callable[[], ContextManager[ScanAt]] | ScanAt):
+        # A plain scan function is a session of its own (tests, sources without a stream).
+        self.session = session if _is_session(session) else (lambda: contextlib.nullcontext(session))
         self._lock = threading.Lock()
         self._state: dict = {}
         self._thread: threading.Thread | None = None
@@ -68,11 +73,12 @@ class FocusSweeps:
     def _run(self, state: dict, distances: list[float]) -> None:
         images: list[AcquiredImage] = []
         try:
-            for distance in distances:
-                if self._cancel.is_set():
-                    raise RuntimeError("cancelled")
-                images.append(self.scan(distance))
-                state["scanned"] = len(images)
+            with self.session() as scan:
+                for distance in distances:
+                    if self._cancel.is_set():
+                        raise RuntimeError("cancelled")
+                    images.append(scan(distance))
+                    state["scanned"] = len(images)
             shapes = {image.pixels.shape for image in images}
             if len(shapes) != 1:
                 raise ValueError(f"the sweep's frames differ in size: {sorted(shapes)}")
@@ -106,6 +112,16 @@ class FocusSweeps:
         self._cancel.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
+
+
+def _is_session(function) -> bool:
+    """A session factory takes no argument; a scan function takes the focus offset."""
+    import inspect
+
+    try:
+        return not inspect.signature(function).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def decode_sweep(result: dict) -> np.ndarray:

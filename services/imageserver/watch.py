@@ -53,6 +53,8 @@ UNREADABLE_AFTER_S = 1.0
 #: Files that appear within this long of each other arrived together (one poll of the
 #: folder, one burst of events): they go out in name order.
 SAME_BATCH_S = 0.05
+#: How often a pending file (being written, or settling) is looked at again.
+PENDING_CHECK_S = 0.02
 
 
 @dataclass
@@ -92,6 +94,10 @@ class WatchSource:
     """Frames from files appearing in ``folder`` (see the module's docstring)."""
 
     name = "watch"
+    #: Every complete file is published as it comes (no frame rate of its own).
+    paced = False
+    #: An SEM that saves nothing for a while is not scanning: not a frozen source.
+    idle_is_normal = True
 
     def __init__(
         self,
@@ -106,8 +112,12 @@ class WatchSource:
         fallbacks: dict | None = None,
         data_bar: DataBar = "auto",
         clock=time.monotonic,
+        notify=None,
     ):
         self.folder = Path(folder)
+        #: Told (from watchdog's thread) when something happened in the folder: the image
+        #: server then looks, instead of asking again and again.
+        self.notify = notify or (lambda: None)
         if not self.folder.is_dir():
             raise FileNotFoundError(f"no folder to watch at {self.folder}")
         self.pattern = pattern
@@ -187,6 +197,7 @@ class WatchSource:
             elif changed:
                 candidate.closed = False
                 candidate.stable_since = self.clock()
+        self.notify()
 
     def _rescan(self) -> None:
         """List the folder: events can be missed (an overflowing queue, a network share)."""
@@ -231,6 +242,17 @@ class WatchSource:
             if candidate.path in self._candidates and now - candidate.stable_since < self.give_up_s:
                 break  # an earlier file still being written holds the later ones (order)
         raise NotReady
+
+    def wake_in_s(self) -> float:
+        """When :meth:`acquire` should be asked again without an event: soon while a file
+        is pending (its settle timer, and a write that made no event), else at the next
+        rescan of the folder."""
+        now = self.clock()
+        with self._lock:
+            pending = bool(self._candidates)
+        if pending:
+            return min(PENDING_CHECK_S, max(self.settle_s / 3, 0.005))
+        return max(self._next_rescan - now, 0.0)
 
     def _observe(self, candidate: Candidate, now: float):
         """The file's stat now, its settle timer restarted if it changed; None if gone."""

@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Callable
 
 from semservo import nv40
+from semservo.errors import CommandError
 from semservo.instruments import (
     STAGE_DRIVER_GROUP, DeviceError, LinkError, LogEntry, RotationStageDriver, StageDriver, load_plugin,
 )
@@ -59,16 +60,22 @@ READBACK_S = {True: 0.25, False: 1.0}
 #: Read-back further than this from the commanded voltage is a change nobody commanded
 #: (the emulator and the NV 40/3 read back to 1 mV; knob noise stays far below this).
 UNCOMMANDED_V = 0.05
+#: A piezo stage settles within milliseconds of a step (the TRITOR's resonance is near 1 kHz);
+#: creep goes on for longer, which the loop measures and corrects.
+DEFAULT_SETTLE_S = 0.01
+#: A move's voltage step may be at most this factor times the model's steepest slope
+#: times the move, plus this slack (V): room for a reversal's minor loop, never for a jump.
+MODEL_STEP_FACTOR = 3.0
+MODEL_STEP_SLACK_V = 1.0
 #: The command log kept in memory and reloaded from disk at start.
 COMMAND_LOG_KEPT = 20_000
 
 
-class Refused(ValueError):
+class Refused(CommandError):
     """A command the stage will not carry out; ``code`` says which rule."""
 
-    def __init__(self, code: str, message: str):
-        super().__init__(message)
-        self.code = code
+    def __str__(self) -> str:
+        return self.message
 
 
 @dataclass(frozen=True)
@@ -105,6 +112,9 @@ class StageCore:
     state_dir: Path | None = None  # None: nothing survives the process (tests of the core)
     #: The rotation-and-tilt stage, if the lab has one (every rule of a move applies).
     rotation: RotationStageDriver | None = None
+    #: Seconds each axis takes to settle after a move (a frame scanned before shows it
+    #: moving); axes not named take ``DEFAULT_SETTLE_S``.
+    settle_s: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         for axis in self.channels:
@@ -186,9 +196,14 @@ class StageCore:
 
     def shutdown(self) -> None:
         """An orderly end: nothing is left armed by a run (its controller stopped first),
-        so the next process starts ready; the link and the log file are closed."""
+        so the next process starts ready, unless the stage was stopped (an operator, an
+        uncommanded change): a stop holds until someone resumes, across an orderly
+        restart too (``docker compose down`` and ``up``). The link and the log file are closed."""
         if not self.watchdog.armed and self._state_path is not None:
-            self._state_path.unlink(missing_ok=True)
+            if self.state == "stopped":
+                self._persist()
+            else:
+                self._state_path.unlink(missing_ok=True)
         self.close()
         if self._log_file is not None:
             self._log_file.close()
@@ -282,11 +297,15 @@ class StageCore:
         self._follow_rotation()
         if now - self.last_io > READBACK_S[self.watchdog.armed]:
             try:
-                measured = self._io(lambda driver: driver.read_outputs())
+                measured = self._io(self._read_back)
             except Refused:
                 return 0.05
             self._compare(measured)
         return 0.05 if self.watchdog.armed else 0.2
+
+    def _read_back(self, driver):
+        """What the driver says it outputs now (a motion driver: where its axes are)."""
+        return driver.read_outputs()
 
     def _compare(self, measured) -> None:
         """Outputs this service did not command: stop, say what changed, follow them."""
@@ -342,6 +361,20 @@ class StageCore:
                 raise Refused("rate_limit", f"{axis}: {step:.2f} V {since * 1000:.1f} ms after the last write exceeds "
                                             f"{self.limits.max_rate_v_per_s:g} V/s")
 
+    def _check_model_step(self, goal: dict[str, float], volts: dict[str, float]) -> None:
+        """A model that asks for far more voltage than the move's size can need is not to
+        be trusted: refused, said, nothing written (a model out of step with its axis once
+        turned a 0.03 um correction into an 11 V jump, a 70 px leap of the view)."""
+        for axis, target in goal.items():
+            model = self.models[axis]
+            moved_um = abs(target - model.position_um)
+            allowed_v = MODEL_STEP_SLACK_V + MODEL_STEP_FACTOR * model.max_slope_v_per_um() * moved_um
+            step_v = abs(volts[axis] - self.voltages.get(axis, volts[axis]))
+            if step_v > allowed_v:
+                raise Refused("model_jump", f"{axis}: the displacement model asks for a {step_v:.2f} V step for a "
+                                            f"{moved_um:.3f} um move (at most {allowed_v:.2f} V is plausible): the "
+                                            f"model is out of step with the axis; stop, check, resume")
+
     def _write(self, volts: dict[str, float], owner: str | None) -> dict:
         now = self.clock()
         written_at_ns = time.time_ns()
@@ -356,7 +389,9 @@ class StageCore:
         if mismatch:
             # The amplifier did not take the set point (e.g. a channel under knob control).
             raise Refused("not_applied", f"the amplifier reads back {mismatch} instead of {volts}")
-        return {"written_at_ns": written_at_ns, "voltages": dict(self.voltages), "positions_um": self.positions()}
+        settle_s = max(self.settle_s.get(axis, DEFAULT_SETTLE_S) for axis in volts)
+        return {"written_at_ns": written_at_ns, "voltages": dict(self.voltages), "positions_um": self.positions(),
+                "settled_at_ns": written_at_ns + int(settle_s * 1e9)}
 
     def positions(self) -> dict[str, float]:
         return {axis: model.position_um for axis, model in self.models.items()}
@@ -367,16 +402,12 @@ class StageCore:
         try:
             self._check_ready()
             self._check_owner(owner)
-            goal = {}
-            for axis, value in targets.items():
-                if axis not in self.models:
-                    raise Refused("bad_axis", f"unknown axis {axis!r}; axes: {', '.join(self.models)}")
-                goal[axis] = self.models[axis].position_um + value if relative else value
-                if not self.limits.travel_min_um <= goal[axis] <= self.limits.travel_max_um:
-                    raise Refused("travel_limit", f"{axis}: {goal[axis]:.3f} um is outside the travel limits "
-                                                  f"{self.limits.travel_min_um:g}..{self.limits.travel_max_um:g} um")
+            travel = {axis: (self.limits.travel_min_um, self.limits.travel_max_um) for axis in self.models}
+            here = {axis: model.position_um for axis, model in self.models.items()}
+            goal = _goals(targets, relative, here, travel, "travel_limit", "um")
             # Voltages from a copy of each model: a refused move must not change its state.
             volts = {axis: copy.copy(self.models[axis]).voltage_for(value) for axis, value in goal.items()}
+            self._check_model_step(goal, volts)
             self._check_voltages(volts, self.clock())
         except Refused:
             self.counters["refused"] += 1
@@ -423,15 +454,8 @@ class StageCore:
             # or inside its gear's play, is not yet there: adding to its angle now would
             # drop what remains of the last move).
             base = {**current, **self.rotation_targets}
-            goal = {}
-            for axis, value in targets.items():
-                if axis not in travel:
-                    raise Refused("bad_axis", f"unknown rotation axis {axis!r}; axes: {', '.join(travel)}")
-                goal[axis] = base[axis] + value if relative else value
-                low, high = travel[axis]
-                if not low <= goal[axis] <= high:  # NaN fails this too
-                    raise Refused("rotation_limit", f"{axis}: {goal[axis]:.4f} degrees is outside the travel "
-                                                    f"{low:g}..{high:g}")
+            goal = _goals(targets, relative, base, travel, "rotation_limit", "degrees")
+            for axis in goal:
                 if abs(goal[axis] - base[axis]) > self.limits.max_turn_deg:
                     raise Refused("step_limit", f"{axis}: a {abs(goal[axis] - base[axis]):.3f} degree turn "
                                                 f"exceeds the maximum of {self.limits.max_turn_deg:g} per command")
@@ -551,6 +575,7 @@ class StageCore:
             "watchdog": {"armed": self.watchdog.armed, "timeout_s": self.watchdog.timeout_s,
                          "owner": self.watchdog.owner},
             "models": {axis: model.to_dict()["kind"] for axis, model in self.models.items()},
+            "settle_s": {axis: self.settle_s.get(axis, DEFAULT_SETTLE_S) for axis in self.channels},
             "rotation": self._rotation_state(),
             "last_error": self.last_error, **self.counters,
         }
@@ -573,6 +598,21 @@ class StageCore:
         if self.rotation is None:
             return None
         return {"angles_deg": self.rotation_angles, "travel_deg": self.rotation_travel, "link": self.rotation_link}
+
+
+def _goals(targets: dict[str, float], relative: bool, here: dict[str, float], travel: dict[str, tuple[float, float]],
+           limit_code: str, unit: str) -> dict[str, float]:
+    """Where each axis is asked to go (``targets`` are steps from ``here`` when
+    ``relative``), each checked against its travel: a move and a turn follow one rule."""
+    goal = {}
+    for axis, value in targets.items():
+        if axis not in travel:
+            raise Refused("bad_axis", f"unknown axis {axis!r}; axes: {', '.join(travel)}")
+        goal[axis] = here[axis] + value if relative else value
+        low, high = travel[axis]
+        if not low <= goal[axis] <= high:  # NaN fails this too
+            raise Refused(limit_code, f"{axis}: {goal[axis]:.4g} {unit} is outside the travel {low:g}..{high:g} {unit}")
+    return goal
 
 
 def models_from(paths: dict[str, str | None], axes) -> dict:

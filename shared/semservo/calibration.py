@@ -24,12 +24,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
 from semservo.control import CameraToStage
 from semservo.estimation import MotionEstimator
+from semservo.protocol import Port
+from semservo.protocol import stage as stage_protocol
 from semservo.stage_model import BranchModel
 from semservo.wire import Frame
 
@@ -117,10 +118,6 @@ def fit_residual_um(model: BranchModel, points: list[SweepPoint]) -> float:
     return float(np.sqrt(np.mean(np.square(errors))))
 
 
-class StagePort(Protocol):
-    def request(self, command: str, args: dict | None = None) -> dict: ...
-
-
 @dataclass
 class CalibrationResult:
     axis: str
@@ -190,14 +187,15 @@ class CalibrationResult:
 class Calibrator:
     """Sweeps one axis through the stage service and measures each step in the images.
 
-    ``stage``: a port onto the stage service (``state``, ``set_voltages``).
+    ``stage``: a port onto the stage service (:class:`semservo.protocol.Port`: ``state``,
+    ``set_voltages``), over its socket or in process.
     ``next_frame``: ``next_frame(after_ns)`` returns the first frame whose scan started
     after ``after_ns`` (``time.time_ns`` clock), or raises :class:`CalibrationError`.
     ``truth``: optional, ``truth(frame)`` gives the true displacement of the axis (um)
     while the frame was scanned (the simulator knows it).
     """
 
-    stage: StagePort
+    stage: Port
     next_frame: Callable[[int], Frame]
     axis: str = "x"
     camera: CameraToStage = field(default_factory=CameraToStage)
@@ -208,13 +206,12 @@ class Calibrator:
     progress: Callable[[SweepPoint, int, int], None] | None = None
 
     def _set(self, voltage: float) -> int:
-        self.stage.request("set_voltages", {"voltages": {self.axis: voltage}, "owner": "calibrate"})
+        self.stage.call(stage_protocol.SET_VOLTAGES, voltages={self.axis: voltage}, owner="calibrate")
         return time.time_ns()
 
     def _approach(self, target_v: float, step_v: float) -> None:
         """Walk to the sweep's start in steps the stage's step and rate limits allow."""
-        state = self.stage.request("state")
-        voltage = float(state["voltages"][self.axis])
+        voltage = float(self.stage.call(stage_protocol.STATE).voltages[self.axis])
         while abs(target_v - voltage) > 1e-9:
             voltage += float(np.clip(target_v - voltage, -step_v, step_v))
             self._set(voltage)

@@ -24,13 +24,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pydantic
 import zmq
 
 from semservo import __version__, security
 from semservo.config import Settings, connect
+from semservo.simulation.world import PRESETS
 from semservo.launcher import SERVICES, LaunchError, Launcher, spec, stage_rate_for
 from semservo.monitor import FrameStats, acquisition_text
 from semservo.messages import MOTION_TOPIC, MotionEstimate
+from semservo.protocol import ServicePort
+from semservo.simulation import sample_image
 from semservo.transport import CommandError, ControlClient, FrameSubscriber, MessageSubscriber, ServiceUnavailable
 
 
@@ -48,15 +52,31 @@ def _source_environment(args: argparse.Namespace) -> None:
                                              and str(Path(args.watch_dir).resolve()),
         "SEMSERVO_FAKELAB__PRESET": args.preset,
         "SEMSERVO_FAKELAB__SPEEDUP": args.speedup and str(args.speedup),
-        "SEMSERVO_IMAGESERVER__REPLAY_GLOB": args.glob,
+        "SEMSERVO_IMAGESERVER__REPLAY_GLOB": args.glob if not args.watch_dir else None,
+        "SEMSERVO_IMAGESERVER__WATCH_GLOB": args.glob if args.watch_dir else None,
         "SEMSERVO_IMAGESERVER__FPS": args.fps and str(args.fps),
         "SEMSERVO_IMAGESERVER__LOOP": None if args.loop is None else str(args.loop).lower(),
         "SEMSERVO_IMAGESERVER__MAGNIFICATION": args.magnification and str(args.magnification),
     }
     os.environ.update({key: value for key, value in overrides.items() if value})
+    os.environ.update(sample_image.environment_from_arguments(args))
     speedup = float(os.environ.get("SEMSERVO_FAKELAB__SPEEDUP") or 1.0)
     if speedup != 1.0 and "SEMSERVO_STAGE__MAX_RATE_V_PER_S" not in os.environ:
         os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(speedup))
+
+
+def _sample_image_environment(command: str) -> bool:
+    """With a sample image set (options or settings): check it before anything starts,
+    and set what follows from it (the estimator's depth of field for the tilts) where
+    not set already. False, with the reason on stderr, when the picture is refused."""
+    try:
+        derived = sample_image.system_environment(Settings())
+    except (sample_image.SampleImageError, pydantic.ValidationError) as error:
+        print(f"semservo {command}: sample image refused: {error}", file=sys.stderr)
+        return False
+    for key, value in derived.items():
+        os.environ.setdefault(key, value)
+    return True
 
 
 def command_up(args: argparse.Namespace) -> int:
@@ -70,6 +90,8 @@ def command_up(args: argparse.Namespace) -> int:
             print(f"semservo up: no folder to watch at {args.watch_dir}", file=sys.stderr)
             return 2
     _source_environment(args)
+    if not _sample_image_environment("up"):
+        return 2
     settings = Settings()
     launcher = Launcher(settings, restart=args.restart)
     # Ctrl-C stops everything even when started from a shell that ignores SIGINT for
@@ -162,6 +184,10 @@ def _check_estimator(settings: Settings, launcher: Launcher, timeout_s: float) -
         motion.close()
 
 
+#: ``semservo estimate --crop auto``: sizes this close (a data bar's rows) are cropped to the common region.
+AUTO_CROP_FRACTION = 0.1
+
+
 def command_estimate(args: argparse.Namespace) -> int:
     """Motion of each IMAGE against REFERENCE, one line (or JSON object) per image."""
     import json
@@ -183,6 +209,21 @@ def command_estimate(args: argparse.Namespace) -> int:
             readable.append((path, as_image(read_image(path)[0], path)))
         except (ImageFileError, FileNotFoundError, ValueError) as error:
             readable.append((path, error))
+    shapes = [reference.shape] + [pixels.shape for _, pixels in readable if not isinstance(pixels, Exception)]
+    common = (min(shape[0] for shape in shapes), min(shape[1] for shape in shapes))
+    if len(set(shapes)) > 1 and args.crop != "none":
+        # A data bar cut from one file and not the other (the rows differ by a few), or
+        # frames of slightly different scans: compare the region they share, said so.
+        largest = max(max(shape[0] - common[0], shape[1] - common[1]) / min(shape) for shape in shapes)
+        if args.crop == "common" or largest <= AUTO_CROP_FRACTION:
+            fail(f"note: sizes differ ({', '.join(sorted({f'{c} x {r}' for r, c in shapes}))}): comparing the "
+                 f"common {common[1]} x {common[0]} from the top left (--crop none refuses instead)")
+            reference = reference[:common[0], :common[1]]
+            readable = [(path, pixels if isinstance(pixels, Exception) else pixels[:common[0], :common[1]])
+                        for path, pixels in readable]
+        else:
+            fail(f"sizes differ by more than {AUTO_CROP_FRACTION:.0%} ({', '.join(sorted({f'{c} x {r}' for r, c in shapes}))}): "
+                 f"not the same scan? --crop common compares their common region anyway")
     mask = None
     if args.mask or args.polygon:
         # The reference file is the mask (or the image the polygon is drawn on); the
@@ -227,26 +268,73 @@ def command_estimate(args: argparse.Namespace) -> int:
 
 
 def command_teach(args: argparse.Namespace) -> int:
+    """Teach the running estimator: the one reference the gateway, the dashboard and every
+    run use (whoever teaches it)."""
     import base64
 
+    from semservo.protocol import estimator as estimator_protocol
+
     settings = Settings()
-    client = ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
-                           timeout_s=max(settings.request_timeout_s, 10.0), retries=1)
-    request: dict = {}
+    estimator = ServicePort(ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
+                                          timeout_s=max(settings.request_timeout_s, 10.0), retries=1))
+    request: dict = {"tilts": args.tilts}
     if args.image:
         request["image_b64"] = base64.b64encode(Path(args.image).read_bytes()).decode()
         request["label"] = args.image
     elif args.polygon:
         request["polygon"] = [[float(v) for v in point.split(",")] for point in args.polygon.split()]
+    else:
+        request["frames"] = args.frames
     try:
-        result = client.request("teach", **request)
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                reference = estimator.call(estimator_protocol.TEACH, **request)
+                break
+            except CommandError as error:  # a system just started has sent fewer frames than asked to average
+                if error.code != "not_enough_frames" or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        print(f"taught reference {reference.id} ({reference.kind}, {reference.shape[1]} x {reference.shape[0]}"
+              + (f", the mean of {reference.frames_averaged} frames" if (reference.frames_averaged or 1) > 1 else "")
+              + ")", flush=True)
+        if args.tilts:
+            return _wait_for_tilt_teach(estimator, reference.id)
     except (ServiceUnavailable, CommandError) as error:
         print(f"semservo teach: {error}", file=sys.stderr)
         return 1
     finally:
-        client.close()
-    print(f"taught reference {result['id']} ({result['kind']}, {result['shape'][1]} x {result['shape'][0]})")
+        estimator.close()
     return 0
+
+
+def _wait_for_tilt_teach(estimator, reference_id: str, timeout_s: float = 180.0) -> int:
+    """Follow the taught pose's focus sweep (it runs in the background) to its end."""
+    from semservo.protocol import estimator as estimator_protocol
+
+    deadline, said = time.monotonic() + timeout_s, None
+    while time.monotonic() < deadline:
+        reference = estimator.call(estimator_protocol.REPORT).reference
+        teach = reference.tilt_teach if reference is not None and reference.id == reference_id else None
+        if teach is None:
+            print("semservo teach: the reference was replaced during its focus sweep", file=sys.stderr)
+            return 1
+        if teach.state == "done":
+            tilt = reference.tilt or {}
+            print(f"focus sweep of {teach.frames} frames: the taught pose's plane tilts alpha "
+                  f"{tilt.get('alpha_deg', 0):+.2f}, beta {tilt.get('beta_deg', 0):+.2f} deg "
+                  f"({tilt.get('kernels_used')} kernels in focus somewhere)")
+            return 0
+        if teach.state == "failed":
+            print(f"semservo teach: the image is taught, not its tilts: {teach.error}", file=sys.stderr)
+            return 1
+        progress = f"focus sweep: {teach.scanned} of {teach.frames} frames"
+        if progress != said:
+            print(progress, flush=True)
+            said = progress
+        time.sleep(0.25)
+    print(f"semservo teach: the focus sweep did not end within {timeout_s:g} s", file=sys.stderr)
+    return 1
 
 
 def command_motion(args: argparse.Namespace) -> int:
@@ -348,16 +436,6 @@ def command_health(args: argparse.Namespace) -> int:
     return code
 
 
-class _RequestPort:
-    """A control client as the ``request(command, args)`` port the cores use."""
-
-    def __init__(self, client: ControlClient):
-        self.client = client
-
-    def request(self, command: str, args: dict | None = None) -> dict:
-        return self.client.request(command, **(args or {}))
-
-
 def calibration_ports(settings: Settings, *, frame_timeout_s: float = 30.0, truth: bool = True):
     """The stage port, the ``next_frame(after_ns)`` source and, when the simulated lab
     answers, the truth for a :class:`semservo.calibration.Calibrator`; and a closer."""
@@ -401,12 +479,11 @@ def calibration_ports(settings: Settings, *, frame_timeout_s: float = 30.0, trut
         for closable in (stage, frames, fakelab):
             closable.close()
 
-    return _RequestPort(stage), next_frame, (true_displacement if simulated else None), close
+    return ServicePort(stage), next_frame, (true_displacement if simulated else None), close
 
 
 def command_calibrate(args: argparse.Namespace) -> int:
     from semservo.calibration import CalibrationError, Calibrator
-    from semservo.control import CameraToStage
 
     settings = Settings()
     stage, next_frame, truth, close = calibration_ports(settings, frame_timeout_s=args.frame_timeout,
@@ -419,8 +496,7 @@ def command_calibrate(args: argparse.Namespace) -> int:
         print(f"[{done:3d}/{total}] {point.voltage:7.2f} V {arrow:<4} {args.axis} {point.displacement_um:8.3f} um"
               f"{truth_text}  across {point.cross_um:+7.3f} um  conf {point.confidence:.2f}", flush=True)
 
-    calibrator = Calibrator(stage, next_frame, axis=args.axis,
-                            camera=CameraToStage(tuple(config.axis_signs), config.orientation_deg),
+    calibrator = Calibrator(stage, next_frame, axis=args.axis, camera=config.camera_to_stage(),
                             settle_s=args.settle, keyframe_px=args.keyframe_px,
                             truth=truth(args.axis) if truth else None, progress=progress)
     try:
@@ -447,10 +523,18 @@ def command_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+#: The demo's jog: (6, -4) um at x1200's pixel; with a sample image the same pixels, at
+#: most DEMO_MAX_JOG_UM a side (the stage's travel is ~100 um).
+DEMO_OFFSET_UM = (6.0, -4.0)
+DEMO_PIXEL_UM = 0.1769
+DEMO_MAX_JOG_UM = 8.0
+
+
 def command_demo(args: argparse.Namespace) -> int:
     """Teach, displace, position back, report: on the running system, or on one the demo
-    starts (simulated hardware) and stops again."""
-    from semservo.client import Client, SemservoError
+    starts (simulated hardware) and stops again. A run the demo started never outlives it:
+    given up on (``--timeout``) or interrupted, it is stopped."""
+    from semservo.client import Client, SemservoError, WaitTimeout, save
 
     tilts = args.dof == "all"
     turns = args.dof in ("rotation", "all")
@@ -459,20 +543,32 @@ def command_demo(args: argparse.Namespace) -> int:
         os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(args.speedup))
     if tilts:  # the tilts are seen through focus: the small-depth-of-field condition
         os.environ.setdefault("SEMSERVO_FAKELAB__PRESET", "tilts")
+    sample_options = sample_image.environment_from_arguments(args)
+    os.environ.update(sample_options)
     settings = Settings()
     url = args.url or f"http://127.0.0.1:{settings.gateway.http_port}"
     launcher = None
     lab = Client(url, timeout=30)
+    run_id = None
     try:
         try:
             lab.status()
+            if sample_options:
+                print(f"demo: a system is already running at {url}, with its own sample; the --sample-* options "
+                      "apply to a system the demo starts: stop that one, or leave the options out", file=sys.stderr)
+                return 2
             print(f"using the running system at {url}")
         except SemservoError:
             print(f"no system at {url}: starting one on simulated hardware (semservo up does the same)")
+            if not _sample_image_environment("demo"):
+                return 2
+            settings = Settings()
+            if settings.fakelab.sample_image is not None:
+                print(f"   the sample: the picture {settings.fakelab.sample_image} (semservo.simulation.sample_image)")
             launcher = Launcher(settings, out=open(os.devnull, "w") if not args.verbose else sys.stdout)
             launcher.start(timeout_s=120)
         deadline = time.monotonic() + 60
-        while lab.status()["latest_frame_seq"] is None:
+        while lab.status().latest_frame_seq is None:
             if time.monotonic() > deadline:
                 print("no frames reach the gateway: is the image server running?", file=sys.stderr)
                 return 1
@@ -480,12 +576,42 @@ def command_demo(args: argparse.Namespace) -> int:
         if tilts:
             print("1. teaching: the mean of the live frames, and a focus sweep at the taught pose (the tilts) ...",
                   flush=True)
-        reference = lab.teach(frames=args.frames, tilts=tilts)
-        print(f"1. taught reference {reference['id']} (mean of {args.frames} live frames"
-              + (f"; focus sweep of {reference['tilt']['frames']} frames, {reference['tilt']['kernels_used']} kernels "
+        try:
+            reference = lab.teach(frames=args.frames, tilts=tilts)
+        except SemservoError as error:
+            if tilts and error.code == "no_tilt_reference":
+                print(f"demo: {error.message}\n   The tilts are measured from focus, so they need a depth of field "
+                      "small against the depth a tilt spans across the field (the 'tilts' preset: 3.5 um). A "
+                      "running system in another preset cannot measure them: start it with "
+                      "`semservo up --preset tilts`, or let the demo start its own (stop the running one).",
+                      file=sys.stderr)
+                return 1
+            raise
+        print(f"1. taught reference {reference.id} (mean of {args.frames} live frames"
+              + (f"; focus sweep of {reference.tilt['frames']} frames, {reference.tilt['kernels_used']} kernels "
                  "in focus somewhere)" if tilts else ")"))
-        lab.move(x_um=args.offset[0], y_um=args.offset[1])
-        print(f"2. displaced the stage by ({args.offset[0]:+g}, {args.offset[1]:+g}) um, as an operator's joystick would")
+        stage = lab.stage()
+        if stage.state == "stopped":
+            if not args.resume:
+                print(f"demo: the stage is stopped ({stage.reason}). An operator's stop holds, across restarts too, "
+                      f"until someone resumes it: the dashboard's Resume, POST {url}/stage/resume, or "
+                      "`semservo demo --resume`.", file=sys.stderr)
+                return 1
+            lab.resume()
+            print("   the stage was stopped; resumed (--resume)")
+        offset = args.offset
+        pixel_nm = reference.get("pixel_size_nm") or (reference.get("acquisition") or {}).get("pixel_size_nm")
+        if offset is None:
+            # 34, -23 px: (6, -4) um at the default x1200, the same part of the field at any
+            # scale (a sample image's own), within what one jog of the stage may be.
+            offset = DEMO_OFFSET_UM
+            if pixel_nm and settings.fakelab.sample_image is not None:
+                offset = tuple(float(np.clip(value / DEMO_PIXEL_UM * pixel_nm / 1000, -DEMO_MAX_JOG_UM,
+                                             DEMO_MAX_JOG_UM)) for value in DEMO_OFFSET_UM)
+        lab.move(x_um=offset[0], y_um=offset[1])
+        in_pixels = f" = ({offset[0] * 1000 / pixel_nm:+.1f}, {offset[1] * 1000 / pixel_nm:+.1f}) px" if pixel_nm else ""
+        print(f"2. displaced the stage by ({offset[0]:+.3g}, {offset[1]:+.3g}) um{in_pixels}, as an operator's "
+              "joystick would")
         dofs = ["x", "y"]
         if turns:
             angles = {"rotation_deg": args.turn}
@@ -498,35 +624,49 @@ def command_demo(args: argparse.Namespace) -> int:
         time.sleep(args.settle)
         # A 5-DOF run acts on every fresh frame while it waits for each focus sweep: more iterations.
         run = lab.start(tolerance_px=args.tolerance, dofs=dofs, **({"max_iterations": 600} if tilts else {}))
-        print(f"3. positioning run {run['run_id']} started ({', '.join(dofs)}; tolerance {args.tolerance:g} px); "
+        run_id = run.run_id
+        print(f"3. positioning run {run_id} started ({', '.join(dofs)}; tolerance {args.tolerance:g} px); "
               "waiting ...", flush=True)
-        result = lab.wait(run["run_id"], timeout=args.timeout)
-        duration_s = ((result["finished_at_ns"] or time.time_ns()) - result["started_at_ns"]) / 1e9
-        print(f"4. {result['state']} after {result['iterations']} iterations in {duration_s:.1f} s"
-              f"{' (' + result['reason'] + ')' if result['reason'] else ''}")
-        if result["final_error_px"] is not None:
-            print(f"   estimated final error {result['final_error_px']:.3f} px")
-        truth = result.get("truth")
+        result = lab.wait(run_id, timeout=args.timeout, stop_on_timeout=True)
+        print(f"4. {result.state} after {result.iterations} iterations ({result.fresh_frames or 0} fresh frames) "
+              f"in {result.duration_s or 0:.1f} s{' (' + result.reason + ')' if result.reason else ''}")
+        if result.final_error_px is not None:
+            print(f"   estimated final error {result.final_error_px:.3f} px (the mean of the last fresh frames: what "
+                  f"the run judges convergence on)")
+        truth = result.truth
         if truth:
             print(f"   true final error (simulator) {truth['error_norm_px']:.3f} px = "
                   f"{1000 * float(np.hypot(*truth['error_um'])):.1f} nm")
+            if result.state == "converged" and truth["error_norm_px"] > args.tolerance:
+                print(f"   (above the {args.tolerance:g} px tolerance: the run stops when its *estimate* is within it; "
+                      "the truth also carries the stage's vibration and creep over the last frames' scans and "
+                      "the estimates' noise. `--converge-on each`-style settings land further inside: see the "
+                      "README's positioning benchmark)")
             angles = truth.get("error_deg") or {}
             if turns and angles:
                 print("   true final angles (simulator): " + ", ".join(
                     f"{name} {angles[key]:+.3f} deg" for name, key in (("gamma", "rotation_deg"), ("alpha", "tilt_x_deg"),
                                                                        ("beta", "tilt_y_deg")) if key in angles))
-        report = Path(settings.controller.runs_dir) / f"{run['run_id']}-report.png"
-        report.parent.mkdir(parents=True, exist_ok=True)
-        report.write_bytes(lab.http.get(f"/runs/{run['run_id']}/report.png").content)
+        runs_dir = Path(settings.controller.runs_dir)
+        runs_dir.mkdir(parents=True, exist_ok=True)
+        report = save(lab.run_report(run_id), runs_dir / f"{run_id}-report.png")
         print(f"   report (error, cost, voltages per iteration): {report}")
         if launcher is None:
-            print(f"   the run's record: {url}/runs/{run['run_id']}  (dashboard: {url}/)")
-        return 0 if result["state"] == "converged" else 1
+            print(f"   the run's record: {url}/runs/{run_id}  (dashboard: {url}/)")
+        return 0 if result.state == "converged" else 1
+    except WaitTimeout as error:
+        print(f"demo gave up: {error.message}", file=sys.stderr)
+        return 1
     except SemservoError as error:
         print(f"demo failed: {error}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
+        if run_id is not None:
+            try:
+                lab.stop("the demo was interrupted")
+            except SemservoError:
+                pass
         return 130
     finally:
         lab.close()
@@ -568,11 +708,13 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines")
     up.add_argument("--source", choices=["sim", "replay", "watch", "adapter"],
                     help="frames from the simulated SEM (default), a replay, a watched folder or a lab's adapter")
-    up.add_argument("--preset", help="simulated condition: optimal, noisy, high-magnification, unstable, "
-                                     "high-quality-reference, mask-reference, repeated-pattern")
+    up.add_argument("--preset", choices=sorted(PRESETS), metavar="PRESET",
+                    help=f"simulated condition: {', '.join(PRESETS)} (default optimal; tilts: the small depth of "
+                         "field the tilt measurement needs)")
     up.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
     up.add_argument("--replay-dir", help="replay this folder of frames instead (default folder: the 2013 recording)")
-    up.add_argument("--glob", help="replay only files matching this pattern, e.g. 'frame*'")
+    up.add_argument("--glob", help="only files matching this pattern are frames, e.g. 'frame*' or '*.tif' (a replayed "
+                                   "folder, and a watched one with --watch-dir)")
     up.add_argument("--fps", type=float, help="replay frame rate")
     loop = up.add_mutually_exclusive_group()
     loop.add_argument("--loop", dest="loop", action="store_true", default=None, help="replay in a loop (default)")
@@ -580,6 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--magnification", type=float, help="magnification of the replayed frames")
     up.add_argument("--watch-dir", help="frames from the folder an SEM's software saves into: each new file is "
                                         "published once it is complete (see docs/instruments.md)")
+    sample_image.add_arguments(up)
     up.add_argument("--sim-saves-frames", action="store_true",
                     help="with --watch-dir: the simulated SEM saves its frames there, as a vendor's software "
                          "would (the whole path without a microscope)")
@@ -621,13 +764,24 @@ def build_parser() -> argparse.ArgumentParser:
     estimate.add_argument("--precision", choices=["fast", "full"], default="full",
                           help="sub-pixel fit at full resolution (full, default) or on the 2x search pair (fast)")
     estimate.add_argument("--json", action="store_true", help="one JSON object per line")
+    estimate.add_argument("--crop", choices=["auto", "common", "none"], default="auto",
+                          help="images of different sizes: auto (default) compares the common region, from the top "
+                               "left, when they differ by up to 10 %% (a data bar cut from one file only), saying "
+                               "so; common does it whatever the difference; none refuses")
     estimate.set_defaults(handler=command_estimate)
 
-    teach = commands.add_parser("teach", help="teach the running estimator a reference",
-                                description="Teach the live frame (default), an image file, or a polygon mask.")
+    teach = commands.add_parser(
+        "teach", help="teach the running estimator a reference",
+        description="Teach the live frame (default; --frames averages several), an image file, or a polygon mask. "
+                    "The estimator's reference is the one the gateway, the dashboard and every run use, whoever "
+                    "taught it.")
     source = teach.add_mutually_exclusive_group()
+    source.add_argument("--frames", type=int, default=1, help="average the last N live frames, 1..16 (default 1; "
+                                                              "the stage must stand still)")
     source.add_argument("--image", help="PNG/TIFF file to use as the reference")
     source.add_argument("--polygon", metavar="'X,Y X,Y ...'", help="corner points of a mask on the live frame")
+    teach.add_argument("--tilts", action="store_true", help="also sweep the focus at the taught pose, so runs can "
+                                                            "servo the tilts (waits for the sweep, with progress)")
     teach.set_defaults(handler=command_teach)
 
     motion = commands.add_parser("motion", help="watch the estimator's motion stream")
@@ -666,8 +820,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "hardware) the true final error, with the path of the run's report. Uses the running "
                     "system, or starts one on simulated hardware and stops it afterwards.")
     demo.add_argument("--url", help="gateway address (default http://127.0.0.1:HTTP_PORT)")
-    demo.add_argument("--offset", type=float, nargs=2, default=(6.0, -4.0), metavar=("X_UM", "Y_UM"),
-                      help="how far to displace the stage (default 6 -4 um)")
+    demo.add_argument("--offset", type=float, nargs=2, metavar=("X_UM", "Y_UM"),
+                      help="how far to displace the stage (default 6 -4 um: 34, -23 px at x1200; with a sample image "
+                           "the same pixels at its scale, at most 8 um a side)")
     demo.add_argument("--tolerance", type=float, default=0.1, help="converged under this error, px (default 0.1)")
     demo.add_argument("--dof", choices=["xy", "rotation", "all"], default="xy",
                       help="degrees of freedom: xy (default), rotation (x, y and the turn about the beam) or all five "
@@ -681,6 +836,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--timeout", type=float, default=300.0, help="give up on the run after this many seconds")
     demo.add_argument("--speedup", type=float, help="when the demo starts the system: simulated time this much faster")
     demo.add_argument("--verbose", action="store_true", help="show the services' logs when the demo starts them")
+    demo.add_argument("--resume", action="store_true", help="let a stage an operator stopped move again first (a "
+                                                            "stop holds until someone resumes, across restarts too)")
+    sample_image.add_arguments(demo)
     demo.set_defaults(handler=command_demo)
 
     from semservo.reproduce import EXPERIMENTS

@@ -6,24 +6,31 @@
         lab.teach()                              # the live frame is the target
         lab.move(x_um=6, y_um=-4)                # jog away (relative, um)
         run = lab.start(tolerance_px=0.1)        # servo back
-        result = lab.wait(run["run_id"], timeout=120)
-        print(result["state"], result["iterations"], result["truth"])
+        result = lab.wait(run.run_id, timeout=120)
+        print(result.state, result.iterations, result.truth)
 
-Every failure raises :class:`SemservoError` (or a subclass) carrying the server's error
-body: ``status``, ``code`` (machine-readable), ``message`` (words), ``field``.
+Every method returns the gateway's own response model (:mod:`semservo.api`: typed,
+documented, ``result.state`` and ``result["state"]`` both work). Every failure raises
+:class:`SemservoError` (or a subclass) carrying the server's error body: ``status``,
+``code`` (machine-readable), ``message`` (words), ``field``.
 """
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import json
 import os
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
-from typing import Any
+from urllib.parse import quote
 
 import httpx
+from pydantic import BaseModel, TypeAdapter
+
+from semservo.api import (MoveReply, RotateReply, RunRecord, RunSummary, StageState, StartResult, Status, StopResult,
+                          Target, TeachResult)
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 FINISHED = ("converged", "failed", "stopped")
@@ -47,6 +54,26 @@ class RunActive(SemservoError):
 
 class WaitTimeout(SemservoError):
     """:meth:`Client.wait` gave up: the run had not ended within its timeout."""
+
+
+#: How long :meth:`Client.teach` waits for the taught pose's focus sweep (teach with tilts).
+SWEEP_WAIT_S = 180.0
+
+
+def _typed(model, value):
+    """The response as its model (a list of them for ``list[...]``)."""
+    if isinstance(model, type) and issubclass(model, BaseModel):
+        return model.model_validate(value)
+    return TypeAdapter(model).validate_python(value)
+
+
+def _tilt_teach_done(reference: TeachResult) -> TeachResult:
+    """A teach with tilts is done when its sweep is; a failed sweep raises, saying why."""
+    teach = reference.tilt_teach
+    if teach is not None and teach.state == "failed":
+        raise SemservoError(409, teach.code or "sweep_failed", f"the reference {reference.id} is taught, but not its "
+                            f"tilts: {teach.error}", body={"error": {"code": teach.code, "message": teach.error}})
+    return reference
 
 
 def _raise_for(response: httpx.Response) -> None:
@@ -82,9 +109,7 @@ def _teach_request(frames: int, image: str | Path | bytes | None, mask: str | Pa
     params = {"frames": frames} if dwell_ns is None else {"frames": frames, "dwell_ns": dwell_ns}
     if tilts:
         params["tilts"] = "true"
-    # A teach with tilts waits for a focus sweep: seconds to a minute of scans.
-    extra = {"timeout": 150.0} if tilts else {}
-    return "/teach", {"params": params, "files": files or None, "data": data or None, **extra}
+    return "/teach", {"params": params, "files": files or None, "data": data or None}
 
 
 def _move_body(x_um: float | None, y_um: float | None, relative: bool) -> dict:
@@ -103,7 +128,140 @@ def _auth_only(headers) -> dict[str, str]:
     return {"Authorization": headers["Authorization"]} if "Authorization" in headers else {}
 
 
-class Client:
+class Call:
+    """One request and how its answer reads: ``model`` (a response model, ``list[...]``
+    of one, or None for raw bytes)."""
+
+    def __init__(self, method: str, path: str, model=None, **kwargs):
+        self.method, self.path, self.model, self.kwargs = method, path, model, kwargs
+
+    def read(self, answer):
+        return answer if self.model is None else _typed(self.model, answer)
+
+
+class _Endpoints(abc.ABC):
+    """Every endpoint, written once for both clients: each method hands a :class:`Call`
+    to ``_run``, which the synchronous client answers with the response and the asyncio
+    client with a coroutine of it."""
+
+    @abc.abstractmethod
+    def _run(self, call: Call):
+        """The response to ``call`` (or, asyncio, a coroutine of it)."""
+
+    def reference(self) -> TeachResult:
+        """The taught reference (whoever taught it), with its focus sweep's progress."""
+        return self._run(Call("GET", "/reference", TeachResult))
+
+    def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> MoveReply:
+        """Jog (relative, the default) or move to a position (um), through the stage's rules."""
+        return self._run(Call("POST", "/stage/move", MoveReply, json=_move_body(x_um, y_um, relative)))
+
+    def rotate(self, rotation_deg: float | None = None, tilt_x_deg: float | None = None,
+               tilt_y_deg: float | None = None, *, relative: bool = True) -> RotateReply:
+        """Turn about the beam and/or tilt (degrees), through the stage service's rules."""
+        return self._run(Call("POST", "/stage/rotate", RotateReply,
+                              json=_rotate_body(rotation_deg, tilt_x_deg, tilt_y_deg, relative)))
+
+    def center(self, x_px: float, y_px: float) -> MoveReply:
+        """Click to move: the live image's point (x, y) comes to the centre."""
+        return self._run(Call("POST", "/stage/center", MoveReply, json={"x_px": x_px, "y_px": y_px}))
+
+    def stage(self) -> StageState:
+        """Positions, voltages, limits, link, watchdog, the rotation stage's angles."""
+        return self._run(Call("GET", "/stage", StageState))
+
+    def resume(self) -> StageState:
+        """Let a stopped (or watchdog-held) stage move again: the operator's word."""
+        return self._run(Call("POST", "/stage/resume", StageState))
+
+    def start(self, *, resume: bool = False, **settings) -> StartResult:
+        """Start a run; settings as the API's RunSettings (tolerance_px, dofs, gain, ...).
+        A stage an operator stopped stays stopped (409 ``stage_stopped``) unless
+        ``resume=True`` lets it move again."""
+        return self._run(Call("POST", "/start", StartResult, json=settings,
+                              params={"resume": "true"} if resume else None))
+
+    def stop(self, reason: str = "stop requested") -> StopResult:
+        """Stop at once: the stage first (it refuses moves until resumed), then the run."""
+        return self._run(Call("POST", "/stop", StopResult, json={"reason": reason}))
+
+    def status(self) -> Status:
+        return self._run(Call("GET", "/status", Status))
+
+    def runs(self, limit: int = 100) -> list[RunSummary]:
+        return self._run(Call("GET", "/runs", list[RunSummary], params={"limit": limit}))
+
+    def run(self, run_id: str) -> RunRecord:
+        return self._run(Call("GET", f"/runs/{run_id}", RunRecord))
+
+    def run_csv(self, run_id: str) -> bytes:
+        """A run's iterations as CSV (:func:`save` writes it to a file)."""
+        return self._run(Call("GET", f"/runs/{run_id}.csv"))
+
+    def run_report(self, run_id: str) -> bytes:
+        """A run's report plot, PNG: error, cost, voltages per iteration (Fig. 9)."""
+        return self._run(Call("GET", f"/runs/{run_id}/report.png"))
+
+    def save_target(self, name: str, note: str = "", *, replace: bool = False) -> Target:
+        """Store the taught reference under ``name``, with the stage's pose and the
+        acquisition (to come back to it days later: :meth:`go_to_target`)."""
+        return self._run(Call("POST", "/targets", Target, json={"name": name, "note": note, "replace": replace}))
+
+    def targets(self) -> list[Target]:
+        """Every stored target, newest first."""
+        return self._run(Call("GET", "/targets", list[Target]))
+
+    def target(self, name: str) -> Target:
+        return self._run(Call("GET", f"/targets/{quote(name, safe='')}", Target))
+
+    def delete_target(self, name: str) -> Target:
+        return self._run(Call("DELETE", f"/targets/{quote(name, safe='')}", Target))
+
+    def go_to_target(self, name: str, *, approach: bool = True, resume: bool = False, **settings) -> StartResult:
+        """Back to a stored target: the stage to its stored pose (``approach``, open
+        loop), its reference taught, then a positioning run (``settings`` as start's)."""
+        return self._run(Call("POST", f"/targets/{quote(name, safe='')}/go", StartResult,
+                              json={"approach": approach, "settings": settings},
+                              params={"resume": "true"} if resume else None))
+
+    def export_target(self, name: str) -> bytes:
+        """A stored target as one file (TIFF; :func:`save` writes it)."""
+        return self._run(Call("GET", f"/targets/{quote(name, safe='')}/export"))
+
+    def import_target(self, file: str | Path | bytes, *, name: str | None = None, replace: bool = False) -> Target:
+        """A target from a file :meth:`export_target` wrote (this or another lab's)."""
+        content = file if isinstance(file, (bytes, bytearray)) else Path(file).read_bytes()
+        data = {"replace": "true" if replace else "false", **({"name": name} if name else {})}
+        return self._run(Call("POST", "/targets/import", Target, files={"file": ("target.tif", content)}, data=data))
+
+    def _teach_call(self, frames, image, mask, polygon, label, dwell_ns, tilts) -> Call:
+        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns, tilts)
+        return Call("POST", path, TeachResult, **kwargs)
+
+
+def save(content: bytes, path: str | Path) -> Path:
+    """Write what :meth:`Client.run_csv`, :meth:`Client.run_report` or
+    :meth:`Client.export_target` returned to ``path``."""
+    path = Path(path)
+    path.write_bytes(content)
+    return path
+
+
+def _unreachable(client, error: Exception) -> SemservoError:
+    return SemservoError(0, "unreachable", f"{client.http.base_url}: {error}")
+
+
+def _answer(response: httpx.Response):
+    _raise_for(response)
+    return response.json() if response.headers.get("content-type", "").startswith("application/json") \
+        else response.content
+
+
+def _events_url(http) -> str:
+    return str(http.base_url).replace("http", "ws", 1).rstrip("/") + "/events"
+
+
+class Client(_Endpoints):
     """Synchronous client. ``token``: the API token (default ``$SEMSERVO_API_TOKEN``)."""
 
     def __init__(self, url: str | None = None, *, token: str | None = None, timeout: float = 10.0):
@@ -119,85 +277,62 @@ class Client:
     def close(self) -> None:
         self.http.close()
 
-    def _call(self, method: str, path: str, **kwargs) -> Any:
+    def _run(self, call: Call):
         try:
-            response = self.http.request(method, path, **kwargs)
+            response = self.http.request(call.method, call.path, **call.kwargs)
         except httpx.TransportError as error:
-            raise SemservoError(0, "unreachable", f"{self.http.base_url}: {error}") from None
-        _raise_for(response)
-        return response.json() if response.headers.get("content-type", "").startswith("application/json") \
-            else response.content
+            raise _unreachable(self, error) from None
+        return call.read(_answer(response))
 
     def teach(self, *, frames: int = 1, image: str | Path | bytes | None = None, mask: str | Path | bytes | None = None,
               polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None,
-              tilts: bool = False) -> dict:
+              tilts: bool = False, wait: bool = True) -> TeachResult:
         """Teach the live frame (``frames`` > 1 averages that many), one scan at a slow
         ``dwell_ns`` (a high-quality reference), an image file, a mask image, or a
         polygon of corner points [[x, y], ...] on the live frame. ``tilts``: also sweep
-        the focus at the taught pose, so runs can servo alpha and beta."""
-        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns, tilts)
-        return self._call("POST", path, **kwargs)
+        the focus at the taught pose, so runs can servo alpha and beta; the sweep takes
+        seconds and this waits for it unless ``wait=False`` (then :meth:`reference`
+        says how far it is)."""
+        reference = self._run(self._teach_call(frames, image, mask, polygon, label, dwell_ns, tilts))
+        deadline = time.monotonic() + SWEEP_WAIT_S
+        while tilts and wait and reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping":
+            if time.monotonic() > deadline:
+                raise WaitTimeout(0, "timeout", f"the focus sweep of reference {reference.id} did not end within "
+                                                f"{SWEEP_WAIT_S:g} s")
+            time.sleep(0.25)
+            reference = self.reference()
+        return _tilt_teach_done(reference) if tilts and wait else reference
 
-    def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:
-        return self._call("POST", "/stage/move", json=_move_body(x_um, y_um, relative))
-
-    def rotate(self, rotation_deg: float | None = None, tilt_x_deg: float | None = None,
-               tilt_y_deg: float | None = None, *, relative: bool = True) -> dict:
-        """Turn about the beam and/or tilt (degrees), through the stage service's rules."""
-        return self._call("POST", "/stage/rotate", json=_rotate_body(rotation_deg, tilt_x_deg, tilt_y_deg, relative))
-
-    def stage(self) -> dict:
-        return self._call("GET", "/stage")
-
-    def start(self, *, resume: bool = False, **settings) -> dict:
-        """Start a run; settings as the API's RunSettings (tolerance_px, dofs, gain, ...).
-        A stage an operator stopped stays stopped (409 ``stage_stopped``) unless
-        ``resume=True`` lets it move again."""
-        return self._call("POST", "/start", json=settings, params={"resume": "true"} if resume else None)
-
-    def stop(self, reason: str = "stop requested") -> dict:
-        return self._call("POST", "/stop", json={"reason": reason})
-
-    def status(self) -> dict:
-        return self._call("GET", "/status")
-
-    def runs(self, limit: int = 100) -> list[dict]:
-        return self._call("GET", "/runs", params={"limit": limit})
-
-    def run(self, run_id: str) -> dict:
-        return self._call("GET", f"/runs/{run_id}")
-
-    def wait(self, run_id: str, timeout: float = 300.0, poll_s: float = 0.2) -> dict:
-        """Block until the run ends; its full record. :class:`WaitTimeout` otherwise."""
+    def wait(self, run_id: str, timeout: float = 300.0, poll_s: float = 0.2, *, stop_on_timeout: bool = False
+             ) -> RunRecord:
+        """Block until the run ends; its full record. :class:`WaitTimeout` otherwise
+        (``stop_on_timeout``: the run is stopped first, so none is left behind)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            run = self._finished(run_id)
-            if run is not None:
-                return run
+            try:
+                run = self.run(run_id)
+                if run.state in FINISHED:
+                    return run
+            except SemservoError as error:
+                if error.status != 404:  # 404: not recorded yet
+                    raise
             time.sleep(poll_s)
-        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s")
-
-    def _finished(self, run_id: str) -> dict | None:
-        try:
-            run = self.run(run_id)
-        except SemservoError as error:
-            if error.status == 404:  # not recorded yet
-                return None
-            raise
-        return run if run["state"] in FINISHED else None
+        if stop_on_timeout:
+            self.stop(f"the script gave up waiting for run {run_id} after {timeout:g} s")
+        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s"
+                          + ("; it was stopped" if stop_on_timeout else ""))
 
     def events(self) -> Iterator[dict]:
         """Live events (status, iteration, reference) from ``WS /events``."""
         from websockets.sync.client import connect
 
-        url = str(self.http.base_url).replace("http", "ws", 1).rstrip("/") + "/events"
-        with connect(url, additional_headers=_auth_only(self.http.headers)) as socket:
+        with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
             for message in socket:
                 yield json.loads(message)
 
 
-class AsyncClient:
-    """The same API for asyncio scripts."""
+class AsyncClient(_Endpoints):
+    """The same API for asyncio scripts: every method is awaited."""
 
     def __init__(self, url: str | None = None, *, token: str | None = None, timeout: float = 10.0):
         url = url or os.environ.get("SEMSERVO_URL", DEFAULT_URL)
@@ -212,64 +347,48 @@ class AsyncClient:
     async def close(self) -> None:
         await self.http.aclose()
 
-    async def _call(self, method: str, path: str, **kwargs) -> Any:
+    async def _run(self, call: Call):
         try:
-            response = await self.http.request(method, path, **kwargs)
+            response = await self.http.request(call.method, call.path, **call.kwargs)
         except httpx.TransportError as error:
-            raise SemservoError(0, "unreachable", f"{self.http.base_url}: {error}") from None
-        _raise_for(response)
-        return response.json() if response.headers.get("content-type", "").startswith("application/json") \
-            else response.content
+            raise _unreachable(self, error) from None
+        return call.read(_answer(response))
 
     async def teach(self, *, frames: int = 1, image=None, mask=None, polygon: list | None = None,
-                    label: str | None = None, dwell_ns: float | None = None, tilts: bool = False) -> dict:
-        path, kwargs = _teach_request(frames, image, mask, polygon, label, dwell_ns, tilts)
-        return await self._call("POST", path, **kwargs)
+                    label: str | None = None, dwell_ns: float | None = None, tilts: bool = False,
+                    wait: bool = True) -> TeachResult:
+        """As :meth:`Client.teach`."""
+        reference = await self._run(self._teach_call(frames, image, mask, polygon, label, dwell_ns, tilts))
+        deadline = time.monotonic() + SWEEP_WAIT_S
+        while tilts and wait and reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping":
+            if time.monotonic() > deadline:
+                raise WaitTimeout(0, "timeout", f"the focus sweep of reference {reference.id} did not end within "
+                                                f"{SWEEP_WAIT_S:g} s")
+            await asyncio.sleep(0.25)
+            reference = await self.reference()
+        return _tilt_teach_done(reference) if tilts and wait else reference
 
-    async def move(self, x_um: float | None = None, y_um: float | None = None, *, relative: bool = True) -> dict:
-        return await self._call("POST", "/stage/move", json=_move_body(x_um, y_um, relative))
-
-    async def rotate(self, rotation_deg: float | None = None, tilt_x_deg: float | None = None,
-                     tilt_y_deg: float | None = None, *, relative: bool = True) -> dict:
-        """Turn about the beam and/or tilt (degrees), through the stage service's rules."""
-        return await self._call("POST", "/stage/rotate",
-                                json=_rotate_body(rotation_deg, tilt_x_deg, tilt_y_deg, relative))
-
-    async def stage(self) -> dict:
-        return await self._call("GET", "/stage")
-
-    async def start(self, *, resume: bool = False, **settings) -> dict:
-        return await self._call("POST", "/start", json=settings, params={"resume": "true"} if resume else None)
-
-    async def stop(self, reason: str = "stop requested") -> dict:
-        return await self._call("POST", "/stop", json={"reason": reason})
-
-    async def status(self) -> dict:
-        return await self._call("GET", "/status")
-
-    async def runs(self, limit: int = 100) -> list[dict]:
-        return await self._call("GET", "/runs", params={"limit": limit})
-
-    async def run(self, run_id: str) -> dict:
-        return await self._call("GET", f"/runs/{run_id}")
-
-    async def wait(self, run_id: str, timeout: float = 300.0, poll_s: float = 0.2) -> dict:
+    async def wait(self, run_id: str, timeout: float = 300.0, poll_s: float = 0.2, *,
+                   stop_on_timeout: bool = False) -> RunRecord:
+        """As :meth:`Client.wait`."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             try:
                 run = await self.run(run_id)
-                if run["state"] in FINISHED:
+                if run.state in FINISHED:
                     return run
             except SemservoError as error:
                 if error.status != 404:
                     raise
             await asyncio.sleep(poll_s)
-        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s")
+        if stop_on_timeout:
+            await self.stop(f"the script gave up waiting for run {run_id} after {timeout:g} s")
+        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s"
+                          + ("; it was stopped" if stop_on_timeout else ""))
 
     async def events(self) -> AsyncIterator[dict]:
         from websockets.asyncio.client import connect
 
-        url = str(self.http.base_url).replace("http", "ws", 1).rstrip("/") + "/events"
-        async with connect(url, additional_headers=_auth_only(self.http.headers)) as socket:
+        async with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
             async for message in socket:
                 yield json.loads(message)

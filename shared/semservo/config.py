@@ -14,7 +14,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field, PositiveFloat, SecretStr
+from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 #: Screen size constant of the paper's SEM: P = D / G (eq. 43) with D = 212.3 um for a
@@ -61,6 +61,20 @@ def find_sem_images() -> Path:
     """Where the real SEM images of other instruments lie:
     ``<repo>/../shared/data/sem-images`` (``SEMSERVO_SEM_IMAGES`` points elsewhere)."""
     return Path(os.environ.get("SEMSERVO_SEM_IMAGES") or _find_shared_data(SEM_IMAGES_NAME, "README.md"))
+
+
+def _integer_text(value):
+    """An environment variable is text: "-1" is the sign -1."""
+    if isinstance(value, str):
+        try:
+            return int(value.strip())
+        except ValueError:
+            return value
+    return value
+
+
+#: A sign, +1 or -1 (from an environment variable as well as from JSON).
+Sign = Annotated[Literal[-1, 1], BeforeValidator(_integer_text)]
 
 
 class ImageServerSettings(BaseModel):
@@ -112,6 +126,9 @@ class FakelabSettings(BaseModel):
     control_port: int = Field(5590, ge=1, le=65535, description="REP socket for commands, health, true pose")
     scan_port: int = Field(5591, ge=1, le=65535, description="REP socket the image server asks for frames")
     serial_tcp_port: int = Field(5592, ge=1, le=65535, description="the NV 40/3 on TCP (socket://)")
+    serial_bind_host: str | None = Field(
+        None, description="interface the NV 40/3's TCP port binds to (default: bind_host); in containers its "
+                          "address on the serial network alone, so only the stage service reaches the amplifier")
     preset: str = Field("optimal", description="one of the paper's conditions (semservo.simulation.world.PRESETS)")
     speedup: PositiveFloat = Field(1.0, le=1000, description="simulated time runs this many times faster")
     seed: int = 2013
@@ -120,6 +137,29 @@ class FakelabSettings(BaseModel):
     save_chunks: int = Field(4, ge=1, le=1000, description="each saved file is written in this many pieces")
     save_chunk_pause_s: float = Field(0.01, ge=0, le=10, description="pause between the pieces")
     save_interval_s: float = Field(0.1, ge=0, le=3600, description="a frame saved this often at most (wall time)")
+    save_keep: int | None = Field(200, ge=1, le=10_000_000, description="keep the last this many saved frames, "
+                                                                        "deleting the older ones it saved (null: all)")
+    # A real SEM image as the sample (semservo.simulation.sample_image), under the preset's optics.
+    sample_image: Path | None = Field(None, description="a real SEM image (PNG/TIFF, 8/16 bit) as the sample instead "
+                                                        "of the preset's scene; its data bar is cropped")
+    sample_pixel_size_nm: PositiveFloat | None = Field(None, le=1e6, description="the sample image's pixel size "
+                                                       "(default: its file's metadata; required when the file has none)")
+    sample_data_bar: Literal["auto"] | Annotated[int, Field(ge=0, le=100_000)] = Field(
+        "auto", description="rows of data bar to crop from the sample image: auto (metadata, else detected) or a number")
+    sample_height_image: Path | None = Field(None, description="a height map of the sample image's field (brighter "
+                                                               "is higher, towards the lens); none: flat")
+    sample_height_um: PositiveFloat | None = Field(None, le=1e4, description="the height map's brightest level over "
+                                                   "its darkest, um (required with a height map)")
+    sample_edges: Literal["mirror", "tile", "pad"] = Field(
+        "mirror", description="the sample beyond the image's edges: mirrored (no seam), tiled (a seam, periodic) or "
+                              "padded with its median grey (flat)")
+    sample_denoise: float = Field(1.5, ge=0, le=10, description="remove the image's own noise before imaging it again: "
+                                                                "non-local means at this many times its estimated "
+                                                                "deviation (0: keep it)")
+    sample_max_upsampling: float = Field(2.0, ge=1, le=100, description="refuse scans whose pixel is more than this "
+                                                                        "many times finer than the sample image's")
+    sample_max_field: float = Field(1.0, gt=0, le=100, description="refuse scans whose field is more than this many "
+                                                                   "times the sample image's (either axis)")
 
 
 class EstimatorSettings(BaseModel):
@@ -148,10 +188,13 @@ class StageSettings(BaseModel):
 
     host: str = Field("127.0.0.1", description="address other services connect to")
     control_port: int = Field(5570, ge=1, le=65535, description="REP socket for moves, stop, state, health")
-    driver: str = Field("nv40", description="stage driver: nv40, simulated (in-process, no hardware), an entry "
-                                            "point of semservo.stage_drivers or package.module:ClassName")
+    driver: str = Field("nv40", description="stage driver: nv40, simulated (in-process, no hardware), "
+                                            "openfibsem (a microscope's stage and beam shift, semservo[openfibsem]), "
+                                            "simulated-positioner, an entry point of semservo.stage_drivers or "
+                                            "package.module:ClassName")
     serial_url: str = Field("socket://127.0.0.1:5592",
-                            description="pyserial URL: /dev/ttyUSB0, a pseudo-terminal path or socket://host:port")
+                            description="the driver's link: a pyserial URL (/dev/ttyUSB0, a pseudo-terminal path or "
+                                        "socket://host:port); openfibsem://MANUFACTURER@HOST for openfibsem")
     axes: dict[str, int] = Field(default_factory=lambda: {"x": 0, "y": 1}, description="axis name -> NV 40/3 channel")
     model_files: dict[str, str] = Field(default_factory=dict,
                                         description="axis -> displacement model JSON (stage_model.save_model); default TRITOR")
@@ -166,6 +209,24 @@ class StageSettings(BaseModel):
     rotation_stage: Literal["none", "fakelab"] = Field(
         "fakelab", description="the rotation-and-tilt stage this service drives: the fake lab's simulated one, or none")
     max_turn_deg: PositiveFloat = Field(30.0, le=360, description="largest turn or tilt one command may ask (degrees)")
+    settle_s: dict[str, Annotated[float, Field(ge=0, le=60)]] = Field(
+        default_factory=dict, description="axis -> seconds the axis takes to settle after a move (default 0.01): a "
+                                          "frame scanned before then shows it moving")
+    # A motion driver in physical units (a closed-loop stage, a microscope's stage and beam
+    # shift through OpenFIBSEM): the same rules, per axis, in micrometres and degrees.
+    max_step_um: PositiveFloat = Field(10.0, le=10_000, description="physical axes: largest displacement one "
+                                                                    "command may ask (um; degrees: max_turn_deg)")
+    max_steps: dict[str, PositiveFloat] = Field(default_factory=dict, description="physical axes: axis -> its own "
+                                                                                  "largest step (um or degrees)")
+    travel: dict[str, tuple[float, float]] = Field(
+        default_factory=dict, description="physical axes: axis -> [min, max], the lab's travel (the device's "
+                                          "coordinates), within the device's own")
+    readback_tolerance: dict[str, PositiveFloat] = Field(
+        default_factory=dict, description="physical axes: axis -> read-back change that counts as a move nobody "
+                                          "commanded (default 0.2 um stage, 0.01 um beam, 0.01 degree)")
+    arrival_tolerance: dict[str, PositiveFloat] = Field(
+        default_factory=dict, description="physical axes: axis -> farthest from its goal a move may arrive "
+                                          "(default 0.5 um stage, 0.01 um beam, 0.05 degree)")
 
 
 class ControllerSettings(BaseModel):
@@ -176,9 +237,23 @@ class ControllerSettings(BaseModel):
     status_port: int = Field(5581, ge=1, le=65535, description="PUB socket: status and per-iteration records")
     runs_dir: Path = Field(Path("runs"), description="where run records (JSON) are written")
     watchdog_s: PositiveFloat = Field(3.0, le=600, description="the stage holds if the controller is silent this long")
-    axis_signs: tuple[int, int] = Field((1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
-    orientation_deg: float = Field(0.0, description="camera-to-stage: stage x axis in the image, counter-clockwise")
-    rotation_sign: Literal[-1, 1] = 1
+    axis_signs: tuple[Sign, Sign] = Field(
+        (1, 1), description="camera-to-stage: +1 if stage +x/+y moves content right/down")
+    orientation_deg: float = Field(0.0, ge=-360, le=360, description="camera-to-stage: stage x axis in the image, "
+                                                                     "counter-clockwise")
+    rotation_sign: Sign = Field(1, description="camera-to-stage: +1 if a positive turn of the rotation "
+                                                         "stage turns the content counter-clockwise")
+    tilt_signs: tuple[Sign, Sign] = Field(
+        (1, 1), description="camera-to-stage: +1 if a positive stage tilt about x / y tilts the surface by +alpha / "
+                            "+beta (semservo.estimation.tilt's convention)")
+
+    def camera_to_stage(self):
+        """The camera-to-stage transform these settings describe: the one every part that
+        turns image motion into stage motion uses (the controller, the gateway's
+        click-to-move, ``semservo calibrate``)."""
+        from semservo.control import CameraToStage
+
+        return CameraToStage(tuple(self.axis_signs), self.orientation_deg, self.rotation_sign, tuple(self.tilt_signs))
 
 
 class GatewaySettings(BaseModel):

@@ -9,8 +9,14 @@ semservo finds what it wrote.
   (:class:`StageDriver`). The NV 40/3 on RS-232
   (:class:`semservo.nv40_driver.NV403Driver`) is one; the stage service applies its
   safety rules (limits, step, rate, watchdog, stop, read-back) to every driver.
+* A **motion driver** moves axes in physical units, micrometres or degrees, and reports
+  where they are (:class:`MotionDriver`): a closed-loop stage, a microscope's own stage,
+  its beam shift (:class:`semservo.openfibsem.OpenFibsemMotion` is one for Thermo Fisher
+  and TESCAN microscopes through OpenFIBSEM). The stage service applies the same rules
+  (travel and step per axis, the run's owner, stop, watchdog, read-back, command log).
+  Which of the two a driver is: :func:`driver_kind`.
 
-Either is named in the settings by an entry point (groups :data:`IMAGE_SOURCE_GROUP`,
+Each is named in the settings by an entry point (groups :data:`IMAGE_SOURCE_GROUP`,
 :data:`STAGE_DRIVER_GROUP`) or a dotted path ``package.module:ClassName``.
 ``docs/instruments.md`` walks through both with a worked example.
 """
@@ -20,6 +26,7 @@ from __future__ import annotations
 import abc
 import importlib
 import importlib.metadata
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, runtime_checkable
 
@@ -49,6 +56,13 @@ class AcquiredImage(ImageMetadata):
     def acquisition(self) -> dict[str, Any]:
         """The acquisition fields that are known (what goes into the frame header)."""
         return {key: getattr(self, key) for key in ACQUISITION_FIELDS if getattr(self, key) is not None}
+
+
+def capabilities(source: Any) -> set[str]:
+    """What an image source can do beyond acquiring frames (``scan_settings``,
+    ``focus``, ``scan_once``): from its ``capabilities()``, none when it has none."""
+    method = getattr(source, "capabilities", None)
+    return set(method()) if callable(method) else set()
 
 
 class SourceUnavailable(RuntimeError):
@@ -120,8 +134,34 @@ class ImageSourceAdapter(abc.ABC):
 
     def set_working_distance(self, working_distance_mm: float) -> float:
         """Focus at this working distance (the tilt measurement sweeps it); returns the
-        working distance now set."""
+        working distance now set. With it (and :meth:`working_distance`), the image
+        server serves focus sweeps from this adapter (:meth:`scan_at_focus`)."""
         raise NotSupported(f"{self.name} cannot set the focus")
+
+    def working_distance(self) -> float:
+        """The working distance (mm) the instrument is focused at now. Optional: without
+        it, a focus sweep is centred on the working distance of the last frame."""
+        raise NotSupported(f"{self.name} does not say its working distance")
+
+    def capabilities(self) -> set[str]:
+        """What this adapter can do beyond acquiring: ``scan_settings``, ``focus``.
+        Found from what the class implements, so an adapter states nothing twice."""
+        found = set()
+        if type(self).set_scan is not ImageSourceAdapter.set_scan:
+            found.add("scan_settings")
+        if type(self).set_working_distance is not ImageSourceAdapter.set_working_distance:
+            found.add("focus")
+        return found
+
+    def scan_at_focus(self, offset_um: float, nominal_mm: float) -> AcquiredImage:
+        """One frame focused ``offset_um`` (um, larger deeper) from ``nominal_mm``: a
+        frame of a focus sweep (the image server pauses the stream meanwhile, and sets
+        the focus back to ``nominal_mm`` when the sweep ends)."""
+        self.set_working_distance(nominal_mm + offset_um / 1000.0)
+        image = self.acquire()
+        if image is None:
+            raise SourceUnavailable(f"{self.name} ended during a focus sweep")
+        return image
 
 
 # -- stage drivers -------------------------------------------------------------------------
@@ -212,6 +252,83 @@ class RotationStageDriver(Protocol):
         """Stop any motion in progress."""
 
     def close(self) -> None: ...
+
+
+# -- motion drivers (physical units) ---------------------------------------------------------
+#: A driver's kind (:func:`driver_kind`): ``voltage`` outputs through each axis's
+#: displacement-voltage model (:class:`StageDriver`), or ``physical`` axes that take
+#: micrometres and degrees themselves (:class:`MotionDriver`).
+VOLTAGE, PHYSICAL = "voltage", "physical"
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One axis of a :class:`MotionDriver`, as the device reports or documents it.
+
+    ``unit`` is ``um`` (a translation in the image plane) or ``deg`` (a turn or tilt).
+    ``moves`` says what moves: the ``stage`` (the sample) or the ``beam`` (the scanned
+    field, a beam shift: small travel, no mechanics). ``travel`` is the axis's range in
+    the device's own coordinates (absolute positions). A beam axis moves the content the
+    way the stage axis of the same letter does (``beam_x`` as ``x``): its driver makes
+    that so, so a run can hand the last micrometres from one to the other."""
+
+    unit: str = "um"
+    moves: str = "stage"
+    travel: tuple[float, float] = (-math.inf, math.inf)
+
+
+@runtime_checkable
+class MotionDriver(Protocol):
+    """Axes that take displacements in physical units (:class:`Axis`: micrometres or
+    degrees) and report their position: a closed-loop stage, a microscope's own stage,
+    its beam shift.
+
+    The stage service checks every rule (state, owner, finite, the axis's travel, its
+    step per command) before :meth:`move_by` is called, and compares what it reads back
+    with what it commanded. Methods raise :class:`LinkError` when the link fails and
+    :class:`DeviceError`, in the device's own words, for a command it refuses (a move
+    out of its range, a shift beyond its limit: never clipped in silence). Every command
+    sent is appended to ``log`` (and passed to ``on_entry``) for the run records.
+    """
+
+    #: :data:`PHYSICAL`: how the stage service and the controller tell it from a
+    #: :class:`StageDriver`.
+    kind: str
+    log: list[LogEntry]
+    on_entry: Callable[[LogEntry], None] | None
+
+    @classmethod
+    def open(cls, url: str) -> "MotionDriver": ...
+
+    def identify(self) -> dict:
+        """What the device says it is (``{"model": ...}``), checking that it answers."""
+
+    def axes(self) -> dict[str, Axis]:
+        """Every axis, by name: ``x``, ``y`` (um), ``beam_x``, ``beam_y`` (um),
+        ``rotation_deg``, ``tilt_x_deg`` (degrees), the ones it has."""
+
+    def read_positions(self) -> dict[str, float]:
+        """Where every axis is now (measured, not what was asked)."""
+
+    def move_by(self, steps: dict[str, float]) -> dict[str, float]:
+        """Move these axes by these displacements; return every axis's position read
+        back afterwards (a stage on its way: see :meth:`settles_in_s`)."""
+
+    def settles_in_s(self) -> float:
+        """Seconds (wall clock) until the last move has arrived; 0 when still.
+        Optional: a driver without it arrives at once (the stage service adds each
+        axis's ``settle_s``)."""
+
+    def halt(self) -> None:
+        """Stop any motion in progress."""
+
+    def close(self) -> None: ...
+
+
+def driver_kind(driver: Any) -> str:
+    """:data:`PHYSICAL` for a motion driver (its ``kind``), :data:`VOLTAGE` for an
+    amplifier's stage driver (which has no ``kind``): a driver class or an instance."""
+    return PHYSICAL if getattr(driver, "kind", VOLTAGE) == PHYSICAL else VOLTAGE
 
 
 # -- finding what a lab wrote --------------------------------------------------------------

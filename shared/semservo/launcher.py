@@ -81,7 +81,7 @@ SERVICES: tuple[ServiceSpec, ...] = (
         control=lambda s: connect(s.stage.host, s.stage.control_port),
         endpoints=lambda s: {
             "control (REP)": connect(s.stage.host, s.stage.control_port),
-            "NV 40/3 serial": s.stage.serial_url,
+            ("NV 40/3 serial" if s.stage.driver == "nv40" else f"stage driver ({s.stage.driver})"): s.stage.serial_url,
         },
         summary="the NV 40/3 on RS-232: limits, watchdog, stop",
     ),
@@ -407,13 +407,21 @@ def simulated_system(folder: Path, *, speedup: float = 20, fps: float = 100, res
                      out: TextIO | None = None, timeout_s: float = 90.0, **settings: str):
     """The whole system on simulated hardware: the launcher, fresh loopback ports, the lab
     ``speedup`` x faster, its records in ``folder``; ``settings`` are more SEMSERVO_*
-    variables. Yields (launcher, settings); everything is stopped afterwards, and the
-    environment is as it was."""
+    variables (a sample image's too: ``SEMSERVO_FAKELAB__SAMPLE_IMAGE``, with the
+    estimator's depth of field derived from its scale as ``semservo up`` does). Yields
+    (launcher, settings); everything is stopped afterwards, and the environment is as it
+    was."""
+    from semservo.simulation.sample_image import system_environment
+
     folder = Path(folder)
     variables = {**fresh_port_environment(), **faster_lab_environment(speedup, fps),
                  "SEMSERVO_CONTROLLER__RUNS_DIR": str(folder / "runs"),
                  "SEMSERVO_GATEWAY__DATABASE": str(folder / "runs" / "semservo.sqlite"), **settings}
     with environment(variables):
+        # With a sample image: what follows from its scale (as `semservo up` sets it),
+        # unless set; and a picture that cannot be used is refused here, saying why.
+        derived = {key: value for key, value in system_environment(Settings()).items() if key not in os.environ}
+    with environment({**variables, **derived}):
         resolved = Settings()
         log = out or (folder / "services.log").open("w")
         launcher = Launcher(resolved, restart=restart, max_restarts=20, out=log)

@@ -87,6 +87,7 @@ class ErrorBody(BaseModel):
 
     code: str
     message: str
+    details: dict[str, Any] | None = None  # e.g. the id of the run that is in the way
 
 
 class Reply(_Message):
@@ -101,8 +102,8 @@ class Reply(_Message):
         return cls(ok=True, result=result or {})
 
     @classmethod
-    def failure(cls, code: str, message: str) -> "Reply":
-        return cls(ok=False, error=ErrorBody(code=code, message=message))
+    def failure(cls, code: str, message: str, details: dict[str, Any] | None = None) -> "Reply":
+        return cls(ok=False, error=ErrorBody(code=code, message=message, details=details or None))
 
 
 ServiceState = Literal["starting", "running", "idle", "finished", "degraded", "stopping"]

@@ -1,11 +1,15 @@
-"""Test pairs with exactly known motion, made from real SEM frames without interpolation.
+"""Test pairs with exactly known motion, made from real SEM frames.
 
-Sub-pixel shifts: take a real frame, cut two windows ``factor * shift`` pixels apart
+Sub-pixel shifts, without interpolation: take a real frame, cut two windows ``factor * shift`` pixels apart
 (integers at full resolution), and block-average each by ``factor``: the two results
 are the same scene shifted by exactly ``shift`` pixels (halves, thirds, quarters, ...),
 with genuinely new content entering at the borders, as on a moving stage.
 
-Used by ``bench/estimator.py`` and the tests; useful to check an estimator on your own frames.
+Turns and moves of the view (:func:`turned_and_moved`): a real frame turned about its centre
+and moved, with the content that enters taken from the rest of the image.
+
+Used by ``bench/estimator.py``, ``bench/sem_images.py`` and the tests; useful to check an
+estimator on your own frames.
 """
 
 from __future__ import annotations
@@ -57,3 +61,29 @@ def poisson_gaussian(image: np.ndarray, electrons: float, read_sigma: float, rng
     scale = electrons / 255.0
     counts = rng.poisson(np.clip(image, 0, None) * scale) / scale
     return (counts + rng.normal(0, read_sigma, image.shape)).astype(np.float32)
+
+
+def centred_window(image: np.ndarray, side: int) -> np.ndarray:
+    """The centred ``side`` x ``side`` window of ``image`` (float32)."""
+    return turned_and_moved(image, side, 0.0, 0.0, 0.0)
+
+
+def turned_and_moved(image: np.ndarray, side: int, angle_deg: float, dx: float, dy: float) -> np.ndarray:
+    """What a frame shows after a turn and a move of the view: the content of the centred
+    ``side`` x ``side`` window of ``image`` turned by ``angle_deg`` (counter-clockwise as
+    displayed) about the window's centre, then moved by (dx, dy) px (right, down), in the
+    sign convention of :mod:`semservo.estimation` (so its estimate against
+    :func:`centred_window` is exactly (dx, dy, angle_deg)). New content enters from the
+    rest of the image, which is mirrored where the view runs beyond it. Bicubic."""
+    import cv2
+
+    rows, cols = image.shape
+    image_centre = np.array([(cols - 1) / 2, (rows - 1) / 2])
+    frame_centre = np.array([(side - 1) / 2, (side - 1) / 2])
+    theta = np.radians(angle_deg)
+    turn = np.array([[np.cos(theta), np.sin(theta)], [-np.sin(theta), np.cos(theta)]])
+    # A frame pixel p shows the image at image_centre + turn^-1 (p - frame_centre - d).
+    back = turn.T
+    matrix = np.hstack([back, (image_centre - back @ (frame_centre + np.array([dx, dy])))[:, None]])
+    return cv2.warpAffine(np.asarray(image, dtype=np.float32), matrix, (side, side),
+                          flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)

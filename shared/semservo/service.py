@@ -58,8 +58,9 @@ class ServiceRuntime:
         signal.signal(signal.SIGTERM, self.request_stop)
         signal.signal(signal.SIGINT, self.request_stop)
 
-    def add_reader(self, socket: zmq.Socket, callback: Callable[[], None]) -> None:
-        """Call ``callback`` whenever ``socket`` has a message."""
+    def add_reader(self, socket: zmq.Socket | int, callback: Callable[[], None]) -> None:
+        """Call ``callback`` whenever ``socket`` has a message (or a file descriptor,
+        e.g. a pipe a thread writes to, has bytes)."""
         self._readers[socket] = callback
         self.poller.register(socket, zmq.POLLIN)
 
@@ -110,6 +111,7 @@ class ServiceRuntime:
         finally:
             self.state = "stopping"
             for socket in list(self._readers):
-                socket.close(linger=0)
+                if isinstance(socket, zmq.Socket):
+                    socket.close(linger=0)
             log.info("%s stopped", self.name)
         return 0

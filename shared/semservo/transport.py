@@ -26,6 +26,7 @@ import numpy as np
 import pydantic
 import zmq
 
+from semservo.errors import BadRequest, CommandError, RequestCancelled, ServiceUnavailable, describe_validation_error
 from semservo.messages import FRAME_TOPIC, Reply, Request
 from semservo.security import default_context
 from semservo.wire import Frame, WireError, decode_frame, encode_frame, frame_header
@@ -38,9 +39,30 @@ log = logging.getLogger(__name__)
 TRANSPORT_CAP_FACTOR = 4
 
 
+#: TCP keepalive on every subscriber's connection: a connection silent this long (idle,
+#: then unanswered probes) is dropped and dialled again, the publisher's name resolved
+#: again. Without it a connection across a cut network (a LAN cable pulled between the
+#: two PCs, a container's network disconnected) stays "established" for ever: a
+#: subscriber, which never sends, would wait for frames that can no longer come after the
+#: network is back. Not ZMTP heartbeats: libzmq 4.3 aborts (``Assertion failed:
+#: _input_stopped``, zeromq/libzmq#3937) when a heartbeat times out on a subscriber whose
+#: queue is full, and a busy subscriber's queue is full by design (latest frame only).
+KEEPALIVE_IDLE_S = 2
+KEEPALIVE_INTERVAL_S = 1
+KEEPALIVE_PROBES = 3
+
+
+def _keep_alive(socket: zmq.Socket) -> None:
+    socket.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_IDLE, KEEPALIVE_IDLE_S)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_INTVL, KEEPALIVE_INTERVAL_S)
+    socket.setsockopt(zmq.TCP_KEEPALIVE_CNT, KEEPALIVE_PROBES)
+
+
 def _limit_socket(socket: zmq.Socket, max_message_bytes: int) -> None:
     socket.setsockopt(zmq.MAXMSGSIZE, TRANSPORT_CAP_FACTOR * max_message_bytes)
     socket.setsockopt(zmq.LINGER, 0)
+    _keep_alive(socket)
 
 
 class FramePublisher:
@@ -204,24 +226,6 @@ class MessageSubscriber:
         self.socket.close(linger=0)
 
 
-class ServiceUnavailable(RuntimeError):
-    """No reply from a service after every try."""
-
-
-class RequestCancelled(ServiceUnavailable):
-    """The caller gave up waiting for a reply (e.g. the service is stopping): for the
-    caller, the service did not answer."""
-
-
-class CommandError(RuntimeError):
-    """The service answered, and the answer was an error."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(f"{code}: {message}")
-        self.code = code
-        self.message = message
-
-
 class ControlClient:
     """Lazy-pirate request-reply client for one service's control socket."""
 
@@ -290,7 +294,7 @@ class ControlClient:
         raw = self.request_raw(payload, timeout_s=timeout_s, retries=retries)
         reply = Reply.model_validate_json(raw)
         if not reply.ok:
-            raise CommandError(reply.error.code, reply.error.message)
+            raise CommandError(reply.error.code, reply.error.message, **(reply.error.details or {}))
         return reply.result or {}
 
     def close(self) -> None:
@@ -299,9 +303,8 @@ class ControlClient:
 
 Handler = Callable[[dict[str, Any]], dict[str, Any] | None]
 
-
-class BadRequest(ValueError):
-    """Raised by a command handler for arguments it cannot accept; sent as ``bad_request``."""
+__all__ = ["BadRequest", "CommandError", "ControlClient", "ControlServer", "FramePublisher", "FrameSubscriber",
+           "MessagePublisher", "MessageSubscriber", "RequestCancelled", "ServiceUnavailable", "number"]
 
 
 def number(value: Any, name: str, unit: str = "") -> float:
@@ -340,11 +343,11 @@ class ControlServer:
     def register(self, command: str, handler: Handler) -> None:
         self.handlers[command] = handler
 
-    def _reject(self, code: str, message: str) -> Reply:
+    def _reject(self, code: str, message: str, details: dict[str, Any] | None = None) -> Reply:
         self.counters[f"rejected_{code}"] += 1
         self.last_error = f"{code}: {message}"
         log.warning("rejected a request: %s: %s", code, message)
-        return Reply.failure(code, message)
+        return Reply.failure(code, message, details)
 
     def _answer(self, parts: list[bytes]) -> Reply:
         if len(parts) != 1:
@@ -357,8 +360,7 @@ class ControlServer:
             first = error.errors()[0]
             if first["loc"] == ("v",):
                 return self._reject("version", f"unsupported wire version: {first['msg']}")
-            where = ".".join(str(item) for item in first["loc"]) or "request"
-            return self._reject("bad_request", f"{where}: {first['msg']}")
+            return self._reject("bad_request", describe_validation_error(error))
         handler = self.handlers.get(request.command)
         if handler is None:
             known = ", ".join(sorted(self.handlers))
@@ -366,10 +368,8 @@ class ControlServer:
         self.counters[f"command_{request.command}"] += 1
         try:
             return Reply.success(handler(request.args))
-        except BadRequest as error:
-            return self._reject("bad_request", str(error))
-        except CommandError as error:  # a refusal with its own code (e.g. a stage limit)
-            return self._reject(error.code, error.message)
+        except CommandError as error:  # a refusal with its code (bad_request, or a rule such as a stage limit)
+            return self._reject(error.code, error.message, error.extra)
         except Exception as error:  # a handler bug must not take the service down
             log.exception("command %s failed", request.command)
             return self._reject("internal", f"{type(error).__name__}: {error}")

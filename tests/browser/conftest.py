@@ -51,15 +51,41 @@ def browser():
 
 
 @pytest.fixture
-def page(browser, system, request):
-    page = browser.new_page(viewport={"width": 1500, "height": 1000})
-    page.set_default_timeout(30_000)
-    page.errors = []
-    page.on("pageerror", lambda error: page.errors.append(str(error)))
-    page.goto(system["url"] + "/")
-    page.wait_for_function("document.querySelectorAll('#services li').length >= 5")
-    yield page
-    if getattr(request.node, "failed_call", False):
-        ARTIFACTS.mkdir(exist_ok=True)
-        page.screenshot(path=str(ARTIFACTS / f"{request.node.name}.png"), full_page=True)
-    page.close()
+def open_page(browser, system, request):
+    """Open the dashboard in a window this wide; on failure each page opened is kept as a
+    full-page screenshot in test-artifacts/."""
+    pages = []
+
+    def open_(width: int = 1500, height: int = 1000):
+        page = browser.new_page(viewport={"width": width, "height": height})
+        page.set_default_timeout(30_000)
+        page.errors = []
+        page.on("pageerror", lambda error: page.errors.append(str(error)))
+        pages.append(page)
+        page.goto(system["url"] + "/")
+        page.wait_for_function("document.querySelectorAll('#services li').length >= 5")
+        page.wait_for_function("document.getElementById('live').naturalWidth > 0")  # the live frame shown
+        return page
+
+    yield open_
+    failed = getattr(request.node, "failed_call", False)
+    for page in pages:
+        if failed:
+            ARTIFACTS.mkdir(exist_ok=True)
+            width = page.viewport_size["width"] if page.viewport_size else 0
+            page.screenshot(path=str(ARTIFACTS / f"{request.node.name}-{width}px.png"), full_page=True)
+        page.close()
+
+
+@pytest.fixture
+def page(open_page):
+    return open_page()
+
+
+@pytest.fixture(scope="package")
+def lab(system):
+    """The REST API as a lab script sees it (semservo.client), to set the scene."""
+    from semservo.client import Client
+
+    with Client(system["url"], timeout=30) as client:
+        yield client

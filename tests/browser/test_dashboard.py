@@ -66,7 +66,7 @@ def test_teach_start_converge_and_the_plots_fill(page):
     assert points >= 2
     assert int(page.inner_text("#voltage-points").split()[0]) == points
     # The plotted error ends near zero: what the user reads off the plot's data.
-    last = page.evaluate("() => { const s = window.semservo.series; return [s.ex.at(-1), s.ey.at(-1)]; }")
+    last = page.evaluate("() => { const s = window.semservo.series.translation; return [s.x.at(-1), s.y.at(-1)]; }")
     assert abs(last[0]) < 0.5 and abs(last[1]) < 0.5
     # The header's error: the mean the controller judged, under the tolerance.
     page.wait_for_function("parseFloat(document.getElementById('error-px').textContent) <= 0.1", timeout=5_000)
@@ -112,7 +112,8 @@ def test_open_a_run_from_the_history(page):
     expect(page.locator("#detail-id")).to_have_text(run_id)
     expect(page.locator("#detail-summary")).to_contain_text("iterations")
     assert page.get_attribute("#detail-csv", "href") == f"/runs/{run_id}.csv"
-    page.wait_for_function("document.getElementById('detail-report').naturalWidth === 1000")
+    # The report: 1000 px wide for an x, y run, wider with a panel of angles.
+    page.wait_for_function("document.getElementById('detail-report').naturalWidth >= 1000")
     with page.expect_download() as download:
         page.click("#detail-csv")
     assert download.value.suggested_filename == f"{run_id}.csv"

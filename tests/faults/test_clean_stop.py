@@ -30,3 +30,38 @@ def test_the_stack_stops_cleanly_with_a_run_whose_stage_died(tmp_path):
     for name in ("gateway", "controller", "estimator", "imageserver", "fakelab"):
         assert f"{name} stopped (exit code 0)" in log, name
     assert run["run_id"]
+
+
+def test_the_stack_stops_cleanly_with_dashboards_listening():
+    """Ctrl-C with the dashboard open (a WebSocket listening for events) took the gateway
+    past its 5 s and got it killed; the listeners are now told to go."""
+    import contextlib
+    import tempfile
+    import threading
+    from pathlib import Path
+
+    from websockets.sync.client import connect
+
+    output = io.StringIO()
+    closed = []
+    with tempfile.TemporaryDirectory() as folder, contextlib.ExitStack() as sockets_open, \
+            simulated_stack(Path(folder), fps=30, out=output) as (launcher, settings):
+        url = f"ws://127.0.0.1:{settings.gateway.http_port}/events"
+        sockets = [sockets_open.enter_context(connect(url)) for _ in range(3)]
+
+        def listen(socket) -> None:
+            try:
+                for _ in socket:
+                    pass
+            finally:
+                closed.append(socket.close_code)
+
+        threads = [threading.Thread(target=listen, args=(socket,), daemon=True) for socket in sockets]
+        for thread in threads:
+            thread.start()
+    for thread in threads:
+        thread.join(timeout=5)
+    log = output.getvalue()
+    assert "did not stop" not in log, log[-3000:]
+    assert "gateway stopped (exit code 0)" in log
+    assert closed == [1001, 1001, 1001], "each listener was told the gateway is going away"

@@ -134,9 +134,9 @@ def test_bad_teach_requests_are_refused_and_keep_the_previous_reference(stack):
         ({"polygon": [[1, 2], [3, 4]]}, "at least 3"),
         ({"polygon": "nonsense"}, "polygon"),
         ({"path": "/nonexistent/frame.png"}, "unreadable"),
-        ({"frames": 0}, "frames must be"),
-        ({"frames": "four"}, "frames must be"),
-        ({"frames": 17}, "frames must be"),
+        ({"frames": 0}, "frames: Input should be greater than or equal to 1"),
+        ({"frames": "four"}, "frames: Input should be a valid integer"),
+        ({"frames": 17}, "frames: Input should be less than or equal to 16"),
     ]
     for args, message in bad_requests:
         with pytest.raises(CommandError, match=message) as caught:
@@ -179,3 +179,18 @@ def test_estimate_cli_prints_each_readable_image_then_reports_the_rest(recorded_
     assert set(record) == {"image", "dx_px", "dy_px", "rotation_deg", "confidence", "snr_db", "elapsed_ms"}
     assert record["dx_px"] == pytest.approx(-53.7, abs=1) and record["dy_px"] == pytest.approx(40.8, abs=1)
     assert record["rotation_deg"] == 0
+
+
+def test_estimate_compares_a_pair_whose_data_bar_was_cut_from_one_file_only(sem_images):
+    """The README's own example pair (696 x 520 and 696 x 515: five blank rows cut from one
+    only) was refused; the common region is compared, and said so. --crop none refuses."""
+    pair = [str(sem_images / "drift_pair_before.tif"), str(sem_images / "drift_pair_after.tif")]
+    done = subprocess.run([sys.executable, "-m", "semservo", "estimate", "--json", *pair], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "comparing the common 696 x 515" in done.stderr
+    motion = json.loads(done.stdout.splitlines()[0])
+    assert (round(motion["dx_px"]), round(motion["dy_px"])) == (3, -5), motion  # the real drift, whole pixels
+    refused = subprocess.run([sys.executable, "-m", "semservo", "estimate", "--crop", "none", *pair],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 1 and "696 x 515, the reference is 696 x 520" in refused.stderr

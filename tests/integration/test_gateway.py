@@ -235,7 +235,7 @@ def test_teach_from_an_upload_and_a_clicked_polygon(system):
 
 @pytest.mark.parametrize("script, args, expect", [
     ("position_to_target.py", [], r"converged after \d+ iterations"),
-    ("visit_targets.py", [], r"target-0.png: converged in \d+ iterations"),
+    ("visit_targets.py", [], r"target-0: converged in \d+ iterations"),
     ("hold_against_drift.py", ["3"], r"held for 3 s; largest error seen [\d.]+ px"),
 ])
 def test_the_examples_run(system, script, args, expect, tmp_path):
@@ -249,6 +249,86 @@ def test_the_examples_run(system, script, args, expect, tmp_path):
                           cwd=tmp_path, capture_output=True, text=True, timeout=180)
     assert done.returncode == 0, done.stdout + done.stderr
     assert re.search(expect, done.stdout), done.stdout
+
+
+def test_a_demo_that_gives_up_stops_the_run_it_started(system, tmp_path):
+    """`./dev demo` against a running system once gave up after its timeout and left its
+    run servoing for hundreds of iterations."""
+    import subprocess
+    import sys
+
+    lab = system["client"]
+    done = subprocess.run([sys.executable, "-m", "semservo", "demo", "--url", str(lab.http.base_url).rstrip("/"),
+                           "--timeout", "1", "--offset", "9", "-7"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 1 and "demo gave up" in done.stderr and "it was stopped" in done.stderr, done.stderr
+    run_id = lab.runs(limit=1)[0].id
+    run = lab.wait(run_id, timeout=30)
+    assert run.state == "stopped" and "gave up waiting" in run.reason
+    assert lab.stage().state == "stopped", "a stop holds the stage, as every stop does"
+    lab.resume()
+
+
+def test_the_client_covers_the_api_records_and_stored_targets(system, tmp_path):
+    """A lab script needs no raw HTTP: resume, a run's CSV and report, stored targets
+    saved, listed, exported, imported elsewhere and gone back to."""
+    from semservo.client import save
+
+    lab = system["client"]
+    frames_flowing(lab)
+    run_id = lab.runs(limit=1)[0].id
+    csv = save(lab.run_csv(run_id), tmp_path / "run.csv").read_text().splitlines()
+    assert csv[0].startswith("iteration,seq,action")
+    assert lab.run_report(run_id)[:8] == b"\x89PNG\r\n\x1a\n"
+    taught = lab.teach(frames=2)
+    target = lab.save_target("bench corner", note="the left edge of the part", replace=True)
+    assert target.reference["id"] == taught.id and target.stage["positions_um"]["x"] > 0
+    assert "the left edge" in target.note and target.thumbnail_url == "/targets/bench%20corner/thumbnail.png"
+    assert lab.http.get(target.thumbnail_url).headers["content-type"] == "image/png"
+    with pytest.raises(SemservoError) as refused:
+        lab.save_target("bench corner")
+    assert refused.value.status == 409 and refused.value.code == "target_exists"
+    exported = save(lab.export_target("bench corner"), tmp_path / "corner.tif")
+    imported = lab.import_target(exported, name="corner copy")
+    assert imported.reference == target.reference and imported.stage == target.stage
+    assert {t.name for t in lab.targets()} >= {"bench corner", "corner copy"}
+    lab.move(x_um=4.0, y_um=3.0)
+    run = lab.go_to_target("corner copy", tolerance_px=0.15)  # days later: the stored pose, then the image
+    result = lab.wait(run.run_id, timeout=120)
+    assert result.state == "converged", result.reason
+    assert lab.reference().target == "corner copy" and result.reference["id"] != taught.id
+    assert result.truth is None or result.truth["error_norm_px"] < 0.6, "the stored target's truth goes with it"
+    lab.delete_target("corner copy")
+    with pytest.raises(SemservoError) as missing:
+        lab.target("corner copy")
+    assert missing.value.status == 404 and missing.value.code == "no_such_target"
+
+
+def test_the_api_docs_are_served_without_internet(system):
+    lab = system["client"]
+    for page, asset in (("/docs", "/docs-assets/swagger-ui-bundle.js"), ("/redoc", "/docs-assets/redoc.standalone.js")):
+        html = lab.http.get(page).text
+        assert asset in html and "cdn" not in html.lower() and "googleapis" not in html, page
+        assert lab.http.get(asset).status_code == 200
+
+
+def test_a_reference_taught_elsewhere_is_the_one_everyone_shows(system):
+    """`semservo teach` (the CLI, straight to the estimator) once left the gateway and the
+    dashboard showing the previous reference."""
+    import subprocess
+    import sys
+
+    lab = system["client"]
+    frames_flowing(lab)
+    before = lab.teach(frames=1)
+    environment = {**os.environ}
+    done = subprocess.run([sys.executable, "-m", "semservo", "teach", "--frames", "2"], env=environment,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    taught = done.stdout.split()[2]
+    assert taught != before.id
+    assert lab.status().reference.id == taught and lab.reference().id == taught
+    assert lab.reference().detail["frames_averaged"] == 2
 
 
 def test_async_client_reads_status_and_runs(system):
@@ -296,6 +376,7 @@ def test_runs_survive_a_gateway_restart_and_a_run_it_missed_is_recorded(system):
     lab.move(x_um=2.0)
     lab.wait(lab.start(tolerance_px=0.2)["run_id"], timeout=90)
     before = lab.runs()
+    stored = lab.save_target("before the restart", replace=True)
     # The gateway goes down; a run starts and ends without it (a script on the
     # controller's own socket).
     gateway = launcher.children["gateway"].process
@@ -322,6 +403,8 @@ def test_runs_survive_a_gateway_restart_and_a_run_it_missed_is_recorded(system):
     assert record["trajectory"] and record["state"] == before[0]["state"]
     recorded = lab.run(missed)
     assert recorded["state"] == "converged" and recorded["trajectory"] and recorded["stage_commands"]
+    kept = lab.target("before the restart")  # stored targets survive a restart too
+    assert kept == stored and lab.http.get(kept.thumbnail_url).status_code == 200
 
 
 def _taught_or_none(lab: Client):

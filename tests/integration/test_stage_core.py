@@ -6,10 +6,13 @@ from __future__ import annotations
 import pytest
 
 from semservo import nv40
+from semservo.errors import BadRequest, CommandError
 from semservo.messages import MotionEstimate
-from semservo.transport import CommandError
+from semservo.protocol import LocalPort
+from semservo.protocol import estimator as estimator_protocol
 from semservo.simulation.world import World
 from services.controller.core import ControllerCore, RunSettings
+from services.stage.commands import handlers as stage_handlers
 from services.fakelab.emulator import ChannelState, NV403Emulator
 from services.fakelab.serial_links import PseudoTerminalLink
 from services.stage.core import Refused, StageCore, StageLimits
@@ -39,7 +42,9 @@ def link():
 def stage(link):
     _, pty = link
     clock = FakeClock()
-    core = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=clock)
+    # Settled at once: these tests feed frames scanned right after each move (settling
+    # has its own test).
+    core = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=clock, settle_s={"x": 0.0, "y": 0.0})
     assert core.connect()
     yield core
     core.close()
@@ -67,6 +72,18 @@ def test_refusals_name_the_rule_and_change_nothing(stage):
             call()
         assert refusal.value.code == code
     assert stage.voltages == before
+
+
+def test_a_model_out_of_step_with_its_axis_is_refused_not_written(stage):
+    """However a model came to disagree with its axis, a small move that would need a big
+    voltage step is refused with the reason, and nothing reaches the amplifier."""
+    before, writes = dict(stage.voltages), sum(1 for entry in stage.driver.log if entry.text.startswith("set"))
+    stage.models["x"].offset_v = 9.0  # as the model was before its follow_voltage fix
+    with pytest.raises(Refused) as refusal:
+        stage.move({"x": -0.03}, relative=True)
+    assert refusal.value.code == "model_jump" and "0.030 um move" in refusal.value.message
+    assert stage.voltages == before
+    assert sum(1 for entry in stage.driver.log if entry.text.startswith("set")) == writes
 
 
 def test_rate_limit(link):
@@ -111,29 +128,39 @@ def test_a_reversal_does_not_jump_between_hysteresis_branches(stage):
     assert 0 < up - back < 0.5  # a 0.1 um correction is a fraction of a volt, not a branch jump
 
 
-class LocalStage:
-    """The controller's port onto an in-process stage core (the service maps the same
-    commands onto the same methods)."""
+def LocalStage(core: StageCore) -> LocalPort:
+    """The controller's port onto an in-process stage core, through the stage service's
+    own handlers (the same checks and refusals as over its socket)."""
+    return LocalPort(stage_handlers, core)
 
-    def __init__(self, core: StageCore):
-        self.core = core
 
-    def request(self, command: str, args: dict | None = None) -> dict:
-        args = args or {}
-        try:  # a refusal answers as the service's does: an error with the rule's code
-            if command == "arm":
-                return self.core.arm(args["hold_after_s"], args["owner"])
-            if command == "move":
-                return self.core.move(args["targets"], relative=args["relative"], owner=args["owner"])
-            if command == "rotate":
-                return self.core.rotate(args["targets"], relative=args["relative"], owner=args["owner"])
-            if command == "state":
-                return self.core.describe()
-            if command == "log":
-                return {"entries": self.core.command_log(args["since_ns"])}
-            return getattr(self.core, command)(*args.values())
-        except Refused as refusal:
-            raise CommandError(refusal.code, str(refusal)) from None
+def report(reference_id: str | None) -> estimator_protocol.Report:
+    reference = None if reference_id is None else estimator_protocol.Reference(
+        id=reference_id, kind="frame", shape=[512, 512], pixel_size_nm=177.0, taught_at_ns=1)
+    return estimator_protocol.Report(reference=reference, rotation=True, measure_rotation=True, measure_tilts=False,
+                                     tilt_reference=None, last_tilt=None, tilt_error=None, precision="full",
+                                     latest_frame_seq=None, last_estimate=None)
+
+
+class FakeEstimator:
+    """The estimator's port: what it has taught, and what it was asked to measure."""
+
+    def __init__(self, reference_id: str | None = "ref", latest_frame_seq: int | None = None,
+                 estimated_seq: int | None = None):
+        self.reference_id = reference_id
+        self.latest_frame_seq, self.estimated_seq = latest_frame_seq, estimated_seq
+        self.asked = []
+
+    def call(self, command, request=None, /, **fields):
+        request = command.build(request, **fields)
+        self.asked.append((command.name, request.model_dump()))
+        if command is estimator_protocol.REPORT:
+            return report(self.reference_id).model_copy(update={
+                "latest_frame_seq": self.latest_frame_seq,
+                "last_estimate": None if self.estimated_seq is None else {"seq": self.estimated_seq}})
+        if command is estimator_protocol.MEASURE:
+            return estimator_protocol.MeasureReply(rotation=bool(request.rotation), tilts=bool(request.tilts))
+        raise AssertionError(f"unexpected {command.name}")
 
 
 def estimate(seq: int, dx: float, dy: float, *, confidence: float = 0.9, scan_started_at_ns: int) -> MotionEstimate:
@@ -161,7 +188,28 @@ def test_controller_acts_only_on_fresh_confident_estimates(stage, tmp_path):
         record = core.on_estimate(estimate(seq, 15.0, -7.0, confidence=0.1, scan_started_at_ns=time.time_ns()))
     assert record["action"] == "held: low confidence"
     assert core.state == "failed" and "scene lost" in core.reason
-    assert (tmp_path / f"{core.run['id']}.json").is_file()
+    assert (tmp_path / f"{core.run.id}.json").is_file()
+
+
+def test_a_frame_scanned_while_the_stage_settles_is_stale(link, tmp_path):
+    import time
+
+    _, pty = link
+    settling = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=FakeClock(),
+                         settle_s={"x": 0.5, "y": 0.2})
+    assert settling.connect()
+    try:
+        core = ControllerCore(LocalStage(settling), runs_dir=tmp_path)
+        core.start(RunSettings(), "ref")
+        moved = core.on_estimate(estimate(1, 20.0, -10.0, scan_started_at_ns=time.time_ns()))
+        assert moved["command_settled_at_ns"] - moved["command_written_at_ns"] == pytest.approx(0.5e9, rel=1e-6)
+        during = core.on_estimate(estimate(2, 15.0, -7.0, scan_started_at_ns=moved["command_written_at_ns"] + 10**8))
+        assert during["action"].startswith("held: stale")
+        settling.clock.now += 1.0  # the rate limit's clock
+        after = core.on_estimate(estimate(3, 15.0, -7.0, scan_started_at_ns=moved["command_settled_at_ns"] + 1))
+        assert after["action"] == "moved"
+    finally:
+        settling.close()
 
 
 def test_controller_converges_and_stop_stops_the_stage(stage, tmp_path):
@@ -200,18 +248,6 @@ def foreign(seq: int, *, scan_started_at_ns: int) -> MotionEstimate:
     return estimate(seq, 1.0, 1.0, scan_started_at_ns=scan_started_at_ns).model_copy(update={"reference_id": "other"})
 
 
-class Estimator:
-    """The estimator's port, saying what it has (or nothing: restarted)."""
-
-    def __init__(self, reference_id: str | None):
-        self.reference_id = reference_id
-
-    def request(self, command: str, args: dict | None = None) -> dict:
-        if command == "report":
-            return {"reference": {"id": self.reference_id} if self.reference_id else None}
-        return {}
-
-
 def test_a_run_fails_at_once_when_its_reference_is_taught_again(stage, tmp_path):
     import time
 
@@ -224,9 +260,12 @@ def test_a_run_fails_at_once_when_its_reference_is_taught_again(stage, tmp_path)
     assert core.state == "failed" and "reference changed" in core.reason and "other" in core.reason
 
 
-@pytest.mark.parametrize("estimator, says", [(Estimator(None), "no reference (restarted"),
-                                             (Estimator("newer"), "now has reference newer"),
-                                             (Estimator("ref"), "publishes nothing")])
+@pytest.mark.parametrize("estimator, says", [(FakeEstimator(None), "no reference (restarted"),
+                                             (FakeEstimator("newer"), "now has reference newer"),
+                                             (FakeEstimator("ref"), "publishes nothing"),
+                                             (FakeEstimator("ref", 41, 40), "publishes nothing"),
+                                             (FakeEstimator("ref", 40, 40), "frames stopped: no frame has "
+                                                                            "reached the estimator since frame 40")])
 def test_a_run_without_estimates_fails_within_the_timeout_saying_why(stage, tmp_path, estimator, says):
     clock = FakeClock()
     core = ControllerCore(LocalStage(stage), estimator=estimator, runs_dir=tmp_path, clock=clock)
@@ -260,7 +299,7 @@ def test_a_killed_controllers_run_is_finished_from_its_journal(stage, tmp_path):
     first.start(RunSettings(), "ref")
     for seq in (1, 2, 3):
         first.on_estimate(estimate(seq, 20.0, -10.0, scan_started_at_ns=time.time_ns()))
-    run_id = first.run["id"]
+    run_id = first.run.id
     first._journal.flush()  # killed here: the journal is all that is left (no summary)
     assert not (tmp_path / f"{run_id}.json").exists()
 
@@ -295,6 +334,26 @@ def test_a_restarted_stage_comes_back_held_with_its_command_log(link, tmp_path):
     assert second.state == "ready"
     second.disarm("controller-new")
     second.shutdown()  # orderly, nothing armed: the next start is ready
+
+    third = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert third.connect() and third.state == "ready"
+    third.shutdown()
+
+
+def test_a_stop_holds_across_an_orderly_restart(link, tmp_path):
+    _, pty = link
+    first = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert first.connect()
+    first.stop("operator: the sample is loose")
+    first.shutdown()  # orderly (compose down): the operator's stop is not forgotten
+
+    second = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
+    assert second.connect()
+    assert second.state == "stopped" and second.state_reason == "operator: the sample is loose (before a restart)"
+    with pytest.raises(Refused):
+        second.move({"x": 0.5}, relative=True)
+    second.resume()
+    second.shutdown()
 
     third = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), state_dir=tmp_path)
     assert third.connect() and third.state == "ready"
@@ -421,15 +480,7 @@ def test_a_lab_without_a_rotation_stage_says_so(stage):
     assert stage.describe()["rotation"] is None
 
 
-class TiltingEstimator:
-    """The estimator's port for a tilt run: it accepts ``measure`` with tilts."""
-
-    def __init__(self):
-        self.asked = []
-
-    def request(self, command: str, args: dict | None = None) -> dict:
-        self.asked.append((command, args))
-        return {"reference": {"id": "ref"}} if command == "report" else {}
+TiltingEstimator = FakeEstimator  # it accepts ``measure`` with tilts
 
 
 def with_tilt(base: MotionEstimate, seq: int, alpha: float, beta: float, started_ns: int,
@@ -475,13 +526,13 @@ def test_a_tilt_run_without_a_taught_sweep_is_refused(turning_stage, tmp_path):
     stage, _ = turning_stage
 
     class NoSweep(TiltingEstimator):
-        def request(self, command, args=None):
-            if command == "measure" and (args or {}).get("tilts"):
+        def call(self, command, request=None, /, **fields):
+            if command is estimator_protocol.MEASURE and fields.get("tilts"):
                 raise CommandError("no_tilt_reference", "no tilt reference: teach with tilts=true first")
-            return super().request(command, args)
+            return super().call(command, request, **fields)
 
     core = ControllerCore(LocalStage(stage), estimator=NoSweep(), runs_dir=tmp_path)
-    with pytest.raises(ValueError, match="teach with tilts=true"):
+    with pytest.raises(BadRequest, match="teach with tilts=true"):
         core.start(RunSettings(dofs=["x", "y", "alpha"]), "ref")
     assert core.state == "idle" and stage.watchdog.owner is None
 

@@ -53,6 +53,25 @@ def test_a_tilt_run_needs_a_taught_sweep_and_says_so(system):
     time.sleep(1.0)  # 20 degrees at 4 degrees per simulated second, the lab 20 times faster
 
 
+def test_a_teach_with_tilts_answers_at_once_and_reports_its_sweeps_progress(system):
+    """The sweep takes seconds of scans: the teach answers with a handle (the reference,
+    its sweep ``sweeping``), the progress is read from GET /reference, and a run started
+    before it is done is refused saying so."""
+    lab = system["client"]
+    asked = time.monotonic()
+    reference = lab.teach(frames=2, tilts=True, wait=False)
+    assert time.monotonic() - asked < 5.0
+    assert reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping"
+    with pytest.raises(SemservoError) as refused:
+        lab.start(dofs=["alpha", "beta"])
+    assert refused.value.status == 422 and "still scanning" in refused.value.message
+    seen = set()
+    done = wait_for(lambda: (now := lab.reference()).tilt_teach.state != "sweeping" and now or
+                    seen.add(now.tilt_teach.scanned), 120, "the taught pose's sweep")
+    assert done.tilt_teach.state == "done" and done.tilt["frames"] == done.tilt_teach.frames >= 7
+    assert len(seen) >= 2, "the scans were counted as they came"
+
+
 def test_servoes_all_five_degrees_of_freedom_through_the_api(system):
     lab = system["client"]
     reference = lab.teach(frames=2, tilts=True)

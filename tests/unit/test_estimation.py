@@ -322,3 +322,88 @@ def test_fft_plans_are_kept_as_wisdom_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("SEMSERVO_FFTW_WISDOM", str(path))
     MotionEstimator(image, rotation=False)
     assert path.is_file() and path.stat().st_size > 0
+
+
+def test_the_package_exports_what_lab_scripts_use_and_motion_keeps_its_documented_fields():
+    # README: Motion(dx, dy, rotation_deg, confidence, snr_db), in that order.
+    import dataclasses
+
+    from semservo.estimation import Motion
+
+    assert [field.name for field in dataclasses.fields(Motion)][:5] == ["dx", "dy", "rotation_deg", "confidence",
+                                                                        "snr_db"]
+    for name in estimation.__all__:
+        assert hasattr(estimation, name), name
+    assert {"MotionEstimator", "Motion", "estimate_snr_db", "rotate_about_centre", "mask_reference",
+            "polygon_mask", "as_image"} <= set(estimation.__all__)
+
+
+def test_the_angle_refinement_parabola_finds_its_top_or_says_there_is_none():
+    from semservo.estimation.rotation import probe_top
+
+    # Correlations of a parabola peaking 0.25 probe above the middle, losing 1 % a probe.
+    def correlation(probe: float) -> float:
+        return 1.0 - 0.01 * (probe - 0.25) ** 2
+
+    top = probe_top(correlation(-1), correlation(0), correlation(1))
+    assert top.offset == pytest.approx(0.25)
+    assert top.sharpness == pytest.approx(0.01, rel=1e-6)
+    assert probe_top(0.9, 0.9, 0.9) is None  # flat: every turn looks alike
+    assert probe_top(0.5, 0.7, 0.8) is None  # still rising: the top lies beyond the probes
+    assert probe_top(0.9, 0.8, 0.9) is None  # a valley
+
+
+def test_the_estimator_needs_no_private_call_before_any_public_one(frame):
+    """Every public method works on a fresh estimator (the angle's refinement used to be
+    public but worked only after a private call had halved the frame)."""
+    public = [name for name in dir(MotionEstimator) if not name.startswith("_")]
+    assert set(public) == {"estimate", "min_confidence"}
+    motion = MotionEstimator(frame[:256, :256]).estimate(rotated(frame[:256, :256], 2.0))
+    assert motion.rotation_deg == pytest.approx(2.0, abs=0.05)
+
+
+def test_frames_far_below_6_db_are_filtered_by_default_and_clean_ones_are_not(frame):
+    rng = np.random.default_rng(9)
+    estimator = MotionEstimator(frame, rotation=False)
+    assert not estimator.estimate(np.roll(frame, 2, axis=1)).filtered
+    faint = frame.mean() + 0.2 * (frame - frame.mean())
+    noisy = estimator.estimate(poisson_gaussian(np.roll(faint, 2, axis=1), 100, 2.0, rng))
+    assert noisy.snr_db < estimation.DEFAULT_SNR_THRESHOLD_DB and noisy.filtered
+
+
+def test_a_fit_that_runs_off_the_search_peak_is_brought_back():
+    """The sub-pixel fit climbs a sidelobe of a noisy surface: the fit weighted by the
+    prefilter is tried, then the search's own peak is kept."""
+    from semservo.estimation.resolutions import MAX_FIT_MOVE_PX, kept_near
+    from semservo.estimation.translation import Shift
+
+    band, filtered_band = object(), object()
+    start = Shift(4.2, -3.1)
+    answers = {band: Shift(4.2 + 3 * MAX_FIT_MOVE_PX, -3.1), filtered_band: Shift(4.0, -3.3)}
+    assert kept_near(start, answers.get, band, filtered_band) == Shift(4.0, -3.3)
+    answers[filtered_band] = Shift(4.2, -3.1 - 3 * MAX_FIT_MOVE_PX)
+    assert kept_near(start, answers.get, band, filtered_band) == start
+    answers[band] = Shift(4.5, -2.7)
+    assert kept_near(start, answers.get, band, filtered_band) == Shift(4.5, -2.7)
+
+
+@pytest.mark.parametrize("contrast, electrons, least_acted_on", [(0.2, 100, 0), (0.5, 300, 3)])
+def test_a_noisy_low_contrast_frame_gives_a_good_shift_or_a_refusal(recorded_run, contrast, electrons,
+                                                                     least_acted_on):
+    """A real frame at a fraction of its contrast and a low dose: at a fifth and 100
+    electrons per grey level (-10 dB) nothing can be registered and everything is
+    refused; at half and 300 (2 dB) most estimates are acted on, all of them good."""
+    frame = np.asarray(Image.open(recorded_run / "frame20.png")).astype(np.float64)
+    faint = frame.mean() + contrast * (frame - frame.mean())
+    rng = np.random.default_rng(31)
+    acted_on, errors = [], []
+    for dx, dy in ((0.25, -2.0), (-2.5, 1.25), (3.0, 0.75), (-0.5, -3.5), (2.25, 2.5), (-3.25, -1.0)):
+        pair = shifted_pair(faint, dx, dy, 4, margin=16)
+        reference, current = (poisson_gaussian(image, electrons, 2.0, rng) for image in (pair.reference, pair.current))
+        motion = MotionEstimator(reference, rotation=False).estimate(current)
+        errors.append(np.hypot(motion.dx - dx, motion.dy - dy))
+        if motion.confidence >= MotionEstimator.min_confidence:
+            acted_on.append(errors[-1])
+    assert len(acted_on) >= least_acted_on and all(error < 0.5 for error in acted_on), (acted_on, errors)
+    if not least_acted_on:
+        assert max(errors) > 1.0  # the case is hard: refusals, not luck

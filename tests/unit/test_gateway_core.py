@@ -1,30 +1,47 @@
 """The gateway's core without sockets: ports are small fakes that answer as the services
-do, so the rules the REST API relies on are checked one by one."""
+do (their replies checked against the same models), so the rules the REST API relies on
+are checked one by one."""
 
 from __future__ import annotations
 
 import pytest
 
-from semservo.transport import CommandError, ServiceUnavailable
-from services.gateway.core import GatewayCore, GatewayError
+from semservo.errors import CommandError, ServiceUnavailable, http_status
+from services.gateway.core import GatewayCore
 from services.gateway.records import RunStore
+
+STAGE_STATE = {"url": "socket://x", "link": "connected", "state": "ready", "reason": "", "device": "NV40/3",
+               "voltages": {"x": 40.0}, "positions_um": {"x": 20.0},
+               "limits": {"voltage_min": -19, "voltage_max": 110, "travel_min_um": 0, "travel_max_um": 100,
+                          "max_step_v": 25, "max_rate_v_per_s": 200, "max_turn_deg": 30, "device_voltage": [-20, 130]},
+               "watchdog": {"armed": False, "timeout_s": 0, "owner": None}, "models": {"x": "branches"},
+               "rotation": None, "last_error": None, "moves": 0, "turns": 0, "refused": 0, "link_lost": 0,
+               "reconnects": 0, "uncommanded_changes": 0}
+MOVED = {"written_at_ns": 1, "voltages": {"x": 40.0}, "positions_um": {"x": 20.0}}
+REFERENCE = {"id": "ref", "kind": "frame", "shape": [512, 512], "pixel_size_nm": 177.0, "taught_at_ns": 1}
+
+
+def controller_status(state: str = "idle", run_id: str | None = None) -> dict:
+    return {"state": state, "run_id": run_id}
 
 
 class Port:
-    """A service's port: answers from a table, or raises what the table holds."""
+    """A service's port: answers from a table by command name (or raises what the table
+    holds), each answer read through the command's reply model as the real port does."""
 
     def __init__(self, **answers):
         self.answers = answers
         self.asked: list[tuple[str, dict]] = []
 
-    def request(self, command: str, args: dict | None = None) -> dict:
-        self.asked.append((command, args or {}))
-        answer = self.answers[command]
+    def call(self, command, request=None, /, **fields):
+        built = command.build(request, **fields)
+        self.asked.append((command.name, built.model_dump(exclude_defaults=True)))
+        answer = self.answers[command.name]
         if callable(answer):
             answer = answer()
         if isinstance(answer, Exception):
             raise answer
-        return answer
+        return command.reply.model_validate(answer)
 
 
 def core_with(**ports) -> GatewayCore:
@@ -34,27 +51,29 @@ def core_with(**ports) -> GatewayCore:
 def test_a_jog_waits_out_the_stages_rate_rule():
     refusals = [CommandError("rate_limit", "x: 10 V 3 ms after the last write"),
                 CommandError("rate_limit", "x: 10 V 40 ms after the last write")]
-    stage = Port(move=lambda: refusals.pop(0) if refusals else {"voltages": {"x": 40.0}})
-    core = core_with(stage=stage, controller=Port(status={"state": "idle"}))
-    assert core.move({"x": 10.0}, relative=True) == {"voltages": {"x": 40.0}}
+    stage = Port(move=lambda: refusals.pop(0) if refusals else MOVED)
+    core = core_with(stage=stage, controller=Port(status=controller_status()))
+    assert core.move({"x": 10.0}, relative=True).voltages == {"x": 40.0}
     assert [command for command, _ in stage.asked] == ["move", "move", "move"]
 
 
 def test_a_jog_during_a_run_is_refused_before_the_stage_is_asked():
-    stage = Port(move={"voltages": {}})
-    core = core_with(stage=stage, controller=Port(status={"state": "servoing", "run_id": "r1"}))
-    with pytest.raises(GatewayError) as refused:
+    stage = Port(move=MOVED)
+    core = core_with(stage=stage, controller=Port(status=controller_status("servoing", "r1")))
+    with pytest.raises(CommandError) as refused:
         core.move({"x": 1.0}, relative=True)
-    assert refused.value.status == 409 and refused.value.code == "run_active" and refused.value.extra["run_id"] == "r1"
+    assert http_status(refused.value.code) == 409
+    assert refused.value.code == "run_active" and refused.value.extra["run_id"] == "r1"
     assert stage.asked == []
 
 
 def test_a_start_never_resumes_a_stopped_stage_unless_told():
-    stage = Port(state={"state": "stopped", "reason": "operator"}, resume={"state": "ready"})
-    controller = Port(status={"state": "stopped"}, start={"run_id": "r2", "state": "servoing"},
+    stage = Port(state={**STAGE_STATE, "state": "stopped", "reason": "operator"},
+                 resume={**STAGE_STATE, "state": "ready"})
+    controller = Port(status=controller_status("stopped"), start={"run_id": "r2", "state": "servoing"},
                       run={"id": "r2", "started_at_ns": 1, "settings": {}})
     core = core_with(stage=stage, controller=controller)
-    with pytest.raises(GatewayError) as refused:
+    with pytest.raises(CommandError) as refused:
         core.start({})
     assert refused.value.code == "stage_stopped" and ("resume", {}) not in stage.asked
     assert core.start({}, resume=True)["run_id"] == "r2"
@@ -68,18 +87,33 @@ def test_a_teach_waits_for_the_frames_it_averages():
         have = next(counts, None)
         if have is not None:
             return CommandError("not_enough_frames", f"only {have} frames received so far; 4 asked for averaging")
-        return {"id": "ref", "kind": "frame", "shape": [512, 512], "pixel_size_nm": 177.0}
+        return REFERENCE
 
-    core = core_with(estimator=Port(health={}, teach=teach), controller=Port(status={"state": "idle"}))
+    estimator = Port(report={"reference": None, "rotation": True, "measure_rotation": True, "measure_tilts": False,
+                             "tilt_reference": None, "last_tilt": None, "tilt_error": None, "precision": "full",
+                             "latest_frame_seq": 3, "last_estimate": None},
+                     teach=teach, reference_image=CommandError("no_reference", "not in this test"))
+    core = core_with(estimator=estimator, controller=Port(status=controller_status()))
     assert core.teach(frames=4)["id"] == "ref"
+    assert [name for name, _ in estimator.asked].count("teach") == 4
 
 
 def test_a_dead_controller_does_not_block_a_teach():
     """No controller, no run: the stage's own rules still hold, so the teach goes on."""
-    core = core_with(estimator=Port(health={}, teach={"id": "ref", "kind": "frame", "shape": [8, 8],
-                                                      "pixel_size_nm": 1.0}),
-                     controller=Port(status=ServiceUnavailable("no reply")))
+    estimator = Port(report={"reference": None, "rotation": True, "measure_rotation": True, "measure_tilts": False,
+                             "tilt_reference": None, "last_tilt": None, "tilt_error": None, "precision": "full",
+                             "latest_frame_seq": 3, "last_estimate": None},
+                     teach=REFERENCE, reference_image=CommandError("no_reference", "not in this test"))
+    core = core_with(estimator=estimator, controller=Port(status=ServiceUnavailable("no reply")))
     assert core.teach()["id"] == "ref"
+
+
+def test_a_service_that_does_not_answer_is_a_503_naming_it():
+    core = core_with(stage=Port(state=ServiceUnavailable("no reply after 1 tries")))
+    with pytest.raises(CommandError) as refused:
+        core.stage_state()
+    assert refused.value.code == "stage_unavailable" and http_status(refused.value.code) == 503
+    assert "the stage service does not answer" in refused.value.message
 
 
 def test_click_to_move_on_frames_without_a_pixel_size_is_refused_not_guessed():
@@ -87,11 +121,11 @@ def test_click_to_move_on_frames_without_a_pixel_size_is_refused_not_guessed():
 
     from semservo.wire import Frame, frame_header
 
-    stage = Port(move={"voltages": {}})
-    core = core_with(stage=stage, controller=Port(status={"state": "idle"}))
+    stage = Port(move=MOVED)
+    core = core_with(stage=stage, controller=Port(status=controller_status()))
     pixels = np.zeros((64, 64), np.uint8)
     core.latest = Frame(header=frame_header(pixels, seq=1, acquired_at_ns=1, source="watch"), pixels=pixels)
-    with pytest.raises(GatewayError) as refused:
+    with pytest.raises(CommandError) as refused:
         core.center(10.0, 20.0)
-    assert refused.value.status == 409 and refused.value.code == "pixel_size_unknown"
+    assert http_status(refused.value.code) == 409 and refused.value.code == "pixel_size_unknown"
     assert stage.asked == []

@@ -139,23 +139,32 @@ def test_a_background_source_keeps_the_service_responsive_and_delivers_frames(tm
         def describe(self):
             return {"source": self.name}
 
-    source = BackgroundAcquisition(SlowScanner(), fps=50)
+    import threading
+
+    ready = threading.Event()
+    source = BackgroundAcquisition(SlowScanner(), fps=50, notify=ready.set)
     core = ImageServerCore(source, fps=50)
     try:
         started = time.monotonic()
         with pytest.raises(NotReady):
             source.acquire()
         assert time.monotonic() - started < 0.05  # never blocks
-        frames = []
+        frames, wake_ups = [], 0
         deadline = time.monotonic() + 3
         while len(frames) < 3 and time.monotonic() < deadline:
             due = core.next_frame()
             if due is None:
                 if core.waiting_for_source:
-                    assert core.seconds_until_due() <= 0.005  # asks again soon
-                time.sleep(0.005)
+                    # Nothing to do until the source says it has a frame: no polling.
+                    assert core.seconds_until_due() is None
+                    assert ready.wait(1.0), "the source tells when a frame is ready"
+                    ready.clear()
+                    wake_ups += 1
+                else:
+                    time.sleep(core.seconds_until_due())
             else:
                 frames.append(due)
+        assert wake_ups <= 6, "woken by frames, not by a poll"
         assert [seq for seq, _ in frames] == [0, 1, 2]
         assert [int(image.pixels[0, 0]) for _, image in frames] == [1, 2, 3]
     finally:

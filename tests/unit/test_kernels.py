@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semservo import _kernels
-from semservo.estimation import frame_statistics, foroosh_subpixel, normalized_cross_power
+from semservo.estimation import _kernels
+from semservo.estimation.snr import frame_statistics
+from semservo.estimation.translation import foroosh_subpixel, normalized_cross_power
 
 rng = np.random.default_rng(0)
 
@@ -80,3 +81,33 @@ def test_normalized_angular_cross_matches_the_numpy_einsum():
     _kernels.normalized_angular_cross_into(np.zeros_like(current), references[:1], ramps[:1],
                                            np.empty(361, np.complex64), out)
     assert np.all(out == 0)
+
+
+def test_the_kernels_live_in_the_estimation_package_and_their_compiled_code_is_cached(tmp_path):
+    """A fresh process compiles the kernels once; the next one loads them from numba's
+    on-disk cache (here under ``NUMBA_CACHE_DIR``), with no recompilation."""
+    import os
+    import subprocess
+    import sys
+
+    assert _kernels.__name__ == "semservo.estimation._kernels"
+    script = (
+        "import numpy as np\n"
+        "from semservo.estimation import MotionEstimator, _kernels\n"
+        "image = np.random.default_rng(1).random((128, 128))\n"
+        "MotionEstimator(image, fft_effort='FFTW_ESTIMATE').estimate(np.roll(image, 3, axis=1))\n"
+        "kernels = [getattr(_kernels, name) for name in dir(_kernels) if hasattr(getattr(_kernels, name), 'stats')]\n"
+        "print(sum(len(k.stats.cache_hits) for k in kernels), sum(len(k.stats.cache_misses) for k in kernels))\n"
+    )
+    environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+
+    def hits_and_misses() -> tuple[int, int]:
+        done = subprocess.run([sys.executable, "-c", script], env=environment, capture_output=True, text=True,
+                              timeout=300, check=True)
+        hits, misses = done.stdout.split()
+        return int(hits), int(misses)
+
+    hits, misses = hits_and_misses()
+    assert misses > 0 and hits == 0  # an empty cache: compiled
+    hits, misses = hits_and_misses()
+    assert hits > 0 and misses == 0  # loaded from disk

@@ -42,3 +42,19 @@ def test_bad_model_files_are_clear_errors(tmp_path):
         load_model(tmp_path / "bad.json")
     with pytest.raises(ValueError, match="not a displacement model"):
         load_model(tmp_path / "missing.json")
+
+
+def test_a_followed_voltage_leaves_the_model_in_step_with_the_axis():
+    """After a reversal (a minor loop's offset active), a reconnect or an uncommanded change
+    makes the model follow the voltage read back; the next 0.03 um correction asked for an
+    11 V jump (the inverse was taken with the offset, which was then dropped)."""
+    for axis in ("x", "y"):
+        model = BranchModel.tritor(axis)
+        model.voltage_for(40.0)
+        here = model.voltage_for(30.0)  # a reversal: the decreasing branch, offset by the gap
+        assert abs(model.offset_v) > 5
+        model.follow_voltage(here, here)  # the link came back and reads the same voltage
+        assert model.voltage_for(model.position_um) == pytest.approx(here, abs=1e-6)
+        assert abs(model.voltage_for(model.position_um - 0.027) - here) < 0.1
+        model.follow_voltage(here + 3.0, here)  # a knob turned the axis up
+        assert abs(model.voltage_for(model.position_um + 0.05) - (here + 3.0)) < 0.2

@@ -180,3 +180,80 @@ def test_the_old_module_name_is_the_same_module():
 
     assert semservo.tilt is semservo.estimation.tilt
     assert old_name is semservo.estimation.tilt.estimate_tilt
+
+
+def test_noise_is_taken_out_of_the_focus_measure():
+    """Eq. 13's variance over the mean, split (lags 1 and 2 against lag 0): white noise
+    lands in the noise share, and the scene's share is the same with and without it."""
+    from semservo.estimation.tilt import noise_free_focus_curves
+
+    sweep = sweep_of_plane(0.0, 0.0)[:, :128, :128]
+    rng = np.random.default_rng(4)
+    noisy = sweep + rng.normal(0, 6.0, sweep.shape)
+    clean_curves, noisy_curves = noise_free_focus_curves(sweep, KERNEL), noise_free_focus_curves(noisy, KERNEL)
+    mean_level = sweep.mean()
+    assert np.median(noisy_curves.noise - clean_curves.noise) == pytest.approx(36.0 / mean_level, rel=0.15)
+    in_focus = np.argmax(clean_curves.signal.mean(axis=(1, 2)))
+    assert np.allclose(noisy_curves.signal[in_focus], clean_curves.signal[in_focus], rtol=0.2)
+    assert noisy_curves.pixels == KERNEL * KERNEL
+
+
+def test_kernels_of_noise_only_show_no_focus_peak():
+    """A flat scene under heavy noise: eq. 13's variance over the mean of noise wanders
+    from frame to frame and made "peaks" microns off; without the noise it has none."""
+    from semservo.estimation.tilt import clear_focus_peaks, noise_free_focus_curves
+
+    rng = np.random.default_rng(8)
+    flat = np.full((len(WORKING_DISTANCES_UM), SIZE, SIZE), 40.0) + rng.normal(0, 8.0, (len(WORKING_DISTANCES_UM),
+                                                                                      SIZE, SIZE))
+    depths = clear_focus_peaks(noise_free_focus_curves(flat, KERNEL), WORKING_DISTANCES_UM)
+    assert np.isfinite(depths).sum() <= 1
+    textured = sweep_of_plane(2.0, -1.0) + rng.normal(0, 8.0, (len(WORKING_DISTANCES_UM), SIZE, SIZE))
+    assert np.isfinite(clear_focus_peaks(noise_free_focus_curves(textured, KERNEL), WORKING_DISTANCES_UM)).all()
+
+
+def test_the_robust_plane_gives_wrong_kernels_no_weight():
+    from semservo.estimation.tilt import robust_plane
+
+    rows, cols = np.mgrid[0:8, 0:8]
+    depths = 0.2 + 0.01 * (cols - 3.5) * KERNEL * PIXEL_UM - 0.02 * (rows - 3.5) * KERNEL * PIXEL_UM
+    depths = depths + np.random.default_rng(2).normal(0, 0.01, depths.shape)
+    depths[1, 2], depths[6, 6], depths[3, 0] = 3.0, -2.5, 1.1  # peaks of noise, microns off
+    plane = robust_plane(depths, KERNEL, PIXEL_UM)
+    assert plane.coefficients == pytest.approx([0.2, 0.01, -0.02], abs=0.003)
+    assert plane.weights[1, 2] == plane.weights[6, 6] == plane.weights[3, 0] == 0
+    assert (plane.weights > 0).sum() == 61 and plane.scale == pytest.approx(0.01, rel=0.4)
+    assert np.all(np.isfinite(plane.covariance)) and plane.covariance[1, 1] > 0
+
+
+def test_kernels_bunched_in_a_corner_cannot_pin_the_tilts_and_say_so():
+    """Texture in one corner only (a few particles on a dark ground): the kernels that
+    see focus span too little of the field, and the tilts are refused with the reason,
+    not guessed from a plane that tips on them."""
+    scene = np.full((SIZE, SIZE), 100.0)
+    scene[:64, :64] = texture()[:64, :64]
+    rng = np.random.default_rng(3)
+    sweep = sweep_of_plane(3.0, 2.0, scene=scene) + rng.normal(0, 1.0, (len(WORKING_DISTANCES_UM), SIZE, SIZE))
+    estimate = estimate_tilt(sweep, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
+    assert estimate.confidence == 0.0 and np.isnan(estimate.alpha_deg)
+    assert "kernels" in estimate.reason and "pin the tilts" in estimate.reason and "of the field" in estimate.reason
+    assert estimate.alpha_uncertainty_deg > 0.1
+
+
+def test_a_scene_of_two_planes_is_refused_not_averaged():
+    """Half the field in focus 1 um deeper than the other half (a step, or a sample that
+    is not flat): no single plane holds, and the estimate says so."""
+    top = sweep_of_plane(0.0, 0.0, centre_um=-0.6)
+    bottom = sweep_of_plane(0.0, 0.0, centre_um=0.6)
+    sweep = np.concatenate([top[:, :SIZE // 2], bottom[:, SIZE // 2:]], axis=1)
+    steps = np.diff(WORKING_DISTANCES_UM).mean()
+    estimate = estimate_tilt(sweep, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
+    assert estimate.confidence == 0.0 and np.isnan(estimate.alpha_deg), estimate
+    assert "scatter" in estimate.reason or "pin the tilts" in estimate.reason
+    assert estimate.residual > 0.3 * steps
+
+
+def test_a_good_estimate_carries_small_uncertainties():
+    estimate = estimate_tilt(sweep_of_plane(4.0, -2.0), WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
+    assert estimate.reason == "" and estimate.confidence > 0.5
+    assert 0 < estimate.alpha_uncertainty_deg < 0.1 and 0 < estimate.beta_uncertainty_deg < 0.1

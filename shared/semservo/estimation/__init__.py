@@ -14,12 +14,20 @@ Small pure functions do each step, one module per section of the paper:
 * :mod:`.snr`: image noise (section II-D);
 * :mod:`.common`: the result type, input checks, the apodization window (section II-A);
 * :mod:`.masks`: mask references (the paper's case 6);
-* :mod:`.plans`: FFT plans, kept as FFTW wisdom.
+* :mod:`.plans`: FFT plans, kept as FFTW wisdom;
+* :mod:`.resolutions`: the reference as an estimator keeps it, one structure per
+  resolution;
+* ``_kernels``: the fused per-pixel loops (numba) the steps run on.
 
 :class:`MotionEstimator` (:mod:`.estimator`) composes them: it precomputes everything
 that depends only on the reference (window, reference spectrum, log-polar reference,
 FFT plans) once, and :meth:`MotionEstimator.estimate` runs the per-frame part. The
 tilts need focus sweeps, not single frames: :func:`.tilt.estimate_tilt`.
+
+The package exports what lab scripts use: :class:`MotionEstimator`, :class:`Motion`,
+:func:`estimate_snr_db`, :func:`rotate_about_centre` (the turn of this convention),
+:func:`mask_reference` and :func:`polygon_mask` (to see a mask reference),
+:func:`as_image`, ``MIN_SIZE`` and ``DEFAULT_SNR_THRESHOLD_DB``.
 
 Sign convention (a contract)
 ----------------------------
@@ -40,33 +48,19 @@ M x N noise samples), so confidence is 0 up to PSR 6 and ``1 - exp(-(PSR - 6) / 
 beyond: 0.5 at PSR 11.5, 0.9 at PSR 24. Matching SEM frames score above 0.9; a
 controller should refuse to move below about 0.5 (``MotionEstimator.min_confidence``).
 With rotation, ``confidence`` is also never above ``rotation_confidence``: how clearly
-the image's correlation peaks in the angle (:meth:`MotionEstimator.refine_rotation`), so
+the image's correlation peaks in the angle (the refinement on the image, :meth:`MotionEstimator.estimate`), so
 a scene whose turns all look alike has its estimate refused rather than guessed.
 """
 
-from semservo.estimation.common import MIN_SIZE, Motion, apodization_window, as_image
-from semservo.estimation.estimator import DEROTATE_ABOVE_DEG, MOVED_WINDOWS_KEPT, MotionEstimator
+from semservo.estimation.common import MIN_SIZE, Motion, as_image
+from semservo.estimation.estimator import MotionEstimator
 from semservo.estimation.masks import mask_reference, polygon_mask
-from semservo.estimation.plans import FFTPlans, wisdom_path
-from semservo.estimation.rotation import (
-    AngularRefiner, LogPolarGrid, angular_candidates, angular_shift, angular_spectrum, confidence_from_sharpness,
-    highpass_emphasis, log_polar_magnitude, rotate_about_centre,
-)
-from semservo.estimation.snr import (
-    DEFAULT_SNR_THRESHOLD_DB, estimate_snr_db, frame_statistics, gaussian_lowpass, gaussian_transfer,
-    snr_from_statistics,
-)
-from semservo.estimation.translation import (
-    PSR_EXCLUSION, PhasePlaneBand, centred_shift, confidence_from_psr, crop_spectrum_into, foroosh_subpixel,
-    normalized_cross_power, refine_on_band,
-)
+from semservo.estimation.rotation import rotate_about_centre
+from semservo.estimation.snr import DEFAULT_SNR_THRESHOLD_DB, estimate_snr_db
 
+# What lab scripts use; every step's function stays importable from its module
+# (``semservo.estimation.translation.refine_on_band``, ...).
 __all__ = [
-    "DEFAULT_SNR_THRESHOLD_DB", "DEROTATE_ABOVE_DEG", "MIN_SIZE", "MOVED_WINDOWS_KEPT", "PSR_EXCLUSION",
-    "AngularRefiner", "FFTPlans", "LogPolarGrid", "Motion", "MotionEstimator", "PhasePlaneBand",
-    "angular_candidates", "angular_shift", "angular_spectrum", "apodization_window", "as_image", "centred_shift",
-    "confidence_from_psr", "confidence_from_sharpness", "crop_spectrum_into", "estimate_snr_db", "foroosh_subpixel",
-    "frame_statistics", "gaussian_lowpass", "gaussian_transfer", "highpass_emphasis", "log_polar_magnitude",
-    "mask_reference", "normalized_cross_power", "polygon_mask", "refine_on_band", "rotate_about_centre",
-    "snr_from_statistics", "wisdom_path",
+    "DEFAULT_SNR_THRESHOLD_DB", "MIN_SIZE", "Motion", "MotionEstimator", "as_image", "estimate_snr_db",
+    "mask_reference", "polygon_mask", "rotate_about_centre",
 ]

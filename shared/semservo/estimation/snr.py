@@ -4,18 +4,23 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-from semservo import _kernels
+from semservo.estimation import _kernels
 from semservo.estimation.common import MIN_SIZE
 
 #: Below this SNR (dB) a frame is filtered with the 5 x 5 Gaussian (section II-D); None:
-#: never. The paper's 15 dB is available (``snr_threshold_db=15``) but is not the
-#: default: the magnitude-weighted fit already gives noisy frequencies little weight,
-#: and the fixed Gaussian also removes the mid frequencies that carry a sparse scene's
-#: edges (held-out images: 0.022 -> 0.036 px on a hole at low magnification, 0.024 ->
-#: 0.032 px on the drift image; it gains 0.001-0.002 px on the 2013 frames).
-DEFAULT_SNR_THRESHOLD_DB: float | None = None
+#: never. Not the paper's 15 dB: the magnitude-weighted fit already gives noisy
+#: frequencies little weight, and the fixed Gaussian also removes the mid frequencies that
+#: carry a sparse scene's edges (held-out images at 13-16 dB: 0.022 -> 0.036 px on a hole
+#: at low magnification, 0.023 -> 0.031 px on the drift image). Far below, the unweighted
+#: fit climbs sidelobes of the noise: a real frame at a fifth of its contrast and 100
+#: electrons per grey level (0 dB) read a shift 3 px off where the search was right, and
+#: 0.13 px filtered; on the smooth FIB-SEM slice (2 dB at every dose tried) filtering
+#: gains 0.001 px. So frames (or references) under 6 dB are filtered.
+DEFAULT_SNR_THRESHOLD_DB: float | None = 6.0
 
 
 def estimate_snr_db(image: np.ndarray) -> float:
@@ -32,20 +37,51 @@ def estimate_snr_db(image: np.ndarray) -> float:
     return snr_from_statistics(frame_statistics(image))
 
 
-def frame_statistics(image: np.ndarray) -> tuple:
+class FrameStatistics(NamedTuple):
+    """One pass over a frame (:func:`frame_statistics`): its mean and finiteness (whole
+    frame), and the autocorrelation of the mean-free frame at lags 0, 1 and 2 down the
+    rows and along them (central rows), which the SNR is computed from."""
+
+    mean: float
+    finite: bool
+    zero_lag: float
+    down1: float
+    down2: float
+    along1: float
+    along2: float
+
+
+def frame_statistics(image: np.ndarray) -> FrameStatistics:
+    """:class:`FrameStatistics` of a contiguous float32 ``image`` (one fused pass); the
+    autocorrelation over the central half of the rows when the image is tall enough."""
     rows = image.shape[0]
     first, last = (rows // 4, rows - rows // 4) if rows >= 4 * MIN_SIZE else (0, rows)
-    return _kernels.frame_statistics(image, first, last)
+    return FrameStatistics(*_kernels.frame_statistics(image, first, last))
 
 
-def snr_from_statistics(statistics: tuple) -> float:
-    _, _, zero_lag, down1, down2, along1, along2 = statistics
-    if zero_lag <= 0:
-        return float("-inf")
+def _signal_and_noise(statistics: FrameStatistics) -> tuple[float, float]:
+    """(signal, noise) variances per pixel (:func:`estimate_snr_db`'s split)."""
+    zero_lag, down1, down2, along1, along2 = (statistics.zero_lag, statistics.down1, statistics.down2,
+                                              statistics.along1, statistics.along2)
     signal = ((4 * down1 - down2) / 3 + (4 * along1 - along2) / 3) / 2
     signal = min(max(signal, 1e-12 * zero_lag), zero_lag)
-    noise = max(zero_lag - signal, 1e-12 * zero_lag)
+    return signal, max(zero_lag - signal, 1e-12 * zero_lag)
+
+
+def snr_from_statistics(statistics: FrameStatistics) -> float:
+    """The SNR in dB (:func:`estimate_snr_db`) from a frame's statistics."""
+    if statistics.zero_lag <= 0:
+        return float("-inf")
+    signal, noise = _signal_and_noise(statistics)
     return float(10 * np.log10(signal / noise))
+
+
+def noise_variance(statistics: FrameStatistics) -> float:
+    """The pixel noise's variance (grey levels squared) from a frame's statistics: what
+    the zero-lag autocorrelation holds beyond the signal extrapolated from lags 1 and 2."""
+    if statistics.zero_lag <= 0:
+        return 0.0
+    return float(_signal_and_noise(statistics)[1])
 
 
 def gaussian_transfer(shape: tuple[int, int], size: int = 5, sigma: float = 1.0) -> np.ndarray:

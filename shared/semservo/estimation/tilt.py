@@ -30,8 +30,11 @@ exact inverse used here (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx)).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+
+from semservo.estimation import _kernels
 
 #: A kernel whose focus curve peaks by less than this factor over its lowest value has
 #: no clear peak (flat content, or a kernel out of focus over the whole sweep): on a
@@ -44,6 +47,31 @@ MIN_KERNELS = 6
 #: Kernels whose depth is off the fitted plane by more than this many robust standard
 #: deviations (1.4826 x the median absolute residual) are left out and the plane refitted.
 OUTLIER_SIGMAS = 3.0
+#: A kernel's focus peak is clear only if it stands this many standard errors of its
+#: noise-free measure (see :func:`noise_free_focus_curves`) above the lowest value of its
+#: curve: a kernel of flat content (the inside of a hole, a dark ground) has a curve of
+#: noise whose highest value, over 21 frames, stands 4-5 standard errors above its
+#: lowest; one of texture, tens to thousands.
+CLEAR_PEAK_SIGMAS = 8.0
+#: Tukey's biweight constant for the robust plane fit (95 % efficiency under Gaussian
+#: residuals), in robust standard deviations.
+BIWEIGHT = 4.685
+#: The largest standard error of either tilt (degrees, from the plane fit's residuals and
+#: where its kernels lie) an estimate may have: beyond, the kernels that see focus do
+#: not pin the plane (too few, bunched in a corner, or scattered), and it is refused.
+MAX_TILT_UNCERTAINTY_DEG = 0.1
+#: A kernel's depth comes from a parabola through three samples of its focus curve; where
+#: the curve departs from the parabola's model its peak is pulled by a fraction of a step
+#: that depends on where it falls between samples, alike in neighbouring kernels, so the
+#: plane's residuals do not show it. The tilts' standard errors are therefore never
+#: taken below this fraction of a step over the span of the kernels used (at a depth of
+#: field of 14 um the simulator's sweeps, 7 um apart, read tilts 0.4-0.6 degree off with
+#: standard errors from the residuals under 0.1; at 3.5 um, 1.75 um apart, this floor is
+#: 0.03 degree over a 36 um field).
+SAMPLING_BIAS_STEPS = 0.01
+#: The largest robust scatter of the kernel depths about the plane, in sweep steps: a
+#: scene that is not one plane in focus (or a sweep that blurs it other than by focus).
+MAX_SCATTER_STEPS = 0.5
 
 
 @dataclass(frozen=True)
@@ -63,6 +91,10 @@ class TiltEstimate:
     confidence: float
     #: Why the confidence is 0 (empty when it is not).
     reason: str = ""
+    #: The standard errors of the two tilts (degrees), from the plane fit's residuals and
+    #: where its kernels lie (NaN when no plane was fitted).
+    alpha_uncertainty_deg: float = float("nan")
+    beta_uncertainty_deg: float = float("nan")
 
 
 def normalized_variance(patch: np.ndarray) -> float:
@@ -91,19 +123,20 @@ def focus_curves(sweep: np.ndarray, kernel: int) -> np.ndarray:
     return curves
 
 
-def focus_peaks(curves: np.ndarray, working_distances: np.ndarray) -> np.ndarray:
+def focus_peaks(curves: np.ndarray, working_distances: np.ndarray, assume_clear: np.ndarray | None = None) -> np.ndarray:
     """Each kernel's depth: the working distance of its focus peak, to a fraction of a
     step (a parabola through the reciprocals of the highest sample and its two
     neighbours, on evenly spaced working distances). NaN where the curve has no clear peak: flat (the peak
     under ``MIN_FOCUS_CONTRAST`` times the lowest value) or highest at either end of
-    the sweep (the focus lies outside it)."""
+    the sweep (the focus lies outside it). ``assume_clear``: which kernels have a clear
+    peak, when the caller has judged that (:func:`clear_focus_peaks`)."""
     working_distances = np.asarray(working_distances, dtype=np.float64)
     frames = curves.shape[0]
     best = np.argmax(curves, axis=0)
     highest = np.take_along_axis(curves, best[np.newaxis], axis=0)[0]
     lowest = curves.min(axis=0)
     inside = (best > 0) & (best < frames - 1)
-    clear = inside & (highest > MIN_FOCUS_CONTRAST * np.maximum(lowest, 1e-12))
+    clear = inside & (highest > MIN_FOCUS_CONTRAST * np.maximum(lowest, 1e-12)) if assume_clear is None else assume_clear
     index = np.clip(best, 1, frames - 2)
     # The peak of a parabola through the reciprocals of the three values: a texture
     # blurred by a Gaussian of width s keeps a variance ~ 1 / s^2, and the blur grows as
@@ -120,6 +153,132 @@ def focus_peaks(curves: np.ndarray, working_distances: np.ndarray) -> np.ndarray
     step = (working_distances[-1] - working_distances[0]) / (frames - 1)
     depths = working_distances[index] + np.clip(offset, -0.5, 0.5) * step
     return np.where(clear & (curvature > 0), depths, np.nan)
+
+
+class FocusCurves(NamedTuple):
+    """Eq. 13's measure per kernel and frame split into the scene's part and the pixel
+    noise's (each a variance over the kernel's mean; frames x kernel rows x kernel cols),
+    and the pixels per kernel."""
+
+    signal: np.ndarray
+    noise: np.ndarray
+    pixels: int
+
+
+def noise_free_focus_curves(sweep: np.ndarray, kernel: int) -> FocusCurves:
+    """Eq. 13 for every k x k kernel of every frame, with the pixel noise's share taken
+    out. The kernel's autocovariance at lags 1 and 2 (along rows and columns) holds the
+    scene only (pixel noise is uncorrelated from pixel to pixel), so the noise's share
+    of R(0) is what lies beyond their extrapolation to lag 0, (4 R(1) - R(2)) / 3 (the
+    split of :func:`semservo.estimation.estimate_snr_db`). That split counts detail
+    sharp at the pixel scale as noise, and shot noise does not change with focus (it
+    goes with the kernel's mean): so each kernel's noise share is the median of its
+    split over the sweep, and the scene's is the rest of R(0), over the mean.
+
+    Why: shot noise adds to eq. 13's variance over the mean a floor that does not
+    change with focus (for Poisson noise the same in every kernel), which flattens the
+    focus curve of a faint texture, pulls its peak fit, and lets kernels of flat content
+    (noise only) show a "peak" of noise: on real images (a hole, a dark ground with a
+    few particles) those had depths microns off. With the floor removed, the curve of a
+    texture blurred by s goes as 1 / s^2, and a kernel of noise only is near 0 at every
+    working distance."""
+    sweep = np.asarray(sweep)
+    frames, rows, cols = sweep.shape
+    kernel_rows, kernel_cols = rows // kernel, cols // kernel
+    statistics = np.empty((frames, kernel_rows, kernel_cols, 4))
+    for index in range(frames):  # one frame at a time in float32: a sweep can be large
+        frame = np.ascontiguousarray(sweep[index], dtype=np.float32)
+        _kernels.kernel_autocovariances(frame, kernel, statistics[index])
+    mean, zero_lag, lag1, lag2 = np.moveaxis(statistics, -1, 0)
+    scene = (4 * lag1 - lag2) / 3
+    positive = mean > 0
+    safe_mean = np.where(positive, mean, 1.0)
+    noise = np.where(positive, np.maximum(zero_lag - scene, 0.0) / safe_mean, 0.0)
+    # The split is exact for a scene smooth at the pixel scale (out of focus) but counts
+    # detail sharp at the pixel scale (in focus) as noise. The noise's share does not
+    # change with focus (shot noise goes with the kernel's mean, which focus keeps), so
+    # each kernel's is its median over the sweep, and the scene's is the rest of R(0).
+    floor = np.median(noise, axis=0)
+    signal = np.where(positive, zero_lag / safe_mean, 0.0) - floor
+    return FocusCurves(signal, np.broadcast_to(floor, noise.shape), kernel * kernel)
+
+
+def clear_focus_peaks(curves: FocusCurves, working_distances: np.ndarray) -> np.ndarray:
+    """Each kernel's depth from its noise-free focus curve (:func:`noise_free_focus_curves`):
+    the working distance of its peak, to a fraction of a step (the parabola through the
+    reciprocals, as :func:`focus_peaks`). NaN where the peak is not clear: at either end
+    of the sweep, not ``MIN_FOCUS_CONTRAST`` times the curve's lowest value, or not
+    ``CLEAR_PEAK_SIGMAS`` standard errors above it (the standard error of the scene's
+    variance estimated from ``pixels`` noisy pixels: about the noise's variance over the
+    square root of their number)."""
+    signal = curves.signal
+    frames = signal.shape[0]
+    best = np.argmax(signal, axis=0)
+    highest = np.take_along_axis(signal, best[np.newaxis], axis=0)[0]
+    lowest = signal.min(axis=0)
+    noise_at_peak = np.take_along_axis(curves.noise, best[np.newaxis], axis=0)[0]
+    standard_error = noise_at_peak / np.sqrt(curves.pixels)
+    inside = (best > 0) & (best < frames - 1)
+    clear = (inside & (highest > MIN_FOCUS_CONTRAST * np.maximum(lowest, 0.0))
+             & (highest - lowest > CLEAR_PEAK_SIGMAS * standard_error) & (highest > 0))
+    floor = 1e-6 * np.maximum(highest, 1e-300)
+    return focus_peaks(np.maximum(signal, floor), working_distances, assume_clear=clear)
+
+
+class PlaneFit(NamedTuple):
+    """A robust plane through the kernel depths (:func:`robust_plane`): depth = c + gx x +
+    gy y, the kernels' final weights (0: left out), the residuals' robust standard
+    deviation, and the coefficients' covariance."""
+
+    coefficients: np.ndarray
+    weights: np.ndarray
+    scale: float
+    covariance: np.ndarray
+
+
+def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations: int = 30) -> PlaneFit:
+    """The plane depth = c + gx x + gy y (x, y the kernel centres relative to the image
+    centre, in the sweep's unit) through the kernels with a depth, by iteratively
+    reweighted least squares with Tukey's biweight (``BIWEIGHT`` robust standard
+    deviations, the scale the median absolute residual), started from
+    :func:`fit_plane`: kernels whose depth is wrong by microns (a peak of noise, an
+    edge that entered the kernel) get no weight, those a little off a little less. The
+    covariance is the residual scale squared times (X^T W X)^-1."""
+    kernel_rows, kernel_cols = depths.shape
+    centre_y, centre_x = kernel_rows * kernel / 2, kernel_cols * kernel / 2
+    y = ((np.arange(kernel_rows) + 0.5) * kernel - centre_y) * pixel_size
+    x = ((np.arange(kernel_cols) + 0.5) * kernel - centre_x) * pixel_size
+    grid_y, grid_x = np.meshgrid(y, x, indexing="ij")
+    finite = np.isfinite(depths)
+    design = np.column_stack([np.ones(finite.sum()), grid_x[finite], grid_y[finite]])
+    values = depths[finite]
+    coefficients, _, _ = fit_plane(depths, kernel, pixel_size)
+    weights = np.ones(values.size)
+    scale = 0.0
+    for _ in range(iterations):
+        residuals = values - design @ coefficients
+        scale = 1.4826 * float(np.median(np.abs(residuals[weights > 0]))) if (weights > 0).any() else 0.0
+        if scale <= 0:
+            break
+        u = residuals / (BIWEIGHT * scale)
+        weights = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        if (weights > 0).sum() < 3:
+            break
+        weighted = design * weights[:, None]
+        updated = np.linalg.lstsq(weighted.T @ design, weighted.T @ values, rcond=None)[0]
+        if np.allclose(updated, coefficients, rtol=0, atol=1e-9 * max(1.0, float(np.abs(values).max()))):
+            coefficients = updated
+            break
+        coefficients = updated
+    all_weights = np.zeros(depths.shape)
+    all_weights[finite] = weights
+    used = weights > 0
+    if used.sum() >= 3 and scale > 0:
+        normal = (design[used] * weights[used, None]).T @ design[used]
+        covariance = scale**2 * np.linalg.pinv(normal)
+    else:
+        covariance = np.full((3, 3), np.inf)
+    return PlaneFit(coefficients, all_weights, scale, covariance)
 
 
 def fit_plane(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -179,20 +338,63 @@ def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32)
         raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}")
     if kernel < 4 or min(sweep.shape[1:]) < 2 * kernel:
         raise ValueError(f"{kernel} px kernels do not fit a {sweep.shape[2]} x {sweep.shape[1]} image twice")
-    depths = focus_peaks(focus_curves(sweep, kernel), working_distances)
+    depths = clear_focus_peaks(noise_free_focus_curves(sweep, kernel), working_distances)
+    return tilt_from_depths(depths, kernel, pixel_size, float(steps.mean()))
+
+
+def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: float) -> TiltEstimate:
+    """The two tilts from the kernel depths (NaN: no clear peak): a robust plane
+    (:func:`robust_plane`), or a refusal with the reason where the depths cannot pin it:
+
+    * too few kernels with a clear peak (``MIN_KERNELS``), or that the plane holds for;
+    * either tilt's standard error above ``MAX_TILT_UNCERTAINTY_DEG``: the kernels that
+      see focus are too few, bunched in part of the field, or scattered (the reason
+      says how much of the field they span);
+    * the depths scatter about the plane by more than ``MAX_SCATTER_STEPS`` sweep steps
+      (``step``): not one plane in focus.
+    """
     total = depths.size
     clear = int(np.isfinite(depths).sum())
+    nan = float("nan")
     if clear < MIN_KERNELS:
-        return TiltEstimate(float("nan"), float("nan"), float("nan"), clear, total, float("nan"), 0.0,
+        return TiltEstimate(nan, nan, nan, clear, total, nan, 0.0,
                             f"only {clear} of {total} kernels have a clear focus peak (at least {MIN_KERNELS} "
                             "are needed): flat content, or focus outside the sweep")
-    (centre, slope_x, slope_y), used, rms = fit_plane(depths, kernel, pixel_size)
+    plane = robust_plane(depths, kernel, pixel_size)
+    centre, slope_x, slope_y = plane.coefficients
+    used = plane.weights > 0
     alpha = float(np.degrees(np.arctan(slope_y)))
     beta = float(np.degrees(np.arctan(-slope_x * np.cos(np.arctan(slope_y)))))
-    # Trust falls as the depths scatter about the plane by a sizeable part of a step.
-    step = float(steps.mean())
-    confidence = float(np.exp(-rms / step)) if np.isfinite(rms) else 0.0
-    return TiltEstimate(alpha, beta, float(centre), int(used.sum()), total, rms, confidence)
+    # Standard errors: d alpha = d gy / (1 + gy^2); d beta ~ cos(alpha) d gx / (1 + cos^2 gx^2).
+    cos_alpha = np.cos(np.arctan(slope_y))
+    rows, cols = np.nonzero(used)
+    span_y = (np.ptp(rows) + 1) * kernel * pixel_size if rows.size else np.inf
+    span_x = (np.ptp(cols) + 1) * kernel * pixel_size if cols.size else np.inf
+    slope_y_error = np.hypot(np.sqrt(plane.covariance[2, 2]), SAMPLING_BIAS_STEPS * step / span_y)
+    slope_x_error = np.hypot(np.sqrt(plane.covariance[1, 1]), SAMPLING_BIAS_STEPS * step / span_x)
+    alpha_error = float(np.degrees(slope_y_error / (1 + slope_y**2)))
+    beta_error = float(np.degrees(slope_x_error * cos_alpha / (1 + (cos_alpha * slope_x) ** 2)))
+    estimate = TiltEstimate(alpha, beta, float(centre), int(used.sum()), total, plane.scale,
+                            float(np.exp(-plane.scale / step)) if np.isfinite(plane.scale) else 0.0, "",
+                            alpha_error, beta_error)
+
+    def refused(reason: str) -> TiltEstimate:
+        return TiltEstimate(nan, nan, estimate.centre_depth, estimate.kernels_used, total, estimate.residual, 0.0,
+                            reason, alpha_error, beta_error)
+
+    if used.sum() < MIN_KERNELS:
+        return refused(f"the plane holds for only {int(used.sum())} of the {clear} kernels with a clear focus peak "
+                       f"(at least {MIN_KERNELS} are needed)")
+    if max(alpha_error, beta_error) > MAX_TILT_UNCERTAINTY_DEG:
+        span = f"{(np.ptp(cols) + 1) / depths.shape[1]:.0%} x {(np.ptp(rows) + 1) / depths.shape[0]:.0%}"
+        return refused(f"the {int(used.sum())} kernels that see focus (of {total}, spanning {span} of the field) pin "
+                       f"the tilts to +-{alpha_error:.2f} and +-{beta_error:.2f} degree only (at most "
+                       f"{MAX_TILT_UNCERTAINTY_DEG:g}): too few, bunched, or scattered by "
+                       f"{plane.scale / step:.2f} sweep steps")
+    if plane.scale > MAX_SCATTER_STEPS * step:
+        return refused(f"the kernel depths scatter about the plane by {plane.scale / step:.2f} sweep steps (at most "
+                       f"{MAX_SCATTER_STEPS:g}): the scene is not one plane in focus")
+    return estimate
 
 
 # --------------------------------------------------------------------------------------
@@ -209,9 +411,11 @@ EGI_GRID = 141
 
 
 def depth_map(sweep, working_distances, kernel: int = 32) -> np.ndarray:
-    """Each kernel's depth (NaN where it has no clear focus peak): eq. 13 and the peak
-    fit, the first step of both methods."""
-    return focus_peaks(focus_curves(np.asarray(sweep), kernel), np.asarray(working_distances, dtype=np.float64))
+    """Each kernel's depth (NaN where it has no clear focus peak): eq. 13 without the
+    noise's share and the peak fit (:func:`noise_free_focus_curves`,
+    :func:`clear_focus_peaks`), the first step of both methods."""
+    return clear_focus_peaks(noise_free_focus_curves(np.asarray(sweep), kernel),
+                             np.asarray(working_distances, dtype=np.float64))
 
 
 def kernel_normals(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.ndarray, np.ndarray]:

@@ -6,13 +6,31 @@ confidence comes from.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from semservo import _kernels
+from semservo.estimation import _kernels
 
 #: Sidelobe exclusion half-width for the peak-to-sidelobe ratio (an 11 x 11 box).
 PSR_EXCLUSION = 5
+
+
+class Shift(NamedTuple):
+    """A displacement in pixels, rows first as numpy indexes (sign convention:
+    :mod:`semservo.estimation`)."""
+
+    dy: float
+    dx: float
+
+
+class BandFit(NamedTuple):
+    """:func:`refine_on_band`'s answer: the sub-pixel shift and, when asked for, the
+    normalized correlation there (NaN when not)."""
+
+    dy: float
+    dx: float
+    correlation: float
 
 
 def normalized_cross_power(current_spectrum: np.ndarray, reference_conjugate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,6 +89,10 @@ class PhasePlaneBand:
     frequency_cols: np.ndarray  # cycles/pixel of the first columns
     weights: np.ndarray  # (rows, cols)
 
+    @property
+    def total_weight(self) -> float:
+        return float(self.weights.sum())
+
     @classmethod
     def for_shape(cls, shape: tuple[int, int], band: float, extra_weight: np.ndarray | None = None) -> "PhasePlaneBand":
         rows, cols = shape
@@ -107,7 +129,7 @@ def crop_spectrum_into(spectrum: np.ndarray, out: np.ndarray) -> np.ndarray:
 
 def refine_on_band(current_spectrum: np.ndarray, reference_conjugate: np.ndarray, band: PhasePlaneBand,
                    shift: tuple[float, float], iterations: int = 8, tolerance: float = 1e-3,
-                   workspace: np.ndarray | None = None, with_correlation: bool = False) -> tuple:
+                   workspace: np.ndarray | None = None, with_correlation: bool = False) -> BandFit:
     """Sub-pixel shift (dy, dx) by Newton's method on the band-limited correlation surface.
 
     The cross-power spectrum C = G conj(F) has phase -2 pi (u dx + v dy) (eq. 18), so
@@ -119,9 +141,9 @@ def refine_on_band(current_spectrum: np.ndarray, reference_conjugate: np.ndarray
     This is also the paper's "first way" of solving eq. 18, the fit of the phase plane,
     weighted by the spectral magnitude.
 
-    Returns (dy, dx), or (dy, dx, correlation) with ``with_correlation``: the
+    Returns :class:`BandFit` (dy, dx, correlation): with ``with_correlation`` the
     normalized cross-correlation of the band-limited images at that shift (1 for a
-    noise-free copy moved by a whole number of pixels).
+    noise-free copy moved by a whole number of pixels), else NaN.
     """
     if workspace is None:
         workspace = np.empty(band.weights.shape, np.complex128)
@@ -129,4 +151,4 @@ def refine_on_band(current_spectrum: np.ndarray, reference_conjugate: np.ndarray
         current_spectrum, reference_conjugate, band.rows, band.frequency_rows, band.frequency_cols,
         band.weights, float(shift[0]), float(shift[1]), iterations, tolerance, workspace, with_correlation,
     )
-    return (dy, dx, correlation) if with_correlation else (dy, dx)
+    return BandFit(dy, dx, correlation if with_correlation else float("nan"))

@@ -10,6 +10,9 @@
   sweep's grid; gamma from one frame at the nominal focus, raw and with the measured
   tilts' foreshortening undone; frames, simulated scan time and compute time.
 * :func:`depth_of_field_scan`: how the plane fit's error grows with the depth of field.
+* Both also run on a real SEM image as the sample (:class:`TextureLab`, sweeps made by
+  :mod:`semservo.focus_sweeps`, a defocus model written apart from the simulator):
+  ``bench/tilt_real.py``.
 * :func:`five_dof_runs`: 5-DOF runs through the whole stack (real services on loopback,
   the fake lab sped up), with the true final errors from the simulator;
   :func:`plot_fig8` plots one like the paper's Fig. 8.
@@ -54,42 +57,91 @@ def random_starts(rng: np.random.Generator, count: int) -> list[tuple[float, flo
 
 
 class Lab:
-    """The tilts preset's SEM, imaged at static poses."""
+    """The tilts preset's SEM, imaged at static poses ((alpha, beta, gamma) in degrees).
 
-    def __init__(self, seed: int = 2013):
+    What :func:`table_one` and :func:`depth_of_field_scan` need of a lab: ``pixel_um``,
+    ``field_um``, ``depth_of_field_um`` (what sweeps are planned with), ``frame_time_s``
+    (NaN: not known), ``frame(pose, working_distance_um)`` and ``sweep(pose,
+    working_distances)``; :class:`TextureLab` is the other one."""
+
+    def __init__(self, seed: int = 2013, depth_of_field_factor: float = 1.0):
         self.world = World(PRESETS["tilts"], speedup=1000.0, seed=seed)
+        # A smaller aperture (or a longer working distance): the depth of field grows.
+        self.world.sem.beam_half_angle /= depth_of_field_factor
+        self.depth_of_field_um = DEPTH_OF_FIELD_UM * depth_of_field_factor
         self.settings = ScanSettings(dwell_ns=PRESETS["tilts"].dwell_ns, magnification=PRESETS["tilts"].magnification)
         self.pixel_um = self.settings.pixel_um
         self.field_um = self.settings.cols * self.pixel_um
+        self.frame_time_s = self.settings.frame_time_s
         self.rng = np.random.default_rng(seed)
 
-    def frame(self, pose: Pose, working_distance_um: float = 0.0) -> np.ndarray:
+    def frame(self, pose: tuple[float, float, float], working_distance_um: float = 0.0) -> np.ndarray:
+        alpha, beta, gamma = pose
+        at = Pose(tilt_x_deg=alpha, tilt_y_deg=beta, rotation_deg=gamma)
         settings = replace(self.settings, working_distance_um=working_distance_um)
-        return self.world.sem.render(settings, [pose] * settings.rows, [pose] * settings.rows, self.rng)
+        return self.world.sem.render(settings, [at] * settings.rows, [at] * settings.rows, self.rng)
 
-    def sweep(self, pose: Pose, working_distances) -> np.ndarray:
+    def sweep(self, pose: tuple[float, float, float], working_distances) -> np.ndarray:
         return np.stack([self.frame(pose, distance) for distance in working_distances])
 
 
-def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print) -> dict:
+class TextureLab:
+    """A real SEM image as the sample, imaged at static poses by
+    :class:`semservo.focus_sweeps.TiltedTexture` (a defocus model written apart from the
+    simulator): the same interface as :class:`Lab`. ``electrons``: per grey level at full
+    scale (shot noise); the frame time is not known (NaN)."""
+
+    def __init__(self, texture: np.ndarray, model, pixel_um: float, shape: tuple[int, int] = (512, 512),
+                 seed: int = 2013, electrons: float = 1000.0, read_noise: float = 2.0):
+        from semservo.focus_sweeps import TiltedTexture
+
+        self._make = lambda pose: TiltedTexture(texture, model, pixel_um, shape=shape, pose=pose)
+        self.model, self.pixel_um, self.shape = model, pixel_um, shape
+        self.depth_of_field_um = model.depth_of_field_um
+        self.field_um = shape[1] * pixel_um
+        self.frame_time_s = math.nan
+        self.electrons, self.read_noise = electrons, read_noise
+        self.rng = np.random.default_rng(seed)
+        self._pose, self._scene = None, None
+
+    def _scene_at(self, pose: tuple[float, float, float]):
+        if self._pose != tuple(pose):  # a pose's blurred views are kept for its next frames
+            self._pose, self._scene = tuple(pose), self._make(tuple(pose))
+        return self._scene
+
+    def frame(self, pose: tuple[float, float, float], working_distance_um: float = 0.0) -> np.ndarray:
+        return self._scene_at(pose).frame(working_distance_um, self.rng, self.electrons, self.read_noise)
+
+    def sweep(self, pose: tuple[float, float, float], working_distances) -> np.ndarray:
+        return self._scene_at(pose).sweep(working_distances, self.rng, self.electrons, self.read_noise)
+
+
+def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print,
+              lab=None) -> dict:
     """Table I on ``poses`` ((alpha, beta, gamma) in degrees), each against a reference
     taught at (0, 0, 0): per pose, the errors (measured - true) of both methods, signs,
-    frames, simulated scan time and compute time (see the module's text)."""
-    lab = Lab(seed)
-    reference_sweep = plan_sweep(0.0, DEPTH_OF_FIELD_UM, lab.field_um)
+    frames, simulated scan time and compute time (see the module's text). ``lab``: the
+    simulated SEM's tilts preset (:class:`Lab`) unless given (e.g. :class:`TextureLab`).
+    A sweep whose estimate is refused (confidence 0) counts as refused, its reason kept;
+    the rest of the pose is still measured."""
+    lab = Lab(seed) if lab is None else lab
+    depth_of_field = lab.depth_of_field_um
+    reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
     grid = (reference_sweep[0], reference_sweep[1] - reference_sweep[0])
-    taught_sweep = lab.sweep(Pose(), reference_sweep)
+    taught_sweep = lab.sweep((0.0, 0.0, 0.0), reference_sweep)
     taught = estimate_tilt(taught_sweep, reference_sweep, lab.pixel_um)
     taught_depths = depth_map(taught_sweep, reference_sweep)
-    reference_frame = lab.frame(Pose())
+    reference_frame = lab.frame((0.0, 0.0, 0.0))
     rotation = MotionEstimator(reference_frame, rotation=True)
-    frame_time = lab.settings.frame_time_s
+    frame_time = lab.frame_time_s
     rows = []
     started = time.monotonic()
+    taught_centre = taught.centre_depth if np.isfinite(taught.centre_depth) else 0.0
+    taught_tilts = (np.nan_to_num(taught.alpha_deg), np.nan_to_num(taught.beta_deg))
     for index, (alpha, beta, gamma) in enumerate(poses, 1):
-        pose = Pose(tilt_x_deg=alpha, tilt_y_deg=beta, rotation_deg=gamma)
-        first_sweep = plan_sweep(taught.centre_depth, DEPTH_OF_FIELD_UM, lab.field_um, grid=grid,
-                                 max_tilt_deg=15.0 + max(abs(taught.alpha_deg), abs(taught.beta_deg)))
+        pose = (alpha, beta, gamma)
+        first_sweep = plan_sweep(taught_centre, depth_of_field, lab.field_um, grid=grid,
+                                 max_tilt_deg=15.0 + max(map(abs, taught_tilts)))
         frames = lab.sweep(pose, first_sweep)
         clock = time.perf_counter()
         plane = estimate_tilt(frames, first_sweep, lab.pixel_um)
@@ -97,48 +149,62 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         clock = time.perf_counter()
         egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep), 32, lab.pixel_um)
         egi_ms = (time.perf_counter() - clock) * 1e3
-        tracking_sweep = plan_sweep(plane.centre_depth, DEPTH_OF_FIELD_UM, lab.field_um,
-                                    tilt_deg=(plane.alpha_deg, plane.beta_deg), grid=grid)
-        tracked = estimate_tilt(lab.sweep(pose, tracking_sweep), tracking_sweep, lab.pixel_um)
+        refused = plane.confidence <= 0 or taught.confidence <= 0
+        measured_alpha, measured_beta = plane.alpha_deg - taught.alpha_deg, plane.beta_deg - taught.beta_deg
+        if refused:
+            tracked, tracking_sweep = plane, first_sweep
+        else:
+            tracking_sweep = plan_sweep(plane.centre_depth, depth_of_field, lab.field_um,
+                                        tilt_deg=(plane.alpha_deg, plane.beta_deg), grid=grid)
+            tracked = estimate_tilt(lab.sweep(pose, tracking_sweep), tracking_sweep, lab.pixel_um)
         nominal = lab.frame(pose)
         raw = rotation.estimate(nominal).rotation_deg
-        measured_alpha, measured_beta = plane.alpha_deg - taught.alpha_deg, plane.beta_deg - taught.beta_deg
-        compensated = rotation.estimate(undo_foreshortening(nominal, measured_alpha, measured_beta)).rotation_deg
+        compensated = (rotation.estimate(undo_foreshortening(nominal, measured_alpha, measured_beta)).rotation_deg
+                       if not refused else math.nan)
         rows.append({
             "pose": [alpha, beta, gamma],
+            "refused": bool(refused), "reason": plane.reason or taught.reason,
             "plane": [measured_alpha - alpha, measured_beta - beta],
+            "plane_uncertainty": [getattr(plane, "alpha_uncertainty_deg", math.nan),
+                                  getattr(plane, "beta_uncertainty_deg", math.nan)],
             "plane_tracking": [tracked.alpha_deg - taught.alpha_deg - alpha, tracked.beta_deg - taught.beta_deg - beta],
+            "tracking_refused": bool(tracked.confidence <= 0),
             "egi": [egi_alpha - alpha, egi_beta - beta],
             "gamma_raw": raw - gamma, "gamma_compensated": compensated - gamma,
-            "signs_plane": [_sign_ok(measured_alpha, alpha), _sign_ok(measured_beta, beta)],
+            "signs_plane": [_sign_ok(measured_alpha, alpha), _sign_ok(measured_beta, beta)] if not refused
+            else [None, None],
             "signs_egi": [_sign_ok(egi_alpha, alpha), _sign_ok(egi_beta, beta)],
             "frames_first": len(first_sweep), "frames_tracking": len(tracking_sweep),
             "scan_s_first": len(first_sweep) * frame_time, "scan_s_tracking": len(tracking_sweep) * frame_time,
             "plane_ms": plane_ms, "egi_ms": egi_ms, "kernels_used": plane.kernels_used,
         })
         left = (time.monotonic() - started) / index * (len(poses) - index)
-        say(f"  pose {index:2d}/{len(poses)} ({alpha:6.2f}, {beta:6.2f}, {gamma:6.1f}): plane "
-            f"{rows[-1]['plane'][0]:+.3f} {rows[-1]['plane'][1]:+.3f}, egi {rows[-1]['egi'][0]:+.3f} "
-            f"{rows[-1]['egi'][1]:+.3f}, gamma {rows[-1]['gamma_compensated']:+.4f} ({left:.0f} s left)")
-    return {"taught": [taught.alpha_deg, taught.beta_deg], "frame_time_s": frame_time, "rows": rows}
+        outcome = (f"refused ({plane.reason or taught.reason})" if refused else
+                   f"plane {rows[-1]['plane'][0]:+.3f} {rows[-1]['plane'][1]:+.3f}")
+        say(f"  pose {index:2d}/{len(poses)} ({alpha:6.2f}, {beta:6.2f}, {gamma:6.1f}): {outcome}, egi "
+            f"{rows[-1]['egi'][0]:+.3f} {rows[-1]['egi'][1]:+.3f}, gamma {rows[-1]['gamma_compensated']:+.4f} "
+            f"({left:.0f} s left)")
+    return {"taught": [taught.alpha_deg, taught.beta_deg], "taught_reason": taught.reason, "frame_time_s": frame_time,
+            "rows": rows}
 
 
 def depth_of_field_scan(poses: list[tuple[float, float, float]], seed: int, factors=(1.0, 2.0, 4.0, 8.0),
-                        say: Callable[[str], None] = print) -> list[dict]:
+                        say: Callable[[str], None] = print, lab_for: Callable[[float], object] | None = None
+                        ) -> list[dict]:
     """The plane fit's error as the depth of field grows (a smaller aperture or a longer
-    working distance): the beam half-angle divided by each factor, the sweeps scaled to
-    the depth of field."""
+    working distance): ``lab_for(factor)`` is the lab with its depth of field that many
+    times larger (the simulated SEM's beam half-angle divided by it, unless given); the
+    sweeps are scaled to the depth of field."""
+    lab_for = (lambda factor: Lab(seed, depth_of_field_factor=factor)) if lab_for is None else lab_for
     rows = []
     for factor in factors:
-        lab = Lab(seed)
-        lab.world.sem.beam_half_angle /= factor
-        depth_of_field = DEPTH_OF_FIELD_UM * factor
+        lab = lab_for(factor)
+        depth_of_field = lab.depth_of_field_um
         reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
-        taught = estimate_tilt(lab.sweep(Pose(), reference_sweep), reference_sweep, lab.pixel_um)
+        taught = estimate_tilt(lab.sweep((0.0, 0.0, 0.0), reference_sweep), reference_sweep, lab.pixel_um)
         errors, signs, refused = [], [], 0
         for alpha, beta, gamma in poses:
-            measured = estimate_tilt(lab.sweep(Pose(tilt_x_deg=alpha, tilt_y_deg=beta, rotation_deg=gamma),
-                                               reference_sweep), reference_sweep, lab.pixel_um)
+            measured = estimate_tilt(lab.sweep((alpha, beta, gamma), reference_sweep), reference_sweep, lab.pixel_um)
             if measured.confidence <= 0 or taught.confidence <= 0:
                 refused += 1
                 continue
@@ -160,23 +226,31 @@ def _sign_ok(measured: float, true: float) -> bool | None:
 
 
 def summarize(result: dict) -> dict:
-    """:func:`table_one`'s rows summed up per method: |error| mean and max per angle, sign
-    errors, frames, scan and compute time."""
+    """:func:`table_one`'s rows summed up per method: |error| mean and max per angle over
+    the poses not refused, sign errors, refusals, frames, scan and compute time."""
     rows = result["rows"]
+    measured = [row for row in rows if not row.get("refused")] or [None]
 
-    def stats(key, index=None):
-        values = np.abs([row[key] if index is None else row[key][index] for row in rows])
+    def stats(key, index=None, among=None):
+        among = [row for row in (among if among is not None else rows) if row is not None]
+        values = np.abs([row[key] if index is None else row[key][index] for row in among]) if among else []
+        values = np.asarray(values, dtype=float)
+        values = values[np.isfinite(values)]
+        if not values.size:
+            return {"mean": math.nan, "max": math.nan}
         return {"mean": float(values.mean()), "max": float(values.max())}
 
-    summary = {}
-    for method in ("plane", "plane_tracking", "egi"):
-        summary[method] = {"alpha": stats(method, 0), "beta": stats(method, 1)}
+    summary = {"refused": sum(bool(row.get("refused")) for row in rows), "poses": len(rows),
+               "reasons": sorted({row["reason"] for row in rows if row.get("refused")})}
+    for method in ("plane", "plane_tracking"):
+        summary[method] = {"alpha": stats(method, 0, measured), "beta": stats(method, 1, measured)}
+    summary["egi"] = {"alpha": stats("egi", 0), "beta": stats("egi", 1)}
     for method in ("plane", "egi"):
         flags = [flag for row in rows for flag in row[f"signs_{method}"] if flag is not None]
         summary[method]["sign_errors"] = int(sum(not flag for flag in flags))
         summary[method]["signs_checked"] = len(flags)
     summary["gamma_raw"] = stats("gamma_raw")
-    summary["gamma_compensated"] = stats("gamma_compensated")
+    summary["gamma_compensated"] = stats("gamma_compensated", among=measured)
     for key in ("frames_first", "frames_tracking", "scan_s_first", "scan_s_tracking", "plane_ms", "egi_ms"):
         summary[key] = {"mean": float(np.mean([row[key] for row in rows])), "max": float(np.max([row[key] for row in rows]))}
     return summary
@@ -184,28 +258,48 @@ def summarize(result: dict) -> dict:
 
 # -- 5-DOF runs through the whole stack ----------------------------------------
 
+#: A 5-DOF run's settings (the README's Fig. 8 table): tolerances 0.3 px, 0.05 degree of
+#: gamma and 0.1 of tilt, at most 4 degrees per turn or tilt command.
+RUN_SETTINGS = {"tolerance_px": 0.3, "tolerance_deg": 0.05, "tolerance_tilt_deg": 0.1, "max_iterations": 600,
+                "max_turn_deg": 4.0}
+
+
 def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: float = 20.0,
-                  say: Callable[[str], None] = print) -> list[dict]:
+                  say: Callable[[str], None] = print, *, environment: dict[str, str] | None = None,
+                  run_settings: dict | None = None) -> list[dict]:
     """5-DOF runs through the whole stack on simulated hardware (started here, on fresh
-    loopback ports, its records in ``folder`` or a temporary one): one teach (frames and a
-    focus sweep) at the start pose, then per entry of ``initial`` (alpha, beta, gamma in
-    degrees, x, y in um, from the taught pose) a displacement and a run servoing x, y,
-    gamma, alpha and beta; ``say`` is told once per run. Each result carries the run's
-    state, iterations, wall time, the simulator's true final errors and the trajectory."""
+    loopback ports, its records in ``folder`` or a temporary one; ``environment``: more
+    SEMSERVO_* settings, e.g. a sample image): one teach (frames and a focus sweep) at the
+    start pose, then per entry of ``initial`` (alpha, beta, gamma in degrees, x, y in um,
+    from the taught pose) a displacement and a run servoing x, y, gamma, alpha and beta
+    (``run_settings`` over :data:`RUN_SETTINGS`); ``say`` is told once per run. Each result
+    carries the run's state, iterations, wall time, the simulator's true final errors
+    (``truth``: the stage against the taught pose; ``view_error_px``: how far the content
+    at the taught view's centre is from the centre, what the image shows, the tilt
+    cradle's pivot included) and the trajectory."""
     from semservo.client import Client
+    from semservo.config import connect
     from semservo.launcher import simulated_system
+    from semservo.transport import ControlClient
 
     if folder is None:
         with tempfile.TemporaryDirectory() as temporary:
-            return five_dof_runs(initial, Path(temporary), speedup, say)
+            return five_dof_runs(initial, Path(temporary), speedup, say, environment=environment,
+                                 run_settings=run_settings)
+    settings_of_runs = {**RUN_SETTINGS, **(run_settings or {})}
     results = []
-    with simulated_system(folder, speedup=speedup, SEMSERVO_FAKELAB__PRESET="tilts") as (_launcher, settings):
+    variables = {"SEMSERVO_FAKELAB__PRESET": "tilts", **(environment or {})}
+    with simulated_system(folder, speedup=speedup, **variables) as (_launcher, settings):
         lab = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=60)
+        fakelab = ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port), timeout_s=10, retries=2)
         try:
             deadline = time.monotonic() + 60
             while lab.status()["latest_frame_seq"] is None and time.monotonic() < deadline:
                 time.sleep(0.2)
-            lab.teach(frames=4, tilts=True)
+            reference = lab.teach(frames=4, tilts=True)
+            # The taught pose: over the scans of the frames the reference was made from.
+            scanned = reference.get("source_interval_s") or (reference.get("detail") or {}).get("source_interval_s")
+            taught_pose = _pose(fakelab.request("pose", interval_s=scanned)) if scanned else None
             taught = lab.stage()
             angles, positions = taught["rotation"]["angles_deg"], taught["positions_um"]
             for index, (alpha, beta, gamma, x_um, y_um) in enumerate(initial, 1):
@@ -215,25 +309,52 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
                 lab.rotate(relative=False, **{key: angles[key] + value for key, value in targets.items()})
                 time.sleep(25.0 / speedup + 0.5)  # let the stage arrive (4 degrees per second at most)
                 started = time.monotonic()
-                run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], tolerance_px=0.3, tolerance_deg=0.05,
-                                tolerance_tilt_deg=0.1, max_iterations=600, max_turn_deg=4.0)
+                run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
                 record = lab.wait(run["run_id"], timeout=900)
                 truth = record.get("truth") or {}
+                view = _view_error(fakelab, record, taught_pose)
                 results.append({"initial": [alpha, beta, gamma, x_um, y_um], "state": record["state"],
                                 "reason": record.get("reason"), "iterations": record["iterations"],
-                                "wall_s": time.monotonic() - started, "truth": truth,
+                                "wall_s": time.monotonic() - started, "truth": truth, "view_error_px": view,
                                 "tilt_iterations": sum(1 for r in record["trajectory"] if r.get("tilt_action") == "moved"),
                                 "trajectory": record["trajectory"]})
                 error = truth.get("error_deg", {})
+                view_text = f"view {math.hypot(*view):.3f} px" if view else "view unknown"
                 say(f"  run {index:2d}/{len(initial)} from ({alpha:+.1f}, {beta:+.1f}, {gamma:+.1f}) deg, ({x_um:+.1f}, "
                     f"{y_um:+.1f}) um: {record['state']} after {record['iterations']} iterations, "
                     f"{results[-1]['wall_s']:.0f} s; true error alpha {error.get('tilt_x_deg', math.nan):+.3f}, beta "
                     f"{error.get('tilt_y_deg', math.nan):+.3f}, gamma {error.get('rotation_deg', math.nan):+.4f} deg, "
-                    f"{truth.get('error_norm_px', math.nan):.2f} px"
+                    f"stage {truth.get('error_norm_px', math.nan):.2f} px, {view_text}"
                     + ("" if record["state"] == "converged" else f"\n    reason: {record.get('reason')}"))
         finally:
+            fakelab.close()
             lab.close()
     return results
+
+
+def _pose(answer: dict) -> Pose:
+    return Pose(**{key: float(answer[key]) for key in ("x_um", "y_um", "z_um", "rotation_deg", "tilt_x_deg",
+                                                        "tilt_y_deg")})
+
+
+def _view_error(fakelab, record: dict, taught: Pose | None) -> list[float] | None:
+    """The image-plane error (px) where the run left the sample: over the scans of the
+    frames after its last move (not scanned during it), where the content at the taught
+    view's centre is, from the simulator's true poses
+    (:func:`semservo.simulation.sem.view_error_px`); None when unknown."""
+    from semservo.simulation.sem import view_error_px
+
+    records = record.get("trajectory", [])
+    last_move = max((index for index, r in enumerate(records) if r.get("action") == "moved"
+                     or r.get("tilt_action") == "moved"), default=-1)
+    resting = [r for r in records[last_move + 1:] if r.get("frame_source_interval_s")
+               and not str(r.get("action", "")).startswith("held")] or \
+        [r for r in records[-1:] if r.get("frame_source_interval_s")]
+    if taught is None or not resting or not resting[-1].get("pixel_size_nm"):
+        return None
+    final = _pose(fakelab.request("pose", interval_s=[resting[0]["frame_source_interval_s"][0],
+                                                      resting[-1]["frame_source_interval_s"][1]]))
+    return list(view_error_px(final, taught, resting[-1]["pixel_size_nm"] / 1000))
 
 
 def plot_fig8(run: dict, path: Path) -> None:

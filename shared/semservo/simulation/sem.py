@@ -27,6 +27,7 @@ and per-pixel bilinear sampling (cv2.remap), so a frame never re-rasterizes the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -108,6 +109,46 @@ class Pose:
     tilt_y_deg: float = 0.0
 
 
+def sample_point(pose: Pose, image_x_um: float, image_y_um: float,
+                 pivot_depth_um: float = PIVOT_DEPTH_UM) -> tuple[float, float]:
+    """The sample point (um, the sample's own coordinates) that the image point
+    (``image_x_um``, ``image_y_um``, from the image centre) shows at ``pose``: the
+    geometry :meth:`SEM.render` maps every pixel through (stage shift, the tilt cradle
+    about its pivot, seen orthographically, then the turn about the beam)."""
+    alpha, beta = math.radians(pose.tilt_x_deg), math.radians(pose.tilt_y_deg)
+    relative_x, relative_y = image_x_um - pose.x_um, image_y_um - pose.y_um
+    u = (relative_x + pivot_depth_um * math.sin(beta)) / math.cos(beta)
+    v = (relative_y - math.sin(alpha) * math.sin(beta) * u - pivot_depth_um * math.sin(alpha) * math.cos(beta)) \
+        / math.cos(alpha)
+    theta = math.radians(pose.rotation_deg)
+    return math.cos(theta) * u - math.sin(theta) * v, math.sin(theta) * u + math.cos(theta) * v
+
+
+def image_point(pose: Pose, sample_x_um: float, sample_y_um: float,
+                pivot_depth_um: float = PIVOT_DEPTH_UM) -> tuple[float, float]:
+    """Where the sample point (um) appears in the image at ``pose`` (um from the image
+    centre): the inverse of :func:`sample_point`."""
+    theta = math.radians(pose.rotation_deg)
+    u = math.cos(theta) * sample_x_um + math.sin(theta) * sample_y_um
+    v = -math.sin(theta) * sample_x_um + math.cos(theta) * sample_y_um
+    alpha, beta = math.radians(pose.tilt_x_deg), math.radians(pose.tilt_y_deg)
+    relative_x = u * math.cos(beta) - pivot_depth_um * math.sin(beta)
+    relative_y = (v * math.cos(alpha) + math.sin(alpha) * math.sin(beta) * u
+                  + pivot_depth_um * math.sin(alpha) * math.cos(beta))
+    return relative_x + pose.x_um, relative_y + pose.y_um
+
+
+def view_error_px(pose: Pose, taught: Pose, pixel_um: float,
+                  pivot_depth_um: float = PIVOT_DEPTH_UM) -> tuple[float, float]:
+    """How far (px, x right and y down) the sample point at the image centre in the
+    ``taught`` pose has moved in the image at ``pose``: the positioning error the image
+    shows. Without tilts it is the stage's error; with tilts it also holds the view
+    shift of the tilt cradle's pivot, which x and y make up for."""
+    point = sample_point(taught, 0.0, 0.0, pivot_depth_um)
+    x_um, y_um = image_point(pose, *point, pivot_depth_um)
+    return x_um / pixel_um, y_um / pixel_um
+
+
 @dataclass
 class _BlurStack:
     sample: Sample
@@ -124,15 +165,18 @@ class SEM:
     beam_half_angle: float = BEAM_HALF_ANGLE  # a larger aperture or shorter WD: less DoF
     working_distance_mm: float = NOMINAL_WORKING_DISTANCE_MM  # nominal: an aperture becomes a half-angle here
     pivot_depth_um: float = PIVOT_DEPTH_UM  # the tilt axes' depth below the surface
+    #: A real picture as the sample (:class:`semservo.simulation.sample_image.SampleImage`)
+    #: instead of the built-in ``scene``.
+    sample_image: object | None = None
     _stacks: dict = field(default_factory=dict)
     charge: np.ndarray = field(default_factory=lambda: np.zeros((64, 64), np.float32))
 
     @classmethod
-    def for_preset(cls, preset, seed: int) -> "SEM":
-        """The SEM of a :class:`semservo.simulation.world.Preset`: its scene, aperture
-        and working distance."""
+    def for_preset(cls, preset, seed: int, sample_image=None) -> "SEM":
+        """The SEM of a :class:`semservo.simulation.world.Preset`: its scene (or a real
+        picture as the sample), aperture and working distance."""
         return cls(preset.scene, seed, beam_half_angle=beam_half_angle(preset.aperture_um, preset.working_distance_mm),
-                   working_distance_mm=preset.working_distance_mm)
+                   working_distance_mm=preset.working_distance_mm, sample_image=sample_image)
 
     def half_angle(self, settings: ScanSettings) -> float:
         """The beam half-angle of this scan: its aperture's, or the SEM's own."""
@@ -149,8 +193,11 @@ class SEM:
             pixel = settings.pixel_um
             field_um = pixel * max(settings.rows, settings.cols)
             # Room for start offsets of a quarter field, stage travel and drift.
-            extent = self.extent_um or max(2.2 * field_um, field_um + 60.0)
-            sample = rasterize(self.scene, pixel / 2, extent, self.seed)
+            if self.sample_image is not None:
+                sample = self.sample_image.rasterize(pixel / 2, self.extent_um or self.sample_image.extent_um(field_um))
+            else:
+                extent = self.extent_um or max(2.2 * field_um, field_um + 60.0)
+                sample = rasterize(self.scene, pixel / 2, extent, self.seed)
             levels = []
             for sigma_px in BLUR_LEVELS_PX:
                 sigma_grid = 2 * np.hypot(sigma_px, settings.probe_sigma_px)

@@ -14,7 +14,7 @@ import math
 import threading
 import time
 import uuid
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -71,6 +71,21 @@ PRESETS = {
 }
 
 
+def image_preset(preset: Preset, sample) -> Preset:
+    """``preset`` with a real picture as its sample
+    (:class:`semservo.simulation.sample_image.SampleImage`): its optics, dwell, levels and
+    reference, but the picture's scale (the magnification whose scan has the picture's
+    pixel, or a finer one where a frame would not fit; see ``default_magnification``) and
+    focus on the picture's median height. Refused (SampleImageError) when the picture
+    cannot give even that scan."""
+    magnification = sample.default_magnification()
+    sample.check_scan(magnification, 512, 512)
+    return replace(preset, scene=f"image:{sample.name}", magnification=magnification,
+                   focus_um=0.0 - sample.median_height_um + 0.0,
+                   description=f"{preset.description}; sample: the picture {sample.name} "
+                               f"({sample.pixel_um * 1000:.4g} nm/px, scanned at x{magnification:.4g})")
+
+
 @dataclass
 class Disturbances:
     """Thermal drift (um/s, simulated time) and vibration (sum of sinusoids)."""
@@ -98,6 +113,9 @@ class World:
     seed: int = 2013
     disturbances: Disturbances = field(default_factory=Disturbances)
     clock: callable = time.monotonic
+    #: A real picture as the sample (:mod:`semservo.simulation.sample_image`), under any
+    #: preset's optics; None: the preset's own scene.
+    sample_image: object | None = None
 
     def __post_init__(self):
         self.lock = threading.RLock()
@@ -112,7 +130,10 @@ class World:
         # Which world this is: truths measured across a restart of the simulator compare
         # two different worlds, and must be refused rather than computed.
         self.id = uuid.uuid4().hex[:12]
-        self.sem = SEM.for_preset(self.preset, self.seed)
+        self.base_preset = self.preset
+        if self.sample_image is not None:
+            self.preset = image_preset(self.preset, self.sample_image)
+        self.sem = SEM.for_preset(self.preset, self.seed, self.sample_image)
         self.rng = np.random.default_rng(self.seed)
         self.frames = 0
 
@@ -171,12 +192,18 @@ class World:
             )
 
     # -- the SEM -------------------------------------------------------------------
+    def set_preset(self, preset: Preset) -> None:
+        """Image under another of the paper's conditions (the sample image, if any, stays
+        the sample). Waits for a frame being rendered with the old SEM."""
+        chosen = image_preset(preset, self.sample_image) if self.sample_image is not None else preset
+        with self.lock, self.render_lock:
+            self.base_preset, self.preset = preset, chosen
+            self.sem = SEM.for_preset(chosen, self.seed, self.sample_image)
+
     def levels(self, t: float, settings: ScanSettings) -> ScanSettings:
         """Brightness and contrast as they are at ``t`` (the unstable preset drifts)."""
         if not self.preset.unstable_levels:
             return settings
-        from dataclasses import replace
-
         return replace(settings, contrast=settings.contrast * (1 + 0.35 * math.sin(2 * math.pi * t / 9.0)),
                        brightness=settings.brightness + 0.12 * math.sin(2 * math.pi * t / 13.0 + 1))
 
@@ -218,4 +245,5 @@ class World:
 
     def describe(self) -> dict:
         return {"world_id": self.id, "preset": asdict(self.preset), "speedup": self.speedup, "frames": self.frames,
+                "sample_image": self.sample_image.describe() if self.sample_image is not None else None,
                 "rotation_stage": self.rotation_stage, "rotation_stage_targets": self.goniometer.targets()}

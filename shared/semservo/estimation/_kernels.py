@@ -2,8 +2,10 @@
 
 Each is one pass over the data where numpy would make several (and allocate between
 them); the FFTs themselves stay with FFTW. They are private helpers of
-:mod:`semservo.estimation`, which documents what they compute and cites the paper.
-Compiled code is cached on disk (``cache=True``), so only the first run pays the JIT.
+:mod:`semservo.estimation` (this package), whose modules document what they compute
+and cite the paper. Compiled code is cached on disk (``cache=True``: numba keeps it in
+this package's ``__pycache__``; under ``NUMBA_CACHE_DIR`` when that is set, or numba's
+user-wide cache when the package is not writable), so only the first run pays the JIT.
 """
 
 from __future__ import annotations
@@ -381,3 +383,52 @@ def normalized_angular_cross_into(current: np.ndarray, reference_conjugates: np.
             value = accumulator[j]
             magnitude = max(abs(value), 1e-30)
             out[j] += value / magnitude * ramps[k, j]
+
+
+@_jit
+def kernel_autocovariances(frame: np.ndarray, kernel: int, out: np.ndarray) -> None:
+    """For each ``kernel`` x ``kernel`` block of ``frame`` (whole blocks only): out[r, c] =
+    (mean, autocovariance at lag 0, at lag 1, at lag 2), the lags averaged over the
+    row and column directions and taken within the block, about the block's mean."""
+    kernel_rows, kernel_cols = out.shape[0], out.shape[1]
+    count = kernel * kernel
+    pairs1 = kernel * (kernel - 1)
+    pairs2 = kernel * (kernel - 2)
+    for block_row in range(kernel_rows):
+        top = block_row * kernel
+        for block_col in range(kernel_cols):
+            left = block_col * kernel
+            total = 0.0
+            for y in range(top, top + kernel):
+                for x in range(left, left + kernel):
+                    total += frame[y, x]
+            mean = total / count
+            zero = along1 = along2 = down1 = down2 = 0.0
+            for y in range(top, top + kernel):
+                for x in range(left, left + kernel):
+                    c = frame[y, x] - mean
+                    zero += c * c
+                    if x + 1 < left + kernel:
+                        along1 += c * (frame[y, x + 1] - mean)
+                    if x + 2 < left + kernel:
+                        along2 += c * (frame[y, x + 2] - mean)
+                    if y + 1 < top + kernel:
+                        down1 += c * (frame[y + 1, x] - mean)
+                    if y + 2 < top + kernel:
+                        down2 += c * (frame[y + 2, x] - mean)
+            out[block_row, block_col, 0] = mean
+            out[block_row, block_col, 1] = zero / count
+            out[block_row, block_col, 2] = (along1 + down1) / (2 * pairs1)
+            out[block_row, block_col, 3] = (along2 + down2) / (2 * pairs2)
+
+
+@_jit
+def band_power(spectrum: np.ndarray, band_rows: np.ndarray, weights: np.ndarray) -> float:
+    """sum of weights[i, j] |spectrum[band_rows[i], j]|^2 over the band (float64)."""
+    total = 0.0
+    for i in range(band_rows.size):
+        row = band_rows[i]
+        for j in range(weights.shape[1]):
+            value = spectrum[row, j]
+            total += weights[i, j] * (value.real * value.real + value.imag * value.imag)
+    return total

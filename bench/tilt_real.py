@@ -1,0 +1,152 @@
+"""Tilts from focus on real textures (issue #27): paper Table I and the depth-of-field
+scan on focus sweeps made from the six real SEM images of ``../shared/data/sem-images``,
+per image and per defocus model, beside the simulator's (``bench/tilt.py``).
+
+The sweeps (``semservo.focus_sweeps``, written apart from ``semservo.simulation``): each
+image is the texture of a plane tilted by (alpha, beta) and turned by gamma, seen
+orthographically and foreshortened, at 21 working distances planned as the estimator
+service plans them (``plan_sweep``: a depth of field of 2.5 um, a 25 um field of 512 px,
+so +-12.5 um in 1.25 um steps; one texture pixel a frame pixel), with shot noise (1000
+electrons per grey level at full scale) and read noise. Two defocus models, neither the
+simulator's: a Gaussian probe whose width grows linearly with the distance from focus,
+and a uniform disc (pillbox) of that radius on the in-focus probe. Each pose against a
+reference taught at (0, 0, 0), as ``bench/tilt.py`` does (``semservo.reproduce.tilts``):
+the paper's three poses and ``--poses`` random ones (tilts within +-15 degrees, gamma
+within +-90).
+
+What was tuned on what: the tilt estimate's changes for this issue (the noise taken out
+of eq. 13's measure, the clear-peak test, the robust plane, the refusals) were developed
+on fibsem_slice_cells, hole_low_mag and the drift pair with the Gaussian model
+("developed on"); jeol_grid and tescan_aperture, and the disc model on every image,
+were only measured ("held out").
+
+Prints one table per model (markdown) and the depth-of-field scan; writes
+bench/results/tilt_real.json.
+
+    ./dev bench tilt_real            # or: python bench/tilt_real.py --poses 10 --images jeol_grid
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from semservo.config import find_sem_images
+from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel
+from semservo.imagefiles import read_sem_image
+from semservo.reproduce.tilts import PAPER_POSES, TextureLab, depth_of_field_scan, summarize, table_one
+
+RESULTS = Path(__file__).parent / "results"
+IMAGES = ("jeol_grid", "tescan_aperture", "fibsem_slice_cells", "hole_low_mag", "drift_pair_before", "drift_pair_after")
+DEVELOPED_ON = ("fibsem_slice_cells", "hole_low_mag", "drift_pair_before", "drift_pair_after")
+DEVELOPED_WITH = "gaussian"
+FIELD_PX, FIELD_UM, DEPTH_OF_FIELD_UM = 512, 25.0, 2.5
+ELECTRONS, READ_NOISE = 1000.0, 2.0
+
+
+def say(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def grey(pixels: np.ndarray) -> np.ndarray:
+    """0..255 floats whatever the bit depth (the noise model is per 8-bit grey level)."""
+    pixels = pixels.astype(np.float64)
+    return pixels / 257.0 if pixels.max() > 255 else pixels
+
+
+def which_set(name: str, shape: str) -> str:
+    return "developed on" if name in DEVELOPED_ON and shape == DEVELOPED_WITH else "held out"
+
+
+def lab(texture: np.ndarray, shape: str, seed: int, depth_of_field_factor: float = 1.0) -> TextureLab:
+    model = DefocusModel(shape, depth_of_field_um=DEPTH_OF_FIELD_UM * depth_of_field_factor)
+    return TextureLab(texture, model, FIELD_UM / FIELD_PX, shape=(FIELD_PX, FIELD_PX), seed=seed,
+                      electrons=ELECTRONS, read_noise=READ_NOISE)
+
+
+def cell(entry: dict) -> str:
+    return "-" if not math.isfinite(entry["mean"]) else f"{entry['mean']:.3f} / {entry['max']:.3f}"
+
+
+def print_table(shape: str, results: dict) -> None:
+    say(f"\n### Table I on real textures, {shape} defocus: |error| mean / max (degrees) over the poses not refused\n")
+    say("| image | set | refused | plane fit alpha | plane fit beta | sign errors (true >= 0.5) | tracking sweep "
+        "alpha, beta | paper's EGI alpha, beta | gamma, foreshortening undone | frames |")
+    say("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for name, entry in results.items():
+        summary = entry["summary"]
+        plane, tracking, egi = summary["plane"], summary["plane_tracking"], summary["egi"]
+        say(f"| {name} | {which_set(name, shape)} | {summary['refused']} of {summary['poses']} | {cell(plane['alpha'])} "
+            f"| {cell(plane['beta'])} | {plane['sign_errors']} of {plane['signs_checked']} | "
+            f"{cell(tracking['alpha'])}, {cell(tracking['beta'])} | {cell(egi['alpha'])}, {cell(egi['beta'])} | "
+            f"{cell(summary['gamma_compensated'])} | {summary['frames_first']['mean']:.0f} |")
+    reasons = {name: entry["summary"]["reasons"] for name, entry in results.items() if entry["summary"]["reasons"]}
+    for name, why in reasons.items():
+        say(f"\n{name} refused: {why[0]}" + (f" (and {len(why) - 1} more alike)" if len(why) > 1 else ""))
+
+
+def print_scan(shape: str, scans: dict) -> None:
+    say(f"\n### Depth of field, {shape} defocus: plane fit |error| mean / max (degrees); sign errors; refused\n")
+    factors = [row["depth_of_field_um"] for row in next(iter(scans.values()))]
+    say("| image | set | " + " | ".join(f"{value:g} um" for value in factors) + " |")
+    say("| --- | --- | " + " | ".join("---" for _ in factors) + " |")
+    for name, rows in scans.items():
+        cells = [("-" if not math.isfinite(row["mean"]) else f"{row['mean']:.3f} / {row['max']:.3f}")
+                 + f", {row['sign_errors']} signs" + (f", {row['refused']} of {row['poses']} refused" if row["refused"]
+                                                       else "") for row in rows]
+        say(f"| {name} | {which_set(name, shape)} | " + " | ".join(cells) + " |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--poses", type=int, default=30, help="random poses besides the paper's three")
+    parser.add_argument("--dof-poses", type=int, default=10, help="poses for the depth-of-field scan (0: none)")
+    parser.add_argument("--images", nargs="+", choices=IMAGES, default=list(IMAGES))
+    parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFOCUS_SHAPES))
+    parser.add_argument("--seed", type=int, default=15)
+    parser.add_argument("--out", type=Path, default=RESULTS / "tilt_real.json")
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+    poses = PAPER_POSES + [(float(rng.uniform(-15, 15)), float(rng.uniform(-15, 15)), float(rng.uniform(-90, 90)))
+                           for _ in range(args.poses)]
+    textures = {name: grey(read_sem_image(find_sem_images() / f"{name}.tif").pixels) for name in args.images}
+    output = {"poses": poses, "field_um": FIELD_UM, "field_px": FIELD_PX, "depth_of_field_um": DEPTH_OF_FIELD_UM,
+              "electrons": ELECTRONS, "developed_on": [f"{name} ({DEVELOPED_WITH})" for name in DEVELOPED_ON],
+              "table_one": {}, "depth_of_field": {}}
+    started = time.monotonic()
+    for shape in args.models:
+        results = {}
+        for name, texture in textures.items():
+            say(f"[{time.monotonic() - started:6.0f} s] Table I, {name}, {shape} defocus ({len(poses)} poses)")
+            table = table_one(poses, args.seed, say=lambda text: None, lab=lab(texture, shape, args.seed))
+            results[name] = {"table": table, "summary": summarize(table)}
+            summary = results[name]["summary"]
+            say(f"    plane fit alpha {cell(summary['plane']['alpha'])}, beta {cell(summary['plane']['beta'])}, "
+                f"refused {summary['refused']} of {summary['poses']}")
+        output["table_one"][shape] = results
+        print_table(shape, results)
+        if args.dof_poses:
+            scans = {}
+            for name, texture in textures.items():
+                say(f"[{time.monotonic() - started:6.0f} s] depth of field, {name}, {shape} defocus")
+                scans[name] = depth_of_field_scan(poses[:args.dof_poses], args.seed, say=lambda text: None,
+                                                  lab_for=lambda factor, texture=texture: lab(texture, shape, args.seed,
+                                                                                              factor))
+            output["depth_of_field"][shape] = scans
+            print_scan(shape, scans)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(output, indent=1, default=float))
+    say(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    raise SystemExit(main())

@@ -1,0 +1,434 @@
+"""A positioning run as typed state, and the loop's steps as small functions over it.
+
+Each motion estimate goes through the same steps, in order; every one is a function of
+the run (and the estimate) that returns what it decided, so each is tested alone:
+
+1. :func:`admit`: is the estimate against this run's reference? (one or two in flight
+   from before a teach are let pass; a third in a row ends the run: taught again)
+2. :func:`gate`: may it move the stage? The frames must carry a pixel size, and the
+   estimate must be **fresh** (its frame scanned wholly after the last move settled: a
+   frame scanned during a move shows both positions) and **confident**.
+3. :func:`measure`: the error convergence is judged on (the mean of the last
+   ``converge_frames`` fresh errors), and progress.
+4. :func:`judge`: converged, out of iterations, or making no progress.
+5. :func:`decide`: the law's step (eq. 30-37), saturated, unless the cost is diverging.
+6. moving the stage is the core's (:class:`services.controller.core.ControllerCore`);
+   then the iteration is recorded.
+
+The tilts (alpha, beta) are measured once per focus sweep: :func:`tilt_step` acts on
+each fresh sweep once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from semservo.control import ControlLaw, LawStep, TiltLaw
+from semservo.messages import MotionEstimate
+from semservo.protocol.controller import RunSettings
+
+#: Estimates in a row against another reference before the run fails (one or two may be
+#: in flight from before the run's reference was taught).
+FOREIGN_ESTIMATES_TO_FAIL = 3
+
+#: Progress: an error this much below the best so far is progress.
+PROGRESS_FACTOR = 0.9
+
+#: A tilt run makes no progress only after this many focus sweeps without it too.
+STALL_SWEEPS = 4
+
+Ending = Literal["converged", "failed", "stopped"]
+
+
+@dataclass(slots=True)
+class IterationRecord:
+    """One estimate's iteration, as recorded (journal, events, the run's record). A
+    field misspelt here fails at once (slots), not in a record read weeks later."""
+
+    seq: int
+    dx_px: float
+    dy_px: float
+    rotation_deg: float
+    confidence: float
+    snr_db: float
+    pixel_size_nm: float | None
+    frame_acquired_at_ns: int
+    frame_published_at_ns: int
+    estimate_published_at_ns: int
+    frame_source_interval_s: tuple[float, float] | None
+    action: str = ""
+    t_ns: int = 0
+    iteration: int = 0
+    error_px: float | None = None
+    mean_error_px: float | None = None
+    error: tuple[float, ...] | None = None
+    cost: float | None = None
+    gain: float | None = None
+    velocity: tuple[float, ...] | None = None
+    sampling_time_s: float | None = None
+    move: dict[str, float] | None = None
+    saturated: bool | None = None
+    turn_deg: dict[str, float] | None = None
+    targets: dict[str, float] | None = None  # the axes that made the move (the stage's, or the beam's)
+    command_written_at_ns: int | None = None
+    command_settled_at_ns: int | None = None
+    voltages: dict[str, float] | None = None
+    positions_um: dict[str, float] | None = None
+    angles_deg: dict[str, float] | None = None
+    latency_ms: float | None = None
+    alpha_deg: float | None = None
+    beta_deg: float | None = None
+    tilt_confidence: float | None = None
+    tilt_seq: int | None = None
+    tilt_frames: int | None = None
+    tilt_action: str | None = None
+    tilt_error: tuple[float, ...] | None = None
+    tilt_cost: float | None = None
+    tilt_gain: float | None = None
+    tilt_velocity: tuple[float, ...] | None = None
+    tilt_sampling_time_s: float | None = None
+
+    @classmethod
+    def of(cls, estimate: MotionEstimate) -> "IterationRecord":
+        return cls(seq=estimate.seq, dx_px=estimate.dx_px, dy_px=estimate.dy_px, rotation_deg=estimate.rotation_deg,
+                   confidence=estimate.confidence, snr_db=estimate.snr_db, pixel_size_nm=estimate.pixel_size_nm,
+                   frame_acquired_at_ns=estimate.frame_acquired_at_ns,
+                   frame_published_at_ns=estimate.frame_published_at_ns,
+                   estimate_published_at_ns=estimate.published_at_ns,
+                   frame_source_interval_s=estimate.frame_source_interval_s)
+
+    def to_json(self) -> dict:
+        """The record as JSON fields; a field never set is left out."""
+        return {key: value for key, value in asdict(self).items()
+                if value is not None or key in ("pixel_size_nm", "frame_source_interval_s")}
+
+
+@dataclass
+class Tilts:
+    """The tilts' part of a run: they are measured once per focus sweep."""
+
+    law: TiltLaw
+    last_seq: int | None = None  # the last sweep looked at
+    settled_ns: int = 0  # when the last tilt move has arrived: sweeps scanned before are stale
+    within: dict[str, float] | None = None  # the last fresh sweep's errors, when within tolerance
+    last_error: dict[str, float] | None = None  # the last fresh, confident sweep's errors
+    last_end_s: float | None = None  # that sweep's end on the source's clock (its sampling time)
+    moves: int = 0
+    sweeps: int = 0  # fresh sweeps measured
+
+
+@dataclass
+class Progress:
+    """Whether the error still falls: the best normalized error (1 = at tolerance) and
+    how many fresh estimates (and focus sweeps) have gone by since it was last beaten."""
+
+    best: float = math.inf
+    since_best: int = 0
+    sweeps_since_best: int = 0
+
+    def update(self, normalized_error: float, new_sweep: bool) -> None:
+        if normalized_error <= 1.0 or normalized_error < PROGRESS_FACTOR * self.best:
+            self.best = min(self.best, normalized_error)
+            self.since_best = self.sweeps_since_best = 0
+            return
+        self.since_best += 1
+        self.sweeps_since_best += int(new_sweep)
+
+
+@dataclass
+class Run:
+    """One positioning run: what it was told, where it stands, what it has recorded."""
+
+    id: str
+    reference_id: str
+    settings: RunSettings
+    started_at_ns: int
+    stage_at_start: dict
+    law: ControlLaw
+    tilts: Tilts | None = None
+    iterations: int = 0  # moves made
+    records: list[dict] = field(default_factory=list)
+    outcome: dict | None = None
+    stage_log: list[dict] = field(default_factory=list)
+    path: str | None = None
+    # The loop's memory between estimates:
+    last_command_ns: int = 0  # frames whose scan began before this show the stage moving
+    last_source_end_s: float | None = None  # the last acted frame's end on the source's clock
+    last_acted_acquired_ns: int | None = None
+    low_confidence: int = 0  # in a row
+    foreign: int = 0  # estimates in a row against another reference
+    min_cost: float = math.inf
+    rising: int = 0  # moves in a row with the cost above diverge_factor x its minimum
+    held_stale: int = 0
+    fresh_frames: int = 0  # fresh, confident estimates used
+    recent: deque = field(default_factory=deque)  # the last converge_frames fresh (dx, dy, rotation)
+    progress: Progress = field(default_factory=Progress)
+    beam: object | None = None  # the stage's beam shift (services.controller.split.BeamAxes), when a run may use it
+
+    @property
+    def dofs(self) -> list[str]:
+        return list(self.settings.dofs)
+
+    def to_record(self) -> dict:
+        """The run's whole record (``runs/<id>.json``, the ``run`` command)."""
+        return {"id": self.id, "reference_id": self.reference_id, "settings": self.settings.model_dump(),
+                "started_at_ns": self.started_at_ns, "stage_at_start": self.stage_at_start,
+                "iterations": self.iterations, "records": self.records, "outcome": self.outcome,
+                "stage_log": self.stage_log, "min_cost": None if math.isinf(self.min_cost) else self.min_cost,
+                "held_stale": self.held_stale, "fresh_frames": self.fresh_frames, "path": self.path}
+
+    def header(self) -> dict:
+        """What a controller started after this one dies needs to finish the run."""
+        return {"id": self.id, "reference_id": self.reference_id, "settings": self.settings.model_dump(),
+                "started_at_ns": self.started_at_ns, "stage_at_start": self.stage_at_start}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What a step says of an estimate: record it with ``action`` (None: not recorded),
+    and end the run as ``ending`` with ``reason`` when that is set."""
+
+    action: str | None
+    ending: Ending | None = None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The errors of one fresh estimate as the run judges them."""
+
+    error_px: float
+    mean: tuple[float, float, float]  # mean translation size (px), 0, mean turn size (degrees) of the recent fresh frames
+    within: bool  # converged, if the run is not holding
+
+    @property
+    def mean_error_px(self) -> float:
+        return float(math.hypot(self.mean[0], self.mean[1]))
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What to command: planar targets (um, relative) and turns (degrees, relative)."""
+
+    step: LawStep  # the law's step, its planar move saturated
+    targets: dict[str, float]
+    turns: dict[str, float]
+    saturated: bool  # the planar move was
+    turn_saturated: bool  # a turn or tilt was
+    diverging: str | None = None  # why the run must fail instead
+
+
+# -- the steps ------------------------------------------------------------------------------
+def admit(run: Run, estimate: MotionEstimate) -> Verdict | None:
+    """None: the estimate is against the run's reference. Otherwise a verdict without a
+    record: ignored (one or two may be in flight from before the reference was taught),
+    or the run fails (the estimator now measures against another one)."""
+    if estimate.reference_id == run.reference_id:
+        run.foreign = 0
+        return None
+    run.foreign += 1
+    if run.foreign >= FOREIGN_ESTIMATES_TO_FAIL:
+        return Verdict(None, "failed", f"the reference changed during the run: the estimator now measures against "
+                                       f"{estimate.reference_id}, not the run's {run.reference_id} (taught again?)")
+    return Verdict(None)
+
+
+def gate(run: Run, estimate: MotionEstimate) -> Verdict | None:
+    """None when the estimate may move the stage; else why not (held, or the run ends)."""
+    if estimate.pixel_size_nm is None:
+        # Pixels cannot become micrometres: never guess the scale of a real stage's move.
+        return Verdict("held: pixel size unknown", "failed",
+                       "the frames carry no pixel size (their files or source do not say): set "
+                       "SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM (or the magnification) and start again")
+    scan_started = estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
+    if scan_started < run.last_command_ns:
+        run.held_stale += 1
+        return Verdict("held: stale (scanned during the last move)")
+    if estimate.confidence < run.settings.min_confidence:
+        run.low_confidence += 1
+        if run.low_confidence >= run.settings.lost_after:
+            return Verdict("held: low confidence", "failed",
+                           f"scene lost: {run.low_confidence} low-confidence frames in a row")
+        return Verdict("held: low confidence")
+    run.low_confidence = 0
+    return None
+
+
+def within_tolerance(run: Run, dx_px: float, dy_px: float, rotation_deg: float) -> bool:
+    """The translation error, the turn when rotation is servoed, and the last fresh tilts
+    when they are, under tolerance."""
+    settings, dofs = run.settings, run.settings.dofs
+    within = (("x" not in dofs and "y" not in dofs) or math.hypot(dx_px, dy_px) <= settings.tolerance_px) \
+        and ("rotation" not in dofs or abs(rotation_deg) <= settings.tolerance_deg)
+    if within and run.tilts is not None:
+        within = run.tilts.within is not None and all(
+            abs(run.tilts.within[dof]) <= settings.tolerance_tilt_deg for dof in run.tilts.law.dofs)
+    return within
+
+
+def normalized_error(run: Run, mean: tuple[float, float, float]) -> float:
+    """The largest error over the run's DOFs in units of its tolerance (1: at tolerance);
+    the tilts count once a sweep has measured them."""
+    settings, dofs = run.settings, run.settings.dofs
+    parts = [0.0]
+    if "x" in dofs or "y" in dofs:
+        parts.append(math.hypot(mean[0], mean[1]) / settings.tolerance_px)
+    if "rotation" in dofs:
+        parts.append(abs(mean[2]) / settings.tolerance_deg)
+    if run.tilts is not None:
+        last = run.tilts.last_error
+        parts.append(math.inf if last is None else max(abs(value) for value in last.values())
+                     / settings.tolerance_tilt_deg)
+    return max(parts)
+
+
+def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> Measurement:
+    """The fresh estimate's errors: convergence is judged on the mean of the last
+    ``converge_frames`` errors' sizes (the mean, not each one, so estimation noise or
+    vibration near the tolerance cannot keep a finished run going; ``converge_on="each"``
+    asks it of each). The mean of the sizes, not the size of the mean: errors either side
+    of the target, a run overshooting across moves, do not cancel (averaging the vectors
+    once stopped runs 0.4-0.55 px away by their own last estimate: (+0.37, -0.31),
+    (-0.07, +0.10), (-0.37, +0.41) px average to 0.07 px)."""
+    settings = run.settings
+    run.fresh_frames += 1
+    run.recent.append((estimate.dx_px, estimate.dy_px, estimate.rotation_deg))
+    while len(run.recent) > settings.converge_frames:
+        run.recent.popleft()
+    sizes = [(math.hypot(dx, dy), abs(rotation)) for dx, dy, rotation in run.recent]
+    mean_size, mean_turn = (float(value) for value in np.mean(sizes, axis=0))
+    mean = (mean_size, 0.0, mean_turn)  # sizes: a translation's along x, the turn's magnitude
+    within = len(run.recent) == settings.converge_frames and within_tolerance(run, *mean)
+    if settings.converge_on == "each":
+        within = within and all(within_tolerance(run, *error) for error in run.recent)
+    if run.tilts is None or run.tilts.last_error is not None:
+        run.progress.update(normalized_error(run, mean), new_sweep)
+    return Measurement(math.hypot(estimate.dx_px, estimate.dy_px), mean, within)
+
+
+def judge(run: Run, measurement: Measurement) -> Verdict | None:
+    """Converged, out of iterations, or no longer making progress; None: go on."""
+    settings = run.settings
+    if measurement.within and not settings.hold:
+        return Verdict("within tolerance", "converged",
+                       f"mean error of the last {len(run.recent)} fresh frames {measurement.mean_error_px:.3f} px, "
+                       f"under {settings.tolerance_px:g} px")
+    if run.iterations >= settings.max_iterations:
+        return Verdict(None, "failed", f"iteration limit ({settings.max_iterations}) reached")
+    progress = run.progress
+    if progress.since_best >= settings.stall_after and (run.tilts is None or progress.sweeps_since_best >= STALL_SWEEPS):
+        return Verdict("held: no progress", "failed", stall_reason(run, measurement))
+    return None
+
+
+def stall_reason(run: Run, measurement: Measurement) -> str:
+    """Why a run that makes no progress is stopped, in the words an operator needs."""
+    settings = run.settings
+    what = [f"the error has not fallen below {PROGRESS_FACTOR:g} x its best for {run.progress.since_best} fresh "
+            f"frames"]
+    if "x" in settings.dofs or "y" in settings.dofs:
+        what.append(f"translation {measurement.mean_error_px:.3f} px (tolerance {settings.tolerance_px:g})")
+    if run.tilts is not None and run.tilts.last_error:
+        what.append("tilts " + ", ".join(f"{dof} {value:+.3f} deg" for dof, value in run.tilts.last_error.items())
+                    + f" (tolerance {settings.tolerance_tilt_deg:g})")
+    return ("no progress: " + "; ".join(what) + ". Vibration or noise above the tolerance, a DOF the instrument "
+            "cannot measure well at these settings, or a stage that does not follow its commands")
+
+
+def sampling_time(run: Run, estimate: MotionEstimate) -> float:
+    """The measured time between this iteration and the last (eq. 37), on the image
+    source's clock when it has one (the fake lab's simulated time), else the frames'
+    acquisition times. The first iteration takes two scan durations: a fresh frame
+    comes every second scan."""
+    interval = estimate.frame_source_interval_s
+    end_s = interval[1] if interval else None
+    if end_s is not None and run.last_source_end_s is not None:
+        return max(end_s - run.last_source_end_s, 1e-3)
+    if end_s is None and run.last_acted_acquired_ns:
+        return max((estimate.frame_acquired_at_ns - run.last_acted_acquired_ns) / 1e9, 1e-3)
+    if interval:
+        return max(2 * (interval[1] - interval[0]), 1e-3)
+    return 0.5
+
+
+def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:
+    """The move to command from the law's step (and the tilts'), saturated at
+    ``max_move_um`` and ``max_turn_deg``; ``diverging`` says why not to make it: the cost
+    has stayed above ``diverge_factor`` x its minimum for ``diverge_iterations`` moves.
+    Divergence is never judged against less than the square of ``diverge_floor_px`` (or
+    of 5 x tolerance): near the target the cost is estimation noise and vibration,
+    whatever tolerance the run asks for."""
+    settings = run.settings
+    move = dict(step.move)
+    planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
+    saturated = planar > settings.max_move_um
+    if saturated:
+        scale = settings.max_move_um / planar
+        for key in ("x_um", "y_um"):
+            if key in move:
+                move[key] *= scale
+    targets = {axis: move[f"{axis}_um"] for axis in ("x", "y") if f"{axis}_um" in move}
+    turns = {axis: move[axis] for axis in ("rotation_deg",) if axis in move}
+    if tilt_step is not None:
+        turns.update(tilt_step.move)
+    turn_saturated = False
+    for axis, value in turns.items():
+        if abs(value) > settings.max_turn_deg:
+            turns[axis] = math.copysign(settings.max_turn_deg, value)
+            turn_saturated = True
+    run.min_cost = min(run.min_cost, step.cost)
+    floor = max(5 * settings.tolerance_px, settings.diverge_floor_px) ** 2
+    run.rising = run.rising + 1 if step.cost > settings.diverge_factor * max(run.min_cost, floor) else 0
+    diverging = (f"diverging: cost above {settings.diverge_factor:g}x its minimum for {run.rising} moves"
+                 if run.rising >= settings.diverge_iterations else None)
+    return Decision(LawStep(step.error, step.cost, step.gain, step.velocity, move, step.integral), targets, turns,
+                    saturated, turn_saturated, diverging)
+
+
+def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> LawStep | None:
+    """The tilts' part of an iteration: acted on once per focus sweep, and only for a
+    sweep scanned after the last tilt move had arrived; held within tolerance (the run
+    converges on that measurement) or when the sweep could not tell the tilts."""
+    tilts, settings = run.tilts, run.settings
+    record.alpha_deg, record.beta_deg = estimate.alpha_deg, estimate.beta_deg
+    record.tilt_confidence, record.tilt_seq = estimate.tilt_confidence, estimate.tilt_seq
+    started = estimate.tilt_scan_started_at_ns
+    if estimate.tilt_seq is None or estimate.tilt_seq == tilts.last_seq or started is None:
+        return None
+    tilts.last_seq = estimate.tilt_seq
+    if started < tilts.settled_ns:
+        record.tilt_action = "held: sweep scanned during the last tilt move"
+        return None
+    if estimate.alpha_deg is None or estimate.beta_deg is None \
+            or (estimate.tilt_confidence or 0.0) < settings.min_tilt_confidence:
+        record.tilt_action = "held: tilts not measured with confidence"
+        return None
+    tilts.sweeps += 1
+    errors = {"alpha": estimate.alpha_deg, "beta": estimate.beta_deg}
+    record.tilt_frames = estimate.tilt_frames
+    tilts.last_error = {dof: errors[dof] for dof in tilts.law.dofs}
+    largest = max(abs(errors[dof]) for dof in tilts.law.dofs)
+    # Within tolerance, the run may converge on this measurement; the tilts are still
+    # corrected down to half the tolerance, or the run would end at its edge.
+    tilts.within = dict(tilts.last_error) if largest <= settings.tolerance_tilt_deg else None
+    if largest <= settings.tolerance_tilt_deg / 2:
+        record.tilt_action = "within tolerance"
+        return None
+    interval = estimate.tilt_source_interval_s
+    end_s = interval[1] if interval else None
+    if end_s is not None and tilts.last_end_s is not None:
+        elapsed = max(end_s - tilts.last_end_s, 1e-3)
+    elif interval:
+        elapsed = max(2 * (interval[1] - interval[0]), 1e-3)
+    else:
+        elapsed = max(estimate.tilt_sweep_s or 1.0, 1e-3)
+    tilts.last_end_s = end_s
+    step = tilts.law.step(estimate.alpha_deg, estimate.beta_deg, elapsed)
+    record.tilt_error, record.tilt_cost, record.tilt_gain = step.error, step.cost, step.gain
+    record.tilt_velocity, record.tilt_sampling_time_s, record.tilt_action = step.velocity, elapsed, "moved"
+    return step

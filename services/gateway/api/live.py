@@ -1,0 +1,85 @@
+"""What happens now: Prometheus metrics, and status and iterations on a WebSocket."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi.responses import PlainTextResponse, Response
+
+from services.gateway.api.deps import Core, token_matches, websocket_token
+from services.gateway.metrics import metrics_text
+
+log = logging.getLogger("gateway.api")
+
+router = APIRouter(tags=["live"])
+
+
+@router.get("/metrics", response_class=PlainTextResponse, summary="Prometheus text format")
+def metrics(core: Core) -> Response:
+    body, content_type = metrics_text(core)
+    return Response(body, media_type=content_type)
+
+
+@router.websocket("/events")
+async def events(socket: WebSocket) -> None:
+    """Status and per-iteration records as they happen (JSON text messages). With a token
+    configured, it must come as ``?token=`` or as a bearer header."""
+    app = socket.app
+    if not token_matches(app.state.api_token, websocket_token(socket)):
+        await socket.close(code=1008, reason="a valid token is required (?token=...)")
+        return
+    await socket.accept()
+    listeners = app.state.listeners
+    queue: asyncio.Queue = asyncio.Queue(maxsize=1000)
+    listeners.add(queue)
+    closing = listeners.closing
+    try:
+        await socket.send_text(json.dumps({"kind": "hello", "run_id": None, "data": app.state.core.last_status}))
+        while not closing.is_set():
+            getting = asyncio.ensure_future(queue.get())
+            ending = asyncio.ensure_future(closing.wait())
+            done, _ = await asyncio.wait({getting, ending}, return_when=asyncio.FIRST_COMPLETED)
+            for pending in (getting, ending):
+                if pending not in done:
+                    pending.cancel()
+            if getting in done:
+                await socket.send_text(getting.result())
+        # The gateway is stopping: say goodbye, so the browser knows and the server need
+        # not wait for it (a dashboard left open kept Ctrl-C waiting before).
+        await socket.close(code=1001, reason="the gateway is stopping")
+    except WebSocketDisconnect:
+        log.debug("an events listener went away")
+    finally:
+        listeners.discard(queue)
+
+
+class Listeners(set):
+    """The WebSocket listeners' queues, fed from any thread; ``closing`` ends them all."""
+
+    def __init__(self):
+        super().__init__()
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.closing = asyncio.Event()
+
+    def publish(self, message: dict) -> None:
+        """From any thread: hand a message to every listener (a slow one drops)."""
+        loop = self.loop
+        if loop is None:
+            return
+        text = json.dumps(message, default=str)
+
+        def deliver() -> None:
+            for queue in list(self):
+                if not queue.full():
+                    queue.put_nowait(text)
+
+        loop.call_soon_threadsafe(deliver)
+
+    def close_all(self) -> None:
+        """From any thread: every listener says goodbye and ends (the server is stopping)."""
+        loop = self.loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self.closing.set)

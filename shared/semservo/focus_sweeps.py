@@ -1,0 +1,205 @@
+"""Focus sweeps with exactly known tilts, made from a real SEM image: the image is the
+sample's texture on a tilted plane, blurred by a defocus model written apart from the
+simulator (:mod:`semservo.simulation` shares no code, constant or model with this).
+
+A tool for checking the tilts from focus (:func:`semservo.estimation.tilt.estimate_tilt`)
+on textures nobody tuned on, with a blur the method was not developed with; used by
+``bench/tilt_real.py`` and the tests, and useful on your own images before a session.
+
+The model
+---------
+* Geometry: the plane is tilted by R = R_x(alpha) R_y(beta) (the convention of
+  :mod:`semservo.estimation.tilt`) and turned by gamma about its own normal first (the
+  stage's turn about the beam), seen orthographically: the texture is foreshortened
+  through A = [[cos beta, 0], [sin alpha sin beta, cos alpha]] and the depth of the
+  surface under image point (x, y) (um from the frame's centre) is
+  ``centre + tan(alpha) y - tan(beta) x / cos(alpha)``. One texture pixel is one frame
+  pixel at zero tilt; where the view needs texture beyond the image's edges, the image
+  is mirrored there (``cv2.BORDER_REFLECT``).
+* Defocus: a point of the surface at a distance d from the focal plane is blurred by a
+  kernel whose width grows linearly with |d|: ``width_px = 2 |d| / depth_of_field``, so
+  the blur is 1 px half a depth of field away. ``"gaussian"``: a Gaussian probe whose
+  standard deviation is ``probe_px + width_px``. ``"disc"``: a uniform disc (pillbox) of
+  radius ``width_px`` (the geometric cone of a beam of half-angle 2 pixels / depth of
+  field), convolved with the in-focus Gaussian probe of ``probe_px``. The blur varies
+  across the frame with the depth: the frame is blended, pixel by pixel, from the view
+  blurred at neighbouring widths (linearly; widths 0.25 px apart up to 2 px, then 10 %
+  apart).
+* Noise: shot noise (Poisson, ``electrons`` per grey level at full scale 255) and
+  Gaussian read noise, per frame (:func:`semservo.pairs.poisson_gaussian`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from semservo.pairs import poisson_gaussian
+
+DEFOCUS_SHAPES = ("gaussian", "disc")
+
+
+@dataclass(frozen=True)
+class DefocusModel:
+    """How a point out of focus is blurred (see the module's text)."""
+
+    shape: str = "gaussian"
+    depth_of_field_um: float = 2.5
+    #: The probe at focus: a Gaussian's standard deviation in pixels.
+    probe_px: float = 0.6
+
+    def __post_init__(self):
+        if self.shape not in DEFOCUS_SHAPES:
+            raise ValueError(f"unknown defocus shape {self.shape!r}: {' or '.join(DEFOCUS_SHAPES)}")
+        if not (self.depth_of_field_um > 0 and self.probe_px >= 0):
+            raise ValueError("depth_of_field_um must be positive and probe_px not negative")
+
+    def width_px(self, defocus_um):
+        """The blur's width (px) at ``defocus_um`` from focus: 2 |d| / depth of field."""
+        return 2.0 * np.abs(defocus_um) / self.depth_of_field_um
+
+    def transfer(self, width_px: float, shape: tuple[int, int]) -> np.ndarray:
+        """The blur's transfer function at ``width_px`` on the real-input half plane of
+        an image of ``shape`` (its kernel centred on pixel (0, 0), periodic); complex64,
+        kept for the next pose (do not write into it)."""
+        return _transfer(self.shape, self.probe_px, float(width_px), tuple(shape))
+
+
+@lru_cache(maxsize=128)
+def _transfer(shape_name: str, probe_px: float, width_px: float, shape: tuple[int, int]) -> np.ndarray:
+    v = np.fft.fftfreq(shape[0])[:, None]
+    u = np.fft.rfftfreq(shape[1])[None, :]
+    radius_squared = u * u + v * v
+    if shape_name == "gaussian":
+        sigma = probe_px + width_px
+        transfer = np.exp(-2 * np.pi**2 * sigma**2 * radius_squared)
+    else:
+        transfer = np.exp(-2 * np.pi**2 * probe_px**2 * radius_squared)
+        if width_px >= 0.05:
+            transfer = np.fft.rfft2(disc_kernel(width_px, shape)) * transfer
+    transfer = transfer.astype(np.complex64)
+    transfer.flags.writeable = False
+    return transfer
+
+
+def disc_kernel(radius_px: float, shape: tuple[int, int], supersampling: int = 8) -> np.ndarray:
+    """A uniform disc of ``radius_px`` (fractional), its area per pixel computed on a
+    ``supersampling`` x ``supersampling`` grid within each pixel, normalised to sum 1,
+    centred on pixel (0, 0) of a periodic ``shape`` canvas."""
+    reach = int(np.ceil(radius_px)) + 1
+    offsets = (np.arange(supersampling) + 0.5) / supersampling - 0.5
+    pixels = np.arange(-reach, reach + 1)
+    fine = (pixels[:, None] + offsets[None, :]).ravel()
+    inside = (fine[:, None] ** 2 + fine[None, :] ** 2) <= radius_px**2
+    side = pixels.size
+    area = inside.reshape(side, supersampling, side, supersampling).mean(axis=(1, 3))
+    kernel = np.zeros(shape)
+    rows, cols = np.meshgrid(pixels % shape[0], pixels % shape[1], indexing="ij")
+    np.add.at(kernel, (rows, cols), area)
+    return kernel / kernel.sum()
+
+
+def view_matrix(alpha_deg: float, beta_deg: float, gamma_deg: float) -> np.ndarray:
+    """The 2 x 2 map from texture to image coordinates (x right, y down, about the
+    centres): the texture turned by gamma counter-clockwise as displayed, then
+    foreshortened through A = [[cos beta, 0], [sin alpha sin beta, cos alpha]]."""
+    alpha, beta, gamma = np.radians([alpha_deg, beta_deg, gamma_deg])
+    foreshortening = np.array([[np.cos(beta), 0.0], [np.sin(alpha) * np.sin(beta), np.cos(alpha)]])
+    turn = np.array([[np.cos(gamma), np.sin(gamma)], [-np.sin(gamma), np.cos(gamma)]])
+    return foreshortening @ turn
+
+
+def plane_depth(shape: tuple[int, int], pixel_um: float, alpha_deg: float, beta_deg: float,
+                centre_um: float = 0.0) -> np.ndarray:
+    """The depth (um, along the beam away from the lens) of the tilted plane under each
+    pixel of a frame of ``shape``: centre + tan(alpha) y - tan(beta) x / cos(alpha)."""
+    alpha, beta = np.radians([alpha_deg, beta_deg])
+    y = (np.arange(shape[0]) - (shape[0] - 1) / 2)[:, None] * pixel_um
+    x = (np.arange(shape[1]) - (shape[1] - 1) / 2)[None, :] * pixel_um
+    return centre_um + np.tan(alpha) * y - np.tan(beta) * x / np.cos(alpha)
+
+
+def blur_widths(largest_px: float) -> np.ndarray:
+    """The widths the view is blurred at before blending: 0.25 px apart up to 2 px, then
+    10 % apart, up to ``largest_px``."""
+    widths = list(np.arange(0.0, 2.0, 0.25))
+    while widths[-1] < largest_px:
+        widths.append(max(widths[-1] * 1.1, 2.0))
+    return np.asarray(widths)
+
+
+@dataclass
+class TiltedTexture:
+    """A real image as the texture of a plane at one pose, ready to be scanned at any
+    working distance (:meth:`frame`, :meth:`sweep`).
+
+    ``texture``: grey levels (0-255 scale); ``shape``: the frames'; ``pixel_um``: the
+    frame's pixel on the sample; ``pose``: (alpha, beta, gamma) degrees;
+    ``centre_depth_um``: the plane's depth under the frame's centre.
+    """
+
+    texture: np.ndarray
+    model: DefocusModel
+    pixel_um: float
+    shape: tuple[int, int] = (512, 512)
+    pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    centre_depth_um: float = 0.0
+    #: The blur the view is made for (px): beyond it, the widest level is used.
+    largest_width_px: float = 24.0
+    _stack: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self.texture = np.asarray(self.texture, dtype=np.float32)
+        if self.texture.ndim != 2:
+            raise ValueError("the texture must be a 2-D grey image")
+        self.widths = blur_widths(self.largest_width_px)
+        self.margin = int(np.ceil(3 * (self.model.probe_px + self.widths[-1]))) + 4
+        self.depth = plane_depth(self.shape, self.pixel_um, self.pose[0], self.pose[1], self.centre_depth_um)
+        canvas_shape = (self.shape[0] + 2 * self.margin, self.shape[1] + 2 * self.margin)
+        # Image (canvas) -> texture coordinates, for warpAffine's inverse map.
+        to_texture = np.linalg.inv(view_matrix(*self.pose))
+        canvas_centre = (np.array(canvas_shape[::-1], dtype=np.float64) - 1) / 2
+        texture_centre = (np.array(self.texture.shape[::-1], dtype=np.float64) - 1) / 2
+        matrix = np.hstack([to_texture, (texture_centre - to_texture @ canvas_centre)[:, None]])
+        self.sharp = cv2.warpAffine(self.texture, matrix, canvas_shape[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                                    borderMode=cv2.BORDER_REFLECT)
+        self._spectrum = np.fft.rfft2(self.sharp.astype(np.float32))  # float32 transforms: half the time
+
+    def _levels_through(self, index: int) -> np.ndarray:
+        """The view blurred at ``widths[0..index]`` or more (made as needed, kept),
+        cropped to the frame: levels x rows x cols."""
+        made = 0 if self._stack is None else len(self._stack)
+        if made <= index:
+            canvas_shape, m = self.sharp.shape, self.margin
+            new = np.empty((index + 1 - made,) + self.shape, np.float32)
+            for offset, level in enumerate(range(made, index + 1)):
+                transfer = self.model.transfer(float(self.widths[level]), canvas_shape)
+                blurred = np.fft.irfft2(self._spectrum * transfer, s=canvas_shape)
+                new[offset] = blurred[m:m + self.shape[0], m:m + self.shape[1]]
+            self._stack = new if self._stack is None else np.concatenate([self._stack, new])
+        return self._stack
+
+    def noiseless_frame(self, working_distance_um: float) -> np.ndarray:
+        """The frame at ``working_distance_um`` without noise: each pixel blended from the
+        two blur levels around its own blur width."""
+        width = np.minimum(self.model.width_px(self.depth - working_distance_um), self.widths[-1])
+        upper = np.clip(np.searchsorted(self.widths, width, side="right"), 1, len(self.widths) - 1)
+        lower = upper - 1
+        fraction = ((width - self.widths[lower]) / (self.widths[upper] - self.widths[lower])).astype(np.float32)
+        levels = self._levels_through(int(upper.max()))
+        below = np.take_along_axis(levels, lower[np.newaxis], axis=0)[0]
+        above = np.take_along_axis(levels, upper[np.newaxis], axis=0)[0]
+        return below + fraction * (above - below)
+
+    def frame(self, working_distance_um: float, rng: np.random.Generator, electrons: float = 1000.0,
+              read_noise: float = 2.0) -> np.ndarray:
+        """The frame at ``working_distance_um`` with shot and read noise."""
+        return poisson_gaussian(self.noiseless_frame(working_distance_um), electrons, read_noise, rng)
+
+    def sweep(self, working_distances_um, rng: np.random.Generator, electrons: float = 1000.0,
+              read_noise: float = 2.0) -> np.ndarray:
+        """The frames at each working distance (frames, rows, cols)."""
+        return np.stack([self.frame(float(distance), rng, electrons, read_noise) for distance in working_distances_um])

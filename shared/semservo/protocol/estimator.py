@@ -1,0 +1,120 @@
+"""The estimator's commands (``services/estimator``): the taught reference (the one truth
+of it: the gateway, the dashboard and the CLI all read it from here), and what is
+measured per frame.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import Field
+
+from semservo.protocol import CommandReply, CommandRequest, CommandSet, NoArguments
+
+COMMANDS = CommandSet("estimator", "Measures each frame's motion against the taught reference (paper section II) "
+                                   "and publishes it; with tilts, measures them from focus sweeps. REP `:5561`, "
+                                   "PUB `:5560`.")
+
+#: Uploads travel base64-encoded inside the request (PNG or TIFF).
+Base64 = Annotated[str, Field(min_length=1, max_length=96 * 2**20)]
+
+
+class TeachRequest(CommandRequest):
+    """One source of the reference: the live frame(s) (default), an image (upload or
+    path), a polygon or a mask image drawn on the live frame (paper case 6)."""
+
+    frames: int = Field(1, ge=1, le=16, description="average the last frames (the stage must stand still)")
+    image_b64: Base64 | None = Field(None, description="a PNG/TIFF of the current scan's size")
+    path: str | None = Field(None, max_length=4096, description="a PNG/TIFF on the estimator's machine")
+    label: str | None = Field(None, max_length=500)
+    polygon: list[Annotated[list[float], Field(min_length=2, max_length=2)]] | None = Field(
+        None, min_length=3, max_length=1000, description="[[x, y], ...] corner points on the live frame")
+    mask_b64: Base64 | None = Field(None, description="a binary PNG/TIFF mask of the current scan's size")
+    tilts: bool = Field(False, description="also sweep the focus at the taught pose (in the background: the reply "
+                                           "comes at once, `tilt_teach` in `report` says how far it is)")
+    source_interval_s: list[float] | None = Field(None, min_length=2, max_length=2,
+                                                  description="with an image: when it was scanned on the source's "
+                                                              "clock (a one-off slow scan)")
+
+
+class TiltTeach(CommandReply):
+    """The taught pose's focus sweep, which runs after a teach with tilts."""
+
+    state: Literal["sweeping", "done", "failed"]
+    reference_id: str
+    scanned: int = 0
+    frames: int = 0
+    error: str | None = None
+    code: str | None = Field(None, description="failed: sweep_failed, or no_tilt_reference (the sweep cannot tell "
+                                               "the tilts)")
+
+
+class Reference(CommandReply):
+    """The taught reference, as the estimator holds it."""
+
+    id: str
+    kind: Literal["frame", "image", "mask"]
+    shape: list[int]
+    pixel_size_nm: float | None
+    taught_at_ns: int
+    acquisition: dict[str, Any] = Field(default_factory=dict, description="what its source says of the acquisition "
+                                                                          "(pixel size, magnification, dwell, ...)")
+    frame_seq: int | None = None
+    source: str | None = None
+    frames_averaged: int | None = None
+    source_interval_s: list[float] | None = Field(None, description="when it was scanned, on the source's clock")
+    label: str | None = None
+    polygon: list[list[float]] | None = None
+    tilt: dict[str, Any] | None = Field(None, description="the taught pose's sweep: alpha_deg, beta_deg of its plane, "
+                                                          "centre_um, kernels_used, frames")
+    tilt_teach: TiltTeach | None = None
+
+
+class ClearReply(CommandReply):
+    cleared: bool
+
+
+class Report(CommandReply):
+    reference: Reference | None
+    rotation: bool = Field(description="rotation is measured in this estimator's configuration")
+    measure_rotation: bool
+    measure_tilts: bool
+    tilt_reference: dict[str, Any] | None
+    last_tilt: dict[str, Any] | None
+    tilt_error: str | None
+    precision: str
+    latest_frame_seq: int | None
+    last_estimate: dict[str, Any] | None
+
+
+class MeasureRequest(CommandRequest):
+    rotation: bool | None = Field(None, description="measure each frame's rotation (null: as configured)")
+    tilts: bool | None = Field(None, description="measure the tilts, one focus sweep after another (null: not)")
+
+
+class MeasureReply(CommandReply):
+    rotation: bool
+    tilts: bool
+
+
+class ReferenceImageRequest(CommandRequest):
+    id: str | None = Field(None, max_length=64, description="only if it is still this reference")
+
+
+class ReferenceImage(CommandReply):
+    id: str
+    dtype: str
+    shape: list[int]
+    pixels_b64: str = Field(description="the reference's pixels, raw, row-major, base64")
+
+
+TEACH = COMMANDS.add("teach", TeachRequest, Reference,
+                     "teach the reference (a refused teach keeps the previous one; `not_enough_frames` while fewer "
+                     "frames have arrived than asked to average)", timeout_s=60.0)
+CLEAR = COMMANDS.add("clear", NoArguments, ClearReply, "forget the reference (nothing is published)")
+REPORT = COMMANDS.add("report", NoArguments, Report, "the reference, what is measured, the last tilt measurement")
+MEASURE = COMMANDS.add("measure", MeasureRequest, MeasureReply,
+                       "what to measure per frame (a run without the rotation DOF skips it; a run with the tilts "
+                       "starts the tilt tracker: `no_tilt_reference` without a taught sweep)")
+REFERENCE_IMAGE = COMMANDS.add("reference_image", ReferenceImageRequest, ReferenceImage,
+                               "the taught reference's pixels (`no_reference`)", timeout_s=5.0)

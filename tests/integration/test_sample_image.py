@@ -1,0 +1,153 @@
+"""A real SEM picture as the fake lab's sample, end to end: from the command line to a
+frame, a serial move through the emulated NV 40/3 moving it by the expected pixels, the
+scan refusals on the wire, and a closed-loop run on the whole stack."""
+
+from __future__ import annotations
+
+import re
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from semservo.config import Settings, connect
+from semservo.estimation import MotionEstimator
+from semservo.messages import Reply, ScanRequest
+from semservo.simulation.sample_image import SampleImage
+from semservo.transport import ControlClient, FrameSubscriber
+from semservo.wire import decode_frame
+from tests.integration.helpers import start_service, stop, wait_for, wait_healthy
+
+pytestmark = pytest.mark.integration
+
+PIXEL_NM = 176.9  # the optimal preset's scan pixel: the picture as if photographed at x1200
+
+
+@pytest.fixture
+def picture(sem_images):
+    return sem_images / "jeol_grid.tif"
+
+
+@pytest.fixture
+def fakelab(ports, picture):
+    process = start_service("fakelab", "--speedup", "50", "--sample-image", str(picture),
+                            "--sample-pixel-nm", str(PIXEL_NM))
+    control_endpoint = connect("127.0.0.1", ports["fakelab_control"])
+    wait_healthy(control_endpoint, process, timeout_s=40)
+    control = ControlClient(control_endpoint, timeout_s=5, retries=1)
+    yield process, control
+    control.close()
+    stop(process)
+
+
+def scan(ports, request: ScanRequest):
+    client = ControlClient(connect("127.0.0.1", ports["scan"]), timeout_s=30, retries=1)
+    try:
+        return client.request_parts(request.model_dump_json().encode())
+    finally:
+        client.close()
+
+
+def correlation(first: np.ndarray, second: np.ndarray) -> float:
+    first, second = (np.asarray(a, np.float64) - np.mean(a) for a in (first, second))
+    return float((first * second).sum() / np.sqrt((first ** 2).sum() * (second ** 2).sum()))
+
+
+def test_from_the_command_line_to_a_frame_of_the_picture(fakelab, ports, picture):
+    _, control = fakelab
+    info = control.request("info")
+    assert info["sample_image"]["name"] == "jeol_grid.tif"
+    assert info["sample_image"]["pixel_size_nm"] == pytest.approx(PIXEL_NM)
+    assert info["preset"]["scene"] == "image:jeol_grid.tif"
+    frame = decode_frame(scan(ports, ScanRequest()), max_bytes=Settings().max_message_bytes)
+    assert frame.header.pixel_size_nm == pytest.approx(PIXEL_NM, rel=1e-3)  # the picture's own scale
+    sample = SampleImage.open(picture, pixel_size_nm=PIXEL_NM)
+    rows, cols = sample.shape
+    centre = sample.intensity[rows // 2 - 256: rows // 2 + 256, cols // 2 - 256: cols // 2 + 256]
+    assert correlation(frame.pixels, centre) > 0.85
+
+
+def test_scans_the_picture_cannot_serve_are_refused_with_the_reason(fakelab, ports):
+    parts = scan(ports, ScanRequest(magnification=300))
+    assert len(parts) == 1
+    reply = Reply.model_validate_json(bytes(parts[0]))
+    assert not reply.ok and reply.error.code == "bad_request"
+    assert "larger than 1 times the sample image jeol_grid.tif" in reply.error.message
+    reply = Reply.model_validate_json(bytes(scan(ports, ScanRequest(magnification=5000))[0]))
+    assert "no such detail" in reply.error.message
+
+
+def test_a_serial_move_moves_the_picture_by_the_expected_pixels(fakelab, ports):
+    _, control = fakelab
+    imageserver = start_service("imageserver", "--fps", "50")
+    try:
+        wait_healthy(connect("127.0.0.1", ports["control"]), imageserver)
+        frames = FrameSubscriber(connect("127.0.0.1", ports["frames"]), max_message_bytes=Settings().max_message_bytes)
+        before = frames.receive(timeout_s=20)
+        assert before is not None
+        port = serial.serial_for_url(f"socket://127.0.0.1:{ports['serial_tcp']}", timeout=0.2)
+        for line in (b"setk,1,1\r", b"set,1,45.000\r"):
+            port.write(line)
+            time.sleep(0.1)
+        port.close()
+        time.sleep(0.4)  # 20 simulated seconds: settled
+        frames.receive(timeout_s=20)  # one that may have been scanned during the move
+        after = frames.receive(timeout_s=20)
+        frames.close()
+
+        def scanned_at(frame):
+            return float(re.search(r"t=([\d.]+)s", frame.header.label).group(1))
+
+        pose_before = control.request("pose", t_s=scanned_at(before))
+        pose_after = control.request("pose", t_s=scanned_at(after))
+        moved_um = pose_after["y_um"] - pose_before["y_um"]
+        assert moved_um > 4.0  # 7 V up on y
+        pixel_um = before.header.pixel_size_nm / 1000
+        motion = MotionEstimator(before.pixels).estimate(after.pixels)
+        assert motion.dy == pytest.approx(moved_um / pixel_um, abs=0.2)
+        assert motion.dx == pytest.approx((pose_after["x_um"] - pose_before["x_um"]) / pixel_um, abs=0.2)
+    finally:
+        stop(imageserver)
+
+
+def test_a_closed_loop_run_on_a_real_picture(tmp_path, sem_images):
+    """The whole stack with the picture as the sample: teach, jog, position back."""
+    from semservo.client import Client
+    from semservo.launcher import simulated_system
+
+    with simulated_system(tmp_path, speedup=20, SEMSERVO_FAKELAB__SAMPLE_IMAGE=str(sem_images / "fibsem_slice_cells.tif"),
+                          SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM=str(PIXEL_NM)) as (_launcher, settings):
+        with Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=30) as lab:
+            wait_for(lambda: lab.status()["latest_frame_seq"] is not None, 60, "a frame at the gateway")
+            lab.teach(frames=4)
+            lab.move(x_um=5.0, y_um=-3.0)
+            time.sleep(0.5)
+            run = lab.start(tolerance_px=0.15)
+            result = lab.wait(run["run_id"], timeout=180)
+    assert result["state"] == "converged", result.get("reason")
+    truth = result["truth"]
+    assert truth["pixel_size_um"] == pytest.approx(PIXEL_NM / 1000, rel=1e-3)
+    assert truth["error_norm_px"] < 0.5  # from 33 px away
+
+
+def test_the_five_degree_of_freedom_demo_on_a_vendor_picture(ports, monkeypatch, tmp_path, sem_images):
+    """`semservo demo --dof all --sample-image FILE` on a TESCAN file, its pixel size from
+    its metadata (2.5 um: the demo's jog is the x1200 one's pixels, at most 8 um)."""
+    import subprocess
+    import sys
+
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(tmp_path / "runs"))
+    monkeypatch.setenv("SEMSERVO_GATEWAY__DATABASE", str(tmp_path / "runs" / "semservo.sqlite"))
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__FPS", "100")
+    monkeypatch.delenv("SEMSERVO_FAKELAB__PRESET", raising=False)
+    done = subprocess.run([sys.executable, "-m", "semservo", "demo", "--speedup", "20", "--tolerance", "0.3",
+                           "--dof", "all", "--sample-image", str(sem_images / "tescan_aperture.tif")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    out = done.stdout
+    assert "the sample: the picture" in out and "tescan_aperture.tif" in out
+    assert re.search(r"displaced the stage by \(\+8, -8\) um = \(\+3\.2, -3\.2\) px", out), out
+    assert re.search(r"4\. converged after \d+ iterations", out), out
+    angles = dict(re.findall(r"(gamma|alpha|beta) ([+-][\d.]+) deg", out.split("true final angles")[1]))
+    assert abs(float(angles["gamma"])) < 0.1 and abs(float(angles["alpha"])) < 0.5 and abs(float(angles["beta"])) < 0.5

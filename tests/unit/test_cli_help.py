@@ -1,0 +1,49 @@
+"""What the help says is what the commands do and what the docs say (issue #25: `up
+--glob` said "replay only", `up --preset` omitted tilts, `semservo teach` could not
+average frames, the map gave another default precision than the README)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from semservo import cli
+from semservo.config import Settings
+from semservo.simulation.world import PRESETS
+
+ROOT = Path(__file__).parents[2]
+
+
+def help_of(command: str) -> str:
+    parser = cli.build_parser()
+    action = next(action for action in parser._actions if action.dest == "command")
+    return action.choices[command].format_help()
+
+
+def test_up_names_every_preset_and_its_glob_reaches_a_watched_folder(monkeypatch, tmp_path):
+    text = re.sub(r"-\s+", "-", " ".join(help_of("up").split()))  # argparse wraps at hyphens
+    for name in PRESETS:
+        assert name in text, name
+    assert "replay only" not in text and "watched one" in text
+    for name in ("SEMSERVO_IMAGESERVER__WATCH_GLOB", "SEMSERVO_IMAGESERVER__REPLAY_GLOB", "SEMSERVO_IMAGESERVER__SOURCE",
+                 "SEMSERVO_IMAGESERVER__WATCH_DIR"):
+        monkeypatch.delenv(name, raising=False)
+    args = cli.build_parser().parse_args(["up", "--watch-dir", str(tmp_path), "--glob", "*.tif"])
+    cli._source_environment(args)
+    assert Settings().imageserver.watch_glob == "*.tif" and Settings().imageserver.source == "watch"
+
+
+def test_teach_averages_frames_and_teaches_tilts_as_the_api_does():
+    args = cli.build_parser().parse_args(["teach", "--frames", "4", "--tilts"])
+    assert args.frames == 4 and args.tilts
+
+
+@pytest.mark.parametrize("setting, default", [("__PRECISION", Settings().estimator.precision)])
+def test_the_maps_settings_table_gives_the_defaults_the_code_has(setting, default):
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    row = next(line for line in text.splitlines() if setting in line and line.startswith("|"))
+    names = re.findall(r"`(SEMSERVO_\w+|__\w+)`", row.split("|")[1])
+    values = [value.strip().strip("`") for value in row.split("|")[2].split(",")]
+    assert values[names.index(setting)] == default, row

@@ -1,0 +1,148 @@
+"""The controller's loop, one step at a time (services/controller/run.py): each step is a
+function of the run and the estimate, so each rule is checked alone, without a stage."""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import pytest
+
+from semservo.control import ControlLaw, LawStep, TiltLaw
+from semservo.messages import MotionEstimate
+from semservo.protocol.controller import RunSettings
+from services.controller.run import (
+    FOREIGN_ESTIMATES_TO_FAIL, STALL_SWEEPS, IterationRecord, Run, Tilts, admit, decide, gate, judge, measure, tilt_step,
+)
+
+
+def make_run(**settings) -> Run:
+    settings = RunSettings(**settings)
+    planar = tuple(dof for dof in settings.dofs if dof in ("x", "y", "rotation"))
+    tilts = tuple(dof for dof in settings.dofs if dof in ("alpha", "beta"))
+    return Run(id="r", reference_id="ref", settings=settings, started_at_ns=0, stage_at_start={},
+               law=ControlLaw(planar), tilts=Tilts(TiltLaw(tilts)) if tilts else None, last_command_ns=1_000,
+               recent=deque())
+
+
+def estimate(dx: float = 1.0, dy: float = 0.0, *, seq: int = 1, confidence: float = 0.9, started_ns: int = 2_000,
+             reference: str = "ref", pixel_size_nm: float | None = 100.0, rotation_deg: float = 0.0,
+             **tilt) -> MotionEstimate:
+    return MotionEstimate(seq=seq, reference_id=reference, dx_px=dx, dy_px=dy, rotation_deg=rotation_deg,
+                          confidence=confidence, snr_db=20.0, filtered=False, pixel_size_nm=pixel_size_nm,
+                          frame_acquired_at_ns=started_ns + 10, frame_published_at_ns=started_ns + 20,
+                          frame_scan_started_at_ns=started_ns, frame_source_interval_s=(seq * 1.0, seq * 1.0 + 0.5),
+                          published_at_ns=started_ns + 30, estimation_ms=1.0, latency_ms=1.0, **tilt)
+
+
+def feed(run: Run, errors, **options):
+    """Fresh estimates through gate, measure and judge; the first verdict that ends the run."""
+    for seq, error in enumerate(errors, 1):
+        assert gate(run, estimate(error, seq=seq, **options)) is None
+        verdict = judge(run, measure(run, estimate(error, seq=seq, **options)))
+        if verdict is not None and verdict.ending:
+            return verdict
+    return None
+
+
+def test_admit_tolerates_two_estimates_in_flight_against_another_reference_not_three():
+    run = make_run()
+    for _ in range(FOREIGN_ESTIMATES_TO_FAIL - 1):
+        verdict = admit(run, estimate(reference="other"))
+        assert verdict.ending is None and verdict.action is None  # ignored, not recorded
+    assert admit(run, estimate()) is None and run.foreign == 0, "one of its own resets the count"
+    for _ in range(FOREIGN_ESTIMATES_TO_FAIL):
+        verdict = admit(run, estimate(reference="other"))
+    assert verdict.ending == "failed" and "reference changed" in verdict.reason and "other" in verdict.reason
+
+
+def test_gate_holds_stale_and_unconfident_estimates_and_fails_without_a_pixel_size():
+    run = make_run(lost_after=3)
+    unknown = gate(run, estimate(pixel_size_nm=None))
+    assert unknown.ending == "failed" and "SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM" in unknown.reason
+    stale = gate(run, estimate(started_ns=run.last_command_ns - 1))
+    assert stale.action.startswith("held: stale") and stale.ending is None and run.held_stale == 1
+    for _ in range(2):
+        assert gate(run, estimate(confidence=0.1)).action == "held: low confidence"
+    assert gate(run, estimate()) is None and run.low_confidence == 0, "a confident one resets the count"
+    for _ in range(3):
+        lost = gate(run, estimate(confidence=0.1))
+    assert lost.ending == "failed" and "scene lost" in lost.reason
+
+
+def test_convergence_is_judged_on_the_mean_or_on_each_frame():
+    on_mean = feed(make_run(converge_frames=2), [0.15, -0.04])
+    assert on_mean is not None and on_mean.ending == "converged"
+    assert feed(make_run(converge_frames=2, converge_on="each"), [0.15, -0.04]) is None
+    assert feed(make_run(converge_frames=2, hold=True), [0.01, 0.01, 0.01]) is None, "a hold goes on"
+
+
+def test_errors_either_side_of_the_target_do_not_average_to_convergence():
+    """A run overshooting across moves measured (+0.37, -0.31), (-0.07, +0.10), (-0.37,
+    +0.41) px: the mean vector is 0.07 px, the run 0.55 px from its goal."""
+    run = make_run(converge_frames=3)
+    errors = [(0.37, -0.31), (-0.07, 0.10), (-0.37, 0.41)]
+    for seq, (dx, dy) in enumerate(errors, 1):
+        verdict = judge(run, measure(run, estimate(dx, dy, seq=seq)))
+    assert verdict is None, "not converged: the errors' sizes average 0.45 px"
+
+
+def test_a_run_whose_error_stops_falling_fails_saying_so():
+    """The run the issue found left servoing at 2.9 px after 329 iterations."""
+    run = make_run(stall_after=20, max_iterations=10_000)
+    verdict = feed(run, [2.9 + 0.05 * math.sin(seq) for seq in range(40)])
+    assert verdict is not None and verdict.ending == "failed" and verdict.reason.startswith("no progress")
+    assert "2.9" in verdict.reason and "tolerance 0.1" in verdict.reason
+    assert run.fresh_frames == 21, "the best, then stall_after frames without beating it by 10 %"
+
+
+def test_a_slow_but_steady_approach_and_a_held_target_are_progress():
+    falling = [20.0 * 0.95 ** seq for seq in range(150)]  # 5 % a frame: beats its best by 10 % every 3 frames
+    assert feed(make_run(stall_after=20, max_iterations=10_000, converge_frames=1), falling).ending == "converged"
+    holding = [0.05, -0.04, 0.06] * 40  # within tolerance all along: holding is not stalling
+    assert feed(make_run(stall_after=20, hold=True, max_iterations=10_000), holding) is None
+
+
+def test_a_tilt_run_is_not_stalled_before_its_sweeps_have_had_their_say():
+    run = make_run(dofs=["x", "y", "alpha", "beta"], stall_after=5, max_iterations=10_000)
+    assert feed(run, [3.0] * 30) is None, "no sweep measured yet: x, y alone do not judge a tilt run"
+    record = IterationRecord.of(estimate())
+    for seq in range(1, STALL_SWEEPS + 3):
+        tilted = estimate(3.0, seq=seq, alpha_deg=2.0, beta_deg=-1.0, tilt_confidence=0.9, tilt_seq=seq,
+                          tilt_scan_started_at_ns=10 * seq)
+        tilt_step(run, tilted, record)
+        verdict = judge(run, measure(run, tilted, new_sweep=True))
+        if verdict is not None:
+            break
+    assert verdict is not None and verdict.ending == "failed" and "tilts alpha +2.000 deg" in verdict.reason
+
+
+def test_decide_saturates_moves_and_turns_and_judges_divergence_above_its_floor():
+    run = make_run(max_move_um=10.0, max_turn_deg=2.0, diverge_iterations=2)
+    big = LawStep((100.0,), 1e4, 0.5, (1.0,), {"x_um": 30.0, "y_um": -40.0, "rotation_deg": 5.0})
+    decision = decide(run, big, None)
+    assert decision.saturated and math.hypot(*decision.targets.values()) == pytest.approx(10.0)
+    assert decision.targets["x"] == pytest.approx(6.0) and decision.turns["rotation_deg"] == 2.0
+    assert decision.turn_saturated and decision.diverging is None
+    small = LawStep((0.3,), 0.09, 0.5, (0.0,), {"x_um": 0.01})
+    for _ in range(5):  # noise near the target: never divergence, however small the cost's minimum
+        assert decide(run, small, None).diverging is None
+    run = make_run(diverge_iterations=2)
+    decide(run, LawStep((2.0,), 4.0, 0.5, (0.0,), {"x_um": 0.1}), None)
+    decide(run, LawStep((5.0,), 25.0, 0.5, (0.0,), {"x_um": 0.1}), None)
+    assert decide(run, LawStep((6.0,), 36.0, 0.5, (0.0,), {"x_um": 0.1}), None).diverging.startswith("diverging")
+
+
+def test_recovery_reads_run_journals_only_and_says_nothing_of_the_stages_log(tmp_path, caplog):
+    """A frightening line on every first start: the stage's command log (a .jsonl in the
+    same folder) was read as a dead controller's journal."""
+    import logging
+
+    from services.controller.core import ControllerCore
+
+    (tmp_path / "stage-commands.jsonl").write_text('{"time_ns": 1, "direction": "sent", "text": "set,0,1"}\n')
+    (tmp_path / "20260101-000000-abcdef.jsonl").write_text("")  # a run's journal torn at its first line
+    with caplog.at_level(logging.ERROR, logger="controller"):
+        assert ControllerCore(stage=None, runs_dir=tmp_path).recover() == []
+    messages = [record.getMessage() for record in caplog.records]
+    assert len(messages) == 1 and "20260101-000000-abcdef" in messages[0] and "delete it" in messages[0]
