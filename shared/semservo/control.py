@@ -277,10 +277,17 @@ class ControlLaw:
     #: rotation), so the approach from far away does not wind it up.
     integral_zone: float = 2.0
     integral: np.ndarray | None = None
+    #: Whether the run has converged is the caller's rule for this law (the mean error of
+    #: the last N fresh frames); :attr:`PositionLaw.converged` is the position law's own.
+    converged = None
 
     def reset(self) -> None:
         self.previous_velocity = None
         self.integral = None
+
+    def applied(self, move: dict[str, float] | None, at_s: float | None = None) -> None:
+        """The move as the stage carried it out: nothing to learn for this law (the same
+        call as :meth:`PositionLaw.applied`, so a caller treats every law alike)."""
 
     def _with_integral(self, error: np.ndarray, sampling_time_s: float) -> np.ndarray:
         if not self.integral_time_s:
@@ -295,9 +302,14 @@ class ControlLaw:
         return error + self.integral / self.integral_time_s
 
     def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
-             sampling_time_s: float) -> LawStep:
+             sampling_time_s: float, *, fresh: bool = True, confident: bool = True,
+             frame_interval_s: tuple[float, float] | None = None, now_s: float | None = None) -> LawStep:
         """Error, cost, gain, camera velocity (eq. 30-36) and the stage displacement
-        (eq. 37): ``move`` has "x_um", "y_um", "rotation_deg" for the chosen DOFs."""
+        (eq. 37): ``move`` has "x_um", "y_um", "rotation_deg" for the chosen DOFs. The
+        keywords are :meth:`PositionLaw.step`'s, so a caller treats both laws alike: a
+        frame not ``fresh`` or not ``confident`` is not acted on; the times are unused."""
+        if not fresh or not confident:
+            return LawStep.idle()
         error = error_vector(dx_px, dy_px, rotation_deg, self.dofs)
         theta = math.radians(rotation_deg) if "rotation" in self.dofs else 0.0
         gain, velocity, moved = velocity_and_displacement(
@@ -364,3 +376,426 @@ class TiltLaw:
         self.previous_velocity = velocity
         move = self.camera_to_stage.stage_move(dict(zip(self.dofs, moved)))
         return LawStep(_floats(error), cost(error), gain, _floats(velocity), move)
+
+
+# --------------------------------------------------------------------------------------
+# A position-based law (not in the paper): the measured displacement in one move
+
+#: The laws a run may pick by name (the run settings' ``law``): the paper's (eq. 30-37)
+#: and :class:`PositionLaw`.
+LAWS = ("paper", "position")
+
+
+def settling_time_s(step: float, time_constant_s: float, within: float) -> float:
+    """How long a first-order axis takes to come within ``within`` of a step of ``step``
+    (same units): tau ln(|step| / within), zero for a step already within."""
+    if time_constant_s < 0 or within <= 0:
+        raise ValueError("the time constant must not be negative and the band must be positive")
+    return time_constant_s * math.log(abs(step) / within) if abs(step) > within else 0.0
+
+
+@dataclass(frozen=True)
+class StageSettling:
+    """A stage's settling, per axis of a move ("x_um", "rotation_deg", ...): a first-order
+    response with time constant ``time_constants_s[axis]``, settled when within
+    ``within[axis]`` of the target. What a stage service reports as ``settled_at_ns`` on a
+    move's reply (the write time plus :meth:`after_s` of the move), and what the in-process
+    loop (:mod:`semservo.reproduce.loop`) waits for. The defaults: a small piezo stage
+    (settling "around 10 ms", ``shared/reference/nv403-and-tritor.md``: tau 3 ms, within
+    1 nm: 10 ms for 30 nm, 28 ms for 10 um)."""
+
+    time_constants_s: dict = field(default_factory=lambda: {"x_um": 0.003, "y_um": 0.003})
+    within: dict = field(default_factory=lambda: {"x_um": 0.001, "y_um": 0.001})
+
+    def after_s(self, move: dict[str, float]) -> float:
+        """Seconds from the write until every axis of ``move`` has settled (the slowest)."""
+        times = [settling_time_s(value, self.time_constants_s[axis], self.within[axis])
+                 for axis, value in move.items() if axis in self.time_constants_s]
+        return max(times, default=0.0)
+
+
+class UnexpectedResponse(RuntimeError):
+    """The stage did not move the content as commanded, twice in a row on one axis (a
+    wrong sign of the camera-to-stage transform, a blocked axis, a wrong estimate): the
+    run must stop rather than move again."""
+
+
+#: The position law's prior spread of the stage's gain, by what the stage service maps
+#: micrometres to volts with.
+MODEL_UNCERTAINTY = {"calibrated": 0.15, "uncalibrated": 0.7}
+
+#: Which stage axis (a key of a move) carries which degree of freedom, and its units.
+_AXIS_OF = {"x": "x_um", "y": "y_um", "rotation": "rotation_deg"}
+
+
+@dataclass
+class PositionLaw:
+    """A position-based law (not the paper's): each fresh frame measures the whole
+    remaining displacement, so one move commands all of it through the stage's
+    displacement model (the stage service maps micrometres to volts), shortened only as
+    far as the stage's response is uncertain; the next fresh frame measures what is left,
+    and with it how the stage responded, and the law corrects the residue with what it
+    learned. From a calibrated model a target is reached in two to four moves; an
+    uncalibrated stage (70 % uncertain) takes a cautious first move, learns its gain from
+    it and closes in from the same side.
+
+    The state estimator is a linear Kalman filter, per degree of freedom: the content's
+    position error p (px, or degrees for the rotation), its drift v (per second) and the
+    stage axis's gain k (the move it makes over the move it is told; prior 1 with the
+    displacement model's relative uncertainty). A frame measures p (noise: the estimate's
+    per frame, a prior ``noise_px`` pooled with the scatter of consecutive frames at
+    rest); time adds v dt; a move u adds M diag(u) k (M: the camera-to-stage transform's
+    content motion per unit move), linear in the state, so p, v and k are estimated
+    together. A reversal of an axis's direction starts a minor hysteresis loop of another
+    gain: k's spread is raised to ``reversal_spread`` there.
+
+    Each fresh frame: converged (:attr:`converged`) when the error predicted for now,
+    plus one standard deviation, is within tolerance; else a move when the error predicted
+    for the next fresh frame is beyond ``deadband`` x tolerance and ``significance``
+    standard deviations: u = -(M diag(k + ``caution`` spread(k)))^-1 p, so a gain up to
+    ``caution`` spreads above the estimate does not overshoot; else held for another frame.
+
+    Safety: every move within ``max_move_um`` (planar, the direction kept) and
+    ``max_turn_deg``; noise is not chased; a response implausible twice in a row on one
+    axis (the content moved less than 0.2 or more than 5 times the commanded move, or the
+    wrong way) raises :class:`UnexpectedResponse`.
+
+    What the caller (the controller) provides, each iteration:
+
+    * only frames it would act on: the estimate's confidence at least the run's
+      ``min_confidence`` (else pass ``confident=False``, or do not call; either way
+      nothing moves and nothing is learned);
+    * ``fresh``: whether the frame was scanned wholly after the last move had settled,
+      i.e. its scan started at or after the ``settled_at_ns`` of the stage's reply to the
+      last move (:class:`StageSettling`). A frame that is not fresh shows a pose in
+      between: the law neither moves nor learns on it;
+    * the estimate (dx, dy px; rotation degrees) and the frame's pixel size (nm);
+      ``sampling_time_s`` is accepted (the paper's law needs it) and unused;
+    * ``frame_interval_s``: when the frame's scan started and ended, and ``now_s``: when
+      the move will be written (default: the frame's end), in seconds on one clock (the
+      image source's when it has one; the same clock for :meth:`applied`). Without them
+      the law assumes no drift;
+    * after writing the move: :meth:`applied` with the move as the stage carried it out
+      (after any saturation of the caller's own) and ``at_s``, when it was written, or
+      with None / {} when the stage refused it or nothing was written. A move not
+      confirmed is taken as not made;
+    * the run converges when :attr:`converged` is True after a step (instead of the
+      controller's mean of the last N frames, some of which measured a pose left behind);
+      with ``hold`` the caller keeps calling: the law corrects only what drifts beyond the
+      dead band.
+
+    The result is a :class:`LawStep`: ``error`` (px, rad) of this frame, ``cost``, ``gain``
+    the fraction of the predicted error the move commands (1: all of it; 0: held),
+    ``velocity`` empty (a displacement is commanded, not a velocity), ``move`` by stage axis.
+    """
+
+    dofs: tuple[str, ...] = ("x", "y")
+    camera_to_stage: CameraToStage = field(default_factory=CameraToStage)
+    #: The stage's displacement model, relative 1-sigma of k: 0.15 calibrated (the model's
+    #: branches are the major loop; a servo's small moves run on minor loops whose gain is
+    #: 70-100 % of it), 0.7 none (a linear model from the nominal stroke: a piezo moves
+    #: 1-1.7 x what 100 um over 150 V says, depending on where and which way).
+    #: :data:`MODEL_UNCERTAINTY` has both.
+    model_uncertainty: float = 0.15
+    reversal_spread: float = 0.2
+    tolerance_px: float = 0.1
+    tolerance_deg: float = 0.05
+    deadband: float = 0.7
+    max_move_um: float = 10.0
+    max_turn_deg: float = 5.0
+    caution: float = 1.0
+    significance: float = 2.0
+    noise_px: float = 0.03  # the estimate's noise per frame at rest (prior), px
+    noise_deg: float = 0.01  # and for the rotation, degrees
+    noise_weight: float = 3.0  # the prior's weight, in frame pairs
+    #: Thermal drift of the sample: the prior's spread and how fast it may change (nm/s,
+    #: nm/s per sqrt s; "nanometres per second to per minute").
+    drift_nm_per_s: float = 3.0
+    drift_walk_nm: float = 0.1
+    #: The fraction of a move's size the gain k does not explain (hysteresis minor loops,
+    #: creep).
+    unmodelled: float = 0.05
+    #: How much k may change per micrometre (or degree) of travel, relative to the model's
+    #: uncertainty: a piezo's gain varies along its stroke (a linear model's far more than
+    #: a calibrated model's), so what the last moves taught fades with the travel.
+    gain_walk: float = 0.05
+    #: Converged when the error now plus this many of its standard deviations is within
+    #: tolerance.
+    margin: float = 1.0
+    #: True after a step that put the target within tolerance.
+    converged: bool = False
+    state: np.ndarray | None = field(default=None, repr=False)  # [p, v, k] per DOF
+    covariance: np.ndarray | None = field(default=None, repr=False)
+    _time: float | None = field(default=None, repr=False)  # the state's time
+    _pixel_size_nm: float | None = field(default=None, repr=False)
+    _pending: dict | None = field(default=None, repr=False)  # last move applied, not yet seen
+    _last_error: np.ndarray | None = field(default=None, repr=False)  # last frame's error at rest
+    _scatter: list = field(default_factory=lambda: [0.0, 0.0], repr=False)
+    _directions: dict = field(default_factory=dict, repr=False)
+    _implausible: dict = field(default_factory=dict, repr=False)
+    _kept_gains: tuple | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        unknown = set(self.dofs) - set(_AXIS_OF)
+        if unknown:
+            raise ValueError(f"the position law drives {', '.join(_AXIS_OF)}; not {sorted(unknown)}")
+        self.axes = tuple(_AXIS_OF[dof] for dof in self.dofs)
+        self._rotation = np.array([dof == "rotation" for dof in self.dofs])
+
+    # -- the estimator ---------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the run: position and drift (the stage's gains and the noise learned stay)."""
+        n = len(self.dofs)
+        kept = None
+        if self.state is not None:
+            kept = self.state[2 * n:].copy(), self.covariance[2 * n:, 2 * n:].copy()
+        self.state = self.covariance = None
+        self._time = self._pending = self._last_error = None
+        self._implausible, self.converged = {}, False
+        self._kept_gains = kept
+
+    def noise(self) -> np.ndarray:
+        """The estimate's noise per frame (px, or degrees for the rotation), per DOF."""
+        prior = np.where(self._rotation, self.noise_deg, self.noise_px)
+        squares, pairs = self._scatter
+        if pairs == 0:
+            return prior
+        pooled = np.sqrt((self.noise_weight * self.noise_px**2 + squares) / (self.noise_weight + pairs))
+        return np.where(self._rotation, prior, pooled)
+
+    def gains(self) -> dict[str, tuple[float, float]]:
+        """The stage's gain k per axis, with its spread."""
+        n = len(self.dofs)
+        if self.state is None:
+            return {axis: (1.0, self.model_uncertainty) for axis in self.axes}
+        return {axis: (float(self.state[2 * n + i]), float(math.sqrt(self.covariance[2 * n + i, 2 * n + i])))
+                for i, axis in enumerate(self.axes)}
+
+    def _start(self, error: np.ndarray) -> None:
+        n = len(self.dofs)
+        self.state = np.concatenate([error, np.zeros(n), np.ones(n)])
+        noise = self.noise()
+        drift_px = self.drift_nm_per_s / self._pixel_size_nm
+        self.covariance = np.diag(np.concatenate([noise**2, np.where(self._rotation, 0.0, drift_px**2),
+                                                  np.full(n, self.model_uncertainty**2)]))
+        if self._kept_gains is not None:  # learned in an earlier run on this stage
+            self.state[2 * n:], self.covariance[2 * n:, 2 * n:] = self._kept_gains
+
+    def _content_per_move(self, pixel_size_nm: float) -> np.ndarray:
+        """M: the content's motion (px, degrees) per unit move of each stage axis."""
+        n = len(self.dofs)
+        matrix = np.zeros((n, n))
+        for column, axis in enumerate(self.axes):
+            if axis == "rotation_deg":
+                matrix[column, column] = self.camera_to_stage.rotation_sign
+                continue
+            content = self.camera_to_stage.content_move_px(1.0 if axis == "x_um" else 0.0,
+                                                          1.0 if axis == "y_um" else 0.0, pixel_size_nm)
+            for row, dof in enumerate(self.dofs):
+                if dof in ("x", "y"):
+                    matrix[row, column] = content[0 if dof == "x" else 1]
+        return matrix
+
+    def _predict(self, to_s: float | None) -> None:
+        if to_s is None:  # no clock: no drift
+            return
+        if self._time is None or to_s <= self._time:
+            self._time = to_s if self._time is None else self._time
+            return
+        n = len(self.dofs)
+        dt = to_s - self._time
+        transition = np.eye(3 * n)
+        transition[:n, n:2 * n] = np.eye(n) * dt
+        self.state = transition @ self.state
+        self.covariance = transition @ self.covariance @ transition.T
+        walk = np.where(self._rotation, 0.0, (self.drift_walk_nm / self._pixel_size_nm) ** 2 * dt)
+        self.covariance[n:2 * n, n:2 * n] += np.diag(walk)
+        self._time = to_s
+
+    def _apply_move(self, move: dict[str, float]) -> None:
+        n = len(self.dofs)
+        commanded = np.array([move.get(axis, 0.0) for axis in self.axes])
+        for index, axis in enumerate(self.axes):
+            direction = int(np.sign(commanded[index]))
+            if direction and self._directions.get(axis, direction) != direction:
+                gain_index = 2 * n + index
+                self.covariance[gain_index, gain_index] = max(self.covariance[gain_index, gain_index],
+                                                              self.reversal_spread**2)
+            if direction:
+                self._directions[axis] = direction
+        walk = (self.gain_walk * self.model_uncertainty * np.abs(commanded)) ** 2
+        self.covariance[2 * n:, 2 * n:] += np.diag(walk)
+        per_move = self._content_per_move(self._pixel_size_nm)
+        transition = np.eye(3 * n)
+        transition[:n, 2 * n:] = per_move @ np.diag(commanded)
+        self.state = transition @ self.state
+        self.covariance = transition @ self.covariance @ transition.T
+        content = np.abs(per_move @ commanded)
+        self.covariance[:n, :n] += np.diag((self.unmodelled * content) ** 2)
+
+    def _measure(self, error: np.ndarray) -> None:
+        n = len(self.dofs)
+        observation = np.zeros((n, 3 * n))
+        observation[:, :n] = np.eye(n)
+        innovation = error - self.state[:n]
+        innovation_covariance = self.covariance[:n, :n] + np.diag(self.noise() ** 2)
+        gain = self.covariance @ observation.T @ np.linalg.inv(innovation_covariance)
+        self.state = self.state + gain @ innovation
+        self.covariance = (np.eye(3 * n) - gain @ observation) @ self.covariance
+        self.covariance = (self.covariance + self.covariance.T) / 2
+
+    def _check_response(self, error: np.ndarray) -> None:
+        """The move just seen: the content's motion against the motion the move should
+        have made, for the planar axes together and for the rotation."""
+        n = len(self.dofs)
+        before, move = self._pending["before"], self._pending["move"]
+        commanded = np.array([move.get(axis, 0.0) for axis in self.axes])
+        expected = self._content_per_move(self._pixel_size_nm) @ commanded
+        achieved = error - before
+        for group, chosen in (("x/y", ~self._rotation), ("rotation", self._rotation)):
+            if not chosen.any():
+                continue
+            size = float(np.hypot.reduce(expected[chosen]))
+            if size <= 5 * float(self.noise()[chosen].max()):
+                continue
+            ratio = float(achieved[chosen] @ expected[chosen]) / size**2
+            if 0.2 <= ratio <= 5.0:
+                self._implausible[group] = 0
+                continue
+            self._implausible[group] = self._implausible.get(group, 0) + 1
+            # Learn nothing from it: the gains are held where they were.
+            for index in np.flatnonzero(chosen):
+                self.covariance[2 * n + index, :] = 0.0
+                self.covariance[:, 2 * n + index] = 0.0
+                self.covariance[2 * n + index, 2 * n + index] = self._pending["gain_variance"][index]
+            if self._implausible[group] >= 2:
+                raise UnexpectedResponse(
+                    f"{group}: the stage moved the content {ratio:+.2f} x the commanded move twice in a row "
+                    "(a wrong camera-to-stage sign, a blocked axis, or wrong estimates)")
+
+    # -- the law ---------------------------------------------------------------------
+    def applied(self, move: dict[str, float] | None, at_s: float | None = None) -> None:
+        """The move the stage carried out after the last step (None or {}: none), written
+        at ``at_s`` (on the clock of ``frame_interval_s``)."""
+        if not move or self.state is None:
+            return
+        move = {axis: value for axis, value in move.items() if axis in self.axes}
+        n = len(self.dofs)
+        self._predict(at_s)
+        self._pending = {"before": self.state[:n].copy(), "move": dict(move),
+                         "gain_variance": np.diag(self.covariance)[2 * n:].copy()}
+        self._apply_move(move)
+        self._last_error = None
+
+    def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
+             sampling_time_s: float | None = None, *, fresh: bool = True, confident: bool = True,
+             frame_interval_s: tuple[float, float] | None = None, now_s: float | None = None) -> LawStep:
+        """One frame in, the move out (see the class for what the caller provides)."""
+        if not fresh or not confident:
+            return LawStep.idle()
+        error = error_vector(dx_px, dy_px, rotation_deg, self.dofs)
+        units = error_in_units(error, self.dofs)
+        n = len(self.dofs)
+        if self._pixel_size_nm is not None and abs(pixel_size_nm - self._pixel_size_nm) > 1e-9 * pixel_size_nm:
+            self.reset()  # another magnification: the position in pixels starts afresh
+        self._pixel_size_nm = pixel_size_nm
+        middle = None if frame_interval_s is None else (frame_interval_s[0] + frame_interval_s[1]) / 2
+        now = now_s if now_s is not None else (frame_interval_s[1] if frame_interval_s else None)
+        frame_time = (frame_interval_s[1] - frame_interval_s[0]) if frame_interval_s else 0.0
+        if self.state is None:
+            self._start(units)
+            self._time = middle
+        else:
+            self._predict(middle)
+            if self._pending is not None:
+                self._check_response(units)
+            elif self._last_error is not None:  # the same pose as the last frame: its scatter is the noise
+                difference = (units - self._last_error)[~self._rotation]
+                self._scatter[0] += float((difference**2).mean()) / 2
+                self._scatter[1] += 1
+            self._measure(units)
+        self._pending, self._last_error = None, units
+        # Where the target is now, and at the middle of the next fresh frame (a move's
+        # scan is not fresh: one and a half frames on).
+        position, spread = self._forecast(now)
+        aim, aim_spread = self._forecast(None if now is None else now + 1.5 * frame_time)
+        tolerances = np.where(self._rotation, self.tolerance_deg, self.tolerance_px)
+        planar, rotation = self._norms(position), self._norms(position, rotation=True)
+        planar_spread = self._norms(spread) / math.sqrt(max(sum(~self._rotation), 1))
+        self.converged = bool(planar + self.margin * planar_spread <= self.tolerance_px
+                              and rotation + self.margin * self._norms(spread, rotation=True) <= self.tolerance_deg)
+        # Act on what is significant now; aim at where the drift will have taken it (a
+        # converged run that holds still corrects what will have drifted beyond the dead band).
+        act = (np.abs(aim) > self.deadband * tolerances) & (np.abs(position) > self.significance * spread)
+        # The planar DOFs act together (a diagonal error is one error).
+        if (~self._rotation).any():
+            act[~self._rotation] = (self._norms(aim) > self.deadband * self.tolerance_px
+                                    and planar > self.significance * planar_spread)
+        if not act.any():
+            return LawStep(_floats(error), cost(error), 0.0, (), {})
+        gains = self.state[2 * n:]
+        spreads = np.sqrt(np.diag(self.covariance)[2 * n:])
+        # Reversals raise the spread before the move: the first move of a minor loop is cautious.
+        per_move = self._content_per_move(pixel_size_nm)
+        nominal = np.linalg.solve(per_move, -np.where(act, aim, 0.0))  # the move at k = 1
+        for index, axis in enumerate(self.axes):
+            direction = int(np.sign(nominal[index]))
+            if direction and self._directions.get(axis, direction) != direction:
+                spreads[index] = max(spreads[index], self.reversal_spread)
+        # The gain may wander over the travel of this move too.
+        spreads = np.hypot(spreads, self.gain_walk * self.model_uncertainty * np.abs(nominal / np.maximum(gains, 0.2)))
+        commanded = nominal / np.maximum(gains + self.caution * spreads, 0.2)
+        move = {axis: float(value) for axis, value, acting in zip(self.axes, commanded, act) if acting}
+        planar_move = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
+        if planar_move > self.max_move_um:
+            # Saturated: even the cautious move is beyond the limit, so the target lies
+            # beyond the limit's move too; go the limit's length towards it.
+            direction = {axis: float(value) for axis, value in zip(self.axes, nominal / np.maximum(gains, 0.2))
+                         if axis in ("x_um", "y_um") and axis in move}
+            length = math.hypot(*direction.values())
+            for axis, value in direction.items():
+                move[axis] = value * self.max_move_um / length
+        if "rotation_deg" in move and abs(move["rotation_deg"]) > self.max_turn_deg:
+            move["rotation_deg"] = math.copysign(self.max_turn_deg, move["rotation_deg"])
+        fraction = float(np.mean([move[axis] / nominal[i] for i, axis in enumerate(self.axes)
+                                  if axis in move and nominal[i]]))
+        return LawStep(_floats(error), cost(error), fraction, (), move)
+
+    def _forecast(self, at_s: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """The error predicted at ``at_s`` and its spread, per DOF."""
+        n = len(self.dofs)
+        dt = 0.0 if at_s is None or self._time is None else max(at_s - self._time, 0.0)
+        position = self.state[:n] + self.state[n:2 * n] * dt
+        variance = (np.diag(self.covariance)[:n] + 2 * dt * np.diag(self.covariance[:n, n:2 * n])
+                    + dt**2 * np.diag(self.covariance)[n:2 * n])
+        return position, np.sqrt(np.maximum(variance, 0.0))
+
+    def _norms(self, values: np.ndarray, rotation: bool = False) -> float:
+        """The planar norm (px) of per-DOF values, or with ``rotation`` the rotation's |value|."""
+        chosen = values[self._rotation] if rotation else values[~self._rotation]
+        return float(np.hypot(*chosen)) if chosen.size == 2 else float(np.abs(chosen).sum())
+
+
+def error_in_units(error: np.ndarray, dofs: Sequence[str]) -> np.ndarray:
+    """The error in the tolerances' units: px for translation, degrees for rotation."""
+    return np.array([math.degrees(value) if dof == "rotation" else value for dof, value in zip(dofs, error)])
+
+
+def make_law(name: str, dofs: Sequence[str] = ("x", "y"), *, camera_to_stage: CameraToStage | None = None,
+             gain: AdaptiveGain | ExponentialGain | None = None, integral_time_s: float | None = None,
+             model_uncertainty: float = 0.15, noise_px: float = 0.03, tolerance_px: float = 0.1,
+             tolerance_deg: float = 0.05,
+             max_move_um: float = 10.0, max_turn_deg: float = 5.0) -> ControlLaw | PositionLaw:
+    """The planar law a run's settings name (``law``: one of :data:`LAWS`). Both take
+    ``step(dx_px, dy_px, rotation_deg, pixel_size_nm, sampling_time_s)`` on the frames the
+    caller acts on and ``applied(move)`` after the stage's reply; each ignores what it
+    does not need (the paper's law the saturation and tolerances, the caller saturates;
+    the position law the gain and the integral)."""
+    camera_to_stage = camera_to_stage or CameraToStage()
+    if name == "paper":
+        return ControlLaw(tuple(dofs), gain or AdaptiveGain(), camera_to_stage, integral_time_s=integral_time_s)
+    if name == "position":
+        return PositionLaw(tuple(dofs), camera_to_stage, model_uncertainty=model_uncertainty, noise_px=noise_px,
+                           tolerance_px=tolerance_px, tolerance_deg=tolerance_deg, max_move_um=max_move_um,
+                           max_turn_deg=max_turn_deg)
+    raise ValueError(f"unknown law {name!r}; laws: {', '.join(LAWS)}")

@@ -18,11 +18,21 @@ Experiments (``--only`` takes these names):
 * ``replay2013``: the real 2013 run (photometric servoing) replayed against our
   photometric baseline: its recorded increments against ours, per axis;
 * ``fig8``: a 5-DOF run from (7, 12, 20) degrees (and three from random poses in the full
-  run) through the whole stack, which the launcher starts on simulated hardware.
+  run) through the whole stack, which the launcher starts on simulated hardware;
+* ``time_to_target`` (not in the paper): fresh frames, frames scanned and simulated seconds
+  to the target, true final error and converged of N, for the paper's law and the position
+  law (:class:`semservo.control.PositionLaw`) side by side on a continuously scanning SEM
+  (:func:`.loop.run_timed_trial`), per preset and offset (5, 15, 30 % of the field and
+  half a pixel), with the stage's model calibrated, unknown (a linear model from the
+  nominal stroke) or another stage's (+-15 %); and the photometric baseline's time to
+  target (paper's law, the same budget);
+* ``hold`` (not in the paper): a position held for 10 minutes of simulated time under the
+  ``unstable`` preset's drift and vibration, the true error and the corrections made.
 
 Results are kept per experiment in ``<out>/results/<name>.json``: a finished experiment is
 skipped when the command runs again (``--fresh`` redoes it), so a long run can be
-interrupted and resumed. ``--quick`` runs a reduced version (fewer cases, trials and grid
+interrupted and resumed; ``time_to_target`` also keeps each trial as it finishes
+(``<out>/results/time_to_target.partial.jsonl``) and resumes mid-experiment. ``--quick`` runs a reduced version (fewer cases, trials and grid
 points) in a few minutes on 2 cores.
 """
 
@@ -61,7 +71,8 @@ PAPER_TABLE2 = {4.3: (0.65, 0.81), 5.8: (0.48, 0.69), 8.6: (0.33, 0.51), 11.5: (
 #: Table I: true (alpha, beta, gamma); the paper's measured values reach 0.82 degree off.
 PAPER_TABLE1_POSES = tuple(tilts.PAPER_POSES)
 
-EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1", "fig8", "replay2013")
+EXPERIMENTS = ("fig4", "table2", "table3", "table4", "figs9_11", "table1", "fig8", "replay2013", "time_to_target",
+               "hold")
 #: Figs. 9-11 also show the calibration sample (the paper's case 7, Fig. 11): run with Table III's trials.
 FIGURE_CASES = CASES + ("repeated-pattern",)
 
@@ -98,6 +109,16 @@ class Progress:
 
 # -- the experiments ------------------------------------------------------------------
 
+#: Table IV: every method gets the same budget of simulated time (scans), not a number of
+#: iterations; 150 s is 330 frames at 720 ns/px, 1200 at 180 ns/px.
+TABLE4_BUDGET_S = 150.0
+TABLE4_SETTINGS = loop.TrialSettings(max_iterations=100_000, time_budget_s=TABLE4_BUDGET_S)
+#: A run that stopped within tolerance by its own measure is at the target when the
+#: simulator's true error is under this (px); else it converged falsely (a photometric
+#: step vanishes in a flat valley of its cost far from the goal).
+AT_TARGET_PX = 1.0
+
+
 def experiment_table4(quick: bool, progress: Callable[[int], Progress]) -> dict:
     cases = ("optimal", "noisy", "unstable") if quick else CASES
     trials = 1 if quick else 6
@@ -106,11 +127,12 @@ def experiment_table4(quick: bool, progress: Callable[[int], Progress]) -> dict:
     for case in cases:
         for start_index, start in enumerate(starts(trials, 4, field_um(case))):
             for method in methods.METHODS:
-                result = loop.run_trial(case, method, start, seed=100 + start_index)
+                result = loop.run_trial(case, method, start, seed=100 + start_index, settings=TABLE4_SETTINGS)
                 rows.setdefault(case, {}).setdefault(method, []).append(_summary(result))
                 bar.step(f"{case} {method}: {result['outcome']}")
     bar.close()
-    return {"cases": list(cases), "trials": trials, "rows": rows}
+    return {"cases": list(cases), "trials": trials, "rows": rows, "budget_s": TABLE4_BUDGET_S,
+            "at_target_px": AT_TARGET_PX}
 
 
 def experiment_table3(quick: bool, progress: Callable[[int], Progress]) -> dict:
@@ -233,6 +255,151 @@ def experiment_replay2013(quick: bool, progress: Callable[[int], Progress]) -> d
     return result
 
 
+#: Time to target: the offsets, as fractions of the field, and "under a pixel" (0.5 px).
+TIME_OFFSETS = (0.05, 0.15, 0.30, "0.5 px")
+#: The laws side by side, and the photometric baseline (its measurement, the paper's law).
+TIME_LAWS = (("position", "semservo"), ("paper", "semservo"), ("paper", "photometric"))
+
+
+#: The paper's law runs with these stage models (the position law with all of them), the
+#: uncalibrated one on fewer trials per cell (its gain adapts; the targets are the
+#: position law's); the photometric baseline from 15 % of the field (the paper's starts
+#: are 8-15 %), on fewer trials: both to keep the run within hours on a shared machine.
+PAPER_LAW_MODELS = ("calibrated", "uncalibrated")
+PAPER_UNCALIBRATED_TRIALS = 3
+BASELINE_OFFSETS, BASELINE_TRIALS = (0.15,), 5
+
+
+def time_to_target_trials(quick: bool, *, trials: int | None = None, cases=None, models=None,
+                          baseline: bool = True, offsets=TIME_OFFSETS) -> list[dict]:
+    """The trials of ``time_to_target``, each a dict of ``run_timed_trial``'s arguments and
+    its key: every preset, offset and trial, the position law with every stage model, the
+    paper's law with :data:`PAPER_LAW_MODELS` (the same start and seed for each), the
+    photometric baseline (paper's law, calibrated) at :data:`BASELINE_OFFSETS`."""
+    cases = cases or (("optimal", "high-magnification") if quick else FIGURE_CASES)
+    models = models or (("calibrated", "uncalibrated") if quick else loop.STAGE_MODELS)
+    trials = trials or (2 if quick else 10)
+    jobs = []
+    for case in cases:
+        field = field_um(case)
+        pixel = field / 512
+        for offset_index, offset in enumerate(TIME_OFFSETS):
+            if offset not in offsets:
+                continue
+            radius = 0.5 * pixel if offset == "0.5 px" else offset * field
+            for trial in range(trials):
+                angle = np.random.default_rng([2028, offset_index, trial]).uniform(0, 2 * np.pi)
+                start = (float(radius * np.cos(angle)), float(radius * np.sin(angle)))
+                for law, method in TIME_LAWS:
+                    if method == "photometric":
+                        if not baseline or offset not in BASELINE_OFFSETS or trial >= BASELINE_TRIALS:
+                            continue
+                        chosen = ("calibrated",)
+                    else:
+                        chosen = [m for m in models if law == "position" or m == "calibrated"
+                                  or (m in PAPER_LAW_MODELS and trial < PAPER_UNCALIBRATED_TRIALS)]
+                    for model in chosen:
+                        key = f"{case}|{offset}|{trial}|{law}|{method}|{model}"
+                        jobs.append({"key": key, "case": case, "offset": offset, "trial": trial, "law": law,
+                                     "method": method, "stage_model": model, "start_um": start, "seed": 600 + trial})
+    return jobs
+
+
+def time_trial(job: dict, taught: loop.Taught | None = None) -> dict:
+    """One ``time_to_target`` trial (module level: worker processes call it)."""
+    settings = loop.TimedSettings(time_budget_s=TIME_BUDGET_S)
+    result = loop.run_timed_trial(job["case"], job["law"], tuple(job["start_um"]), seed=job["seed"],
+                                  stage_model=job["stage_model"], method=job["method"], settings=settings,
+                                  taught=taught)
+    keep = ("outcome", "reason", "fresh_frames", "frames_scanned", "seconds", "iterations", "true_error_px",
+            "overshoot_px", "frame_time_s", "pixel_um")
+    summary = {key: job[key] for key in ("key", "case", "offset", "trial", "law", "method", "stage_model")}
+    summary.update({key: result[key] for key in keep})
+    if job["trial"] == 0 and job["stage_model"] == "calibrated":
+        summary["trace"] = [(round(t, 3), round(error, 4), fresh) for t, error, fresh in result["trace"]]
+    return summary
+
+
+def time_trials(group: list[dict]) -> list[dict]:
+    """Trials of one preset and seed, taught once."""
+    first = group[0]
+    taught = loop.teach(loop.Lab(first["case"], first["seed"]), loop.TimedSettings())
+    return [time_trial(job, taught) for job in group]
+
+
+#: Every law and method gets the same simulated time to reach the target (the paper's
+#: law needs up to ~60 s from 30 % of the field at x5000).
+TIME_BUDGET_S = 150.0
+
+
+def experiment_time_to_target(quick: bool, progress: Callable[[int], Progress], *, checkpoint: Path | None = None,
+                              workers: int = 1, trials: int | None = None, cases=None, models=None,
+                              baseline: bool = True, offsets=TIME_OFFSETS) -> dict:
+    """Time to target (module docstring); each finished trial is appended to ``checkpoint``
+    and skipped when the experiment runs again; ``workers`` processes run trials at once."""
+    jobs = time_to_target_trials(quick, trials=trials, cases=cases, models=models, baseline=baseline, offsets=offsets)
+    done = {}
+    if checkpoint is not None and checkpoint.is_file():
+        for line in checkpoint.read_text().splitlines():
+            if line.strip():
+                row = json.loads(line)
+                done[row["key"]] = row
+    pending = [job for job in jobs if job["key"] not in done]
+    bar = progress(len(jobs))
+    for _ in range(len(jobs) - len(pending)):
+        bar.step("kept")
+
+    def keep(row: dict) -> None:
+        done[row["key"]] = row
+        if checkpoint is not None:
+            with checkpoint.open("a") as file:
+                file.write(json.dumps(row, default=_jsonable) + "\n")
+        bar.step(f"{row['case']} {row['law']}/{row['method']} {row['stage_model']}: {row['fresh_frames']} frames")
+
+    # Trials of one preset and seed share what teaching left (the same lab until the jog).
+    groups = {}
+    for job in pending:
+        groups.setdefault((job["case"], job["seed"]), []).append(job)
+    if workers > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers) as pool:
+            for rows in pool.map(time_trials, groups.values()):
+                for row in rows:
+                    keep(row)
+    else:
+        for group in groups.values():
+            for row in time_trials(group):
+                keep(row)
+    bar.close()
+    rows = [done[job["key"]] for job in jobs]
+    return {"offsets": [offset for offset in TIME_OFFSETS if offset in offsets], "trials": max(job["trial"] for job in jobs) + 1,
+            "cases": list(dict.fromkeys(job["case"] for job in jobs)),
+            "models": list(dict.fromkeys(job["stage_model"] for job in jobs)),
+            "settings": {**loop.asdict(loop.TimedSettings(time_budget_s=TIME_BUDGET_S))}, "rows": rows}
+
+
+def experiment_hold(quick: bool, progress: Callable[[int], Progress]) -> dict:
+    """Hold after arrival: the position law converges from 5 % of the field under the
+    ``unstable`` preset, then holds for 10 simulated minutes (1 in a quick run); the true
+    error of every fresh frame while holding and the corrections made."""
+    minutes = 1.0 if quick else 10.0
+    runs = []
+    bar = progress(2)
+    for seed, angle in ((700, 0.4), (701, 2.5)):
+        radius = 0.05 * field_um("unstable")
+        result = loop.run_timed_trial("unstable", "position", (radius * math.cos(angle), radius * math.sin(angle)),
+                                      seed=seed, settings=loop.TimedSettings(hold_s=60.0 * minutes))
+        frames = [(t, error) for t, error, fresh in result["trace"] if fresh]
+        runs.append({key: result.get(key) for key in ("outcome", "reason", "fresh_frames", "seconds", "true_error_px",
+                                                      "hold_s", "hold_corrections", "hold_worst_true_px",
+                                                      "frame_time_s", "pixel_um")}
+                    | {"trace": [(round(t, 2), round(e, 4)) for t, e in frames]})
+        bar.step(f"worst {result.get('hold_worst_true_px', math.nan):.3f} px")
+    bar.close()
+    return {"minutes": minutes, "runs": runs}
+
+
 def _summary(result: dict) -> dict:
     last = next((r for r in reversed(result["records"]) if "error_px" in r), {})
     return {key: result[key] for key in ("outcome", "reason", "iterations", "true_error_um", "true_error_px",
@@ -242,7 +409,8 @@ def _summary(result: dict) -> dict:
 
 RUNNERS = {"fig4": experiment_fig4, "table2": experiment_table2, "table3": experiment_table3,
            "table4": experiment_table4, "table1": experiment_table1, "fig8": experiment_fig8,
-           "replay2013": experiment_replay2013}
+           "replay2013": experiment_replay2013, "time_to_target": experiment_time_to_target,
+           "hold": experiment_hold}
 
 
 def run(out: Path, *, quick: bool = False, only: list[str] | None = None, fresh: bool = False,
@@ -266,7 +434,13 @@ def run(out: Path, *, quick: bool = False, only: list[str] | None = None, fresh:
                 say(f"{name}: kept from an earlier run ({path}); --fresh runs it again")
                 continue
         started = time.monotonic()
-        result = RUNNERS[name](quick, lambda total, name=name: Progress(name, total, quiet))
+        extra = {}
+        if name == "time_to_target":
+            checkpoint = results_dir / f"time_to_target{'.quick' if quick else ''}.partial.jsonl"
+            if fresh and checkpoint.is_file():
+                checkpoint.unlink()
+            extra = {"checkpoint": checkpoint}
+        result = RUNNERS[name](quick, lambda total, name=name: Progress(name, total, quiet), **extra)
         result.update(quick=quick, seconds=round(time.monotonic() - started, 1),
                       finished_at=time.strftime("%Y-%m-%d %H:%M:%S"))
         path.write_text(json.dumps(result, default=_jsonable))

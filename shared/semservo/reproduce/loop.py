@@ -1,8 +1,22 @@
 """One positioning trial in process: the simulated lab (its SEM, its piezo stage with
 hysteresis, drift and vibration) on a clock that advances by each scan's time, a motion
-measurement (:mod:`.methods`) and the paper's control law (:class:`semservo.control.ControlLaw`,
-eq. 30-37). Every method closes this same loop, from the same start, on the same frames'
-physics; the truth comes from the simulator.
+measurement (:mod:`.methods`) and a control law (the paper's,
+:class:`semservo.control.ControlLaw`, eq. 30-37, or :class:`semservo.control.PositionLaw`).
+Every method closes this same loop, from the same start, on the same frames' physics;
+the truth comes from the simulator.
+
+Two loops:
+
+* :func:`run_trial` (Tables II-IV): one frame per iteration, the clock advancing by each
+  scan, every frame acted on;
+* :func:`run_timed_trial` (time to target): the SEM scans without pause, as a real one
+  does; a decision comes ``latency_s`` after a frame ends, and the move lands during the
+  next scan, which therefore shows a pose in between and is not acted on. A frame is
+  *fresh* when its scan starts after the last move has settled (by the stage's settling
+  model, :class:`semservo.control.StageSettling`, as the stage service reports it), so the
+  paper's law gets a fresh frame every second scan, as on the real instrument. The stage's
+  displacement model may be the lab's (``calibrated``), a linear one from the nominal
+  stroke (``uncalibrated``) or another stage's (``other-stage+15%``, ``other-stage-15%``).
 
 It leaves out the services (sockets, serial line) that the whole-stack benchmarks
 (``bench/positioning.py``, ``bench/tilt.py``) include: here the question is what each
@@ -17,11 +31,53 @@ from dataclasses import asdict, dataclass, replace
 import cv2
 import numpy as np
 
-from semservo.control import AdaptiveGain, ControlLaw
+from semservo.control import (
+    MODEL_UNCERTAINTY, AdaptiveGain, ControlLaw, StageSettling, UnexpectedResponse, make_law,
+)
 from semservo.reproduce import methods
 from semservo.simulation.sem import ScanSettings
 from semservo.simulation.world import HOME_VOLTAGE, PRESETS, World
-from semservo.stage_model import BranchModel
+from semservo.stage_model import BranchModel, LinearModel
+
+#: The stage's displacement models a timed trial can drive the stage through.
+STAGE_MODELS = ("calibrated", "uncalibrated", "other-stage+15%", "other-stage-15%")
+#: The nominal stroke: 100 um over the NV 40/3's -20..130 V (what is known without a calibration).
+NOMINAL_UM_PER_V = 100.0 / 150.0
+
+
+class ScaledModel:
+    """Another stage's model: a displacement model whose axis moves ``scale`` times what
+    the model of this stage expects (a model from another stage, miscalibrated by
+    ``scale`` - 1). Same interface as :class:`semservo.stage_model.BranchModel`."""
+
+    def __init__(self, inner, scale: float):
+        self.inner, self.scale = inner, scale
+
+    @property
+    def position_um(self) -> float:
+        return self.inner.position_um / self.scale
+
+    def voltage_for(self, target_um: float) -> float:
+        return self.inner.voltage_for(target_um * self.scale)
+
+    def reset(self, position_um: float) -> None:
+        self.inner.reset(position_um * self.scale)
+
+    def position_for(self, voltage: float) -> float:
+        return self.inner.position_for(voltage) / self.scale
+
+
+def displacement_model(kind: str, axis: str):
+    """The displacement model ``kind`` (one of :data:`STAGE_MODELS`) for axis "x" or "y"."""
+    if kind == "calibrated":
+        return BranchModel.tritor(axis)
+    if kind == "uncalibrated":
+        return LinearModel(NOMINAL_UM_PER_V, -20.0)
+    if kind.startswith("other-stage"):
+        # The lab's model for a stage that moves 15 % more (or less) than this one's: this
+        # stage moves 1 / 1.15 (or 1 / 0.85) of what that model expects.
+        return ScaledModel(BranchModel.tritor(axis), 1.0 / (1.0 + float(kind[len("other-stage"):-1]) / 100.0))
+    raise ValueError(f"unknown stage model {kind!r}; models: {', '.join(STAGE_MODELS)}")
 
 
 class ManualClock:
@@ -39,22 +95,37 @@ class TrialSettings:
     tolerance_px: float = 0.1
     converge_frames: int = 3
     max_iterations: int = 150
+    #: Simulated seconds (scans) before the trial is given up, whatever the iterations
+    #: (None: the iteration limit alone): the same for every method.
+    time_budget_s: float | None = None
     lost_after: int = 5
     max_move_um: float = 10.0
     reference_frames: int = 4
 
 
+#: The simulated SEM's sample, rasterized and blurred to each level, for the last (case,
+#: seed) a lab was made for: pure data (``SEM.render`` is pure given its inputs) and most
+#: of a new lab's cost, so consecutive labs of one preset and seed share it (one kept:
+#: ~100 MB each).
+_SAMPLE_STACKS: dict = {}
+
+
 class Lab:
     """The simulated lab of one case, stepped by hand."""
 
-    def __init__(self, case: str, seed: int, reference_dwell_ns: float | None = None):
+    def __init__(self, case: str, seed: int, reference_dwell_ns: float | None = None, stage_model: str = "calibrated",
+                 settling: StageSettling | None = None):
         self.preset = PRESETS[case]
         self.clock = ManualClock()
         self.world = World(self.preset, speedup=1.0, seed=seed, clock=self.clock)
+        self._sample_key = (case, seed)
+        if self._sample_key in _SAMPLE_STACKS:
+            self.world.sem._stacks = dict(_SAMPLE_STACKS[self._sample_key])
         self.settings = ScanSettings(dwell_ns=self.preset.dwell_ns, magnification=self.preset.magnification,
                                      working_distance_um=self.preset.focus_um)
         self.reference_dwell_ns = reference_dwell_ns or self.preset.reference_dwell_ns
-        self.models = {0: BranchModel.tritor("x"), 1: BranchModel.tritor("y")}
+        self.models = {0: displacement_model(stage_model, "x"), 1: displacement_model(stage_model, "y")}
+        self.settling = settling or StageSettling()
         for channel, model in self.models.items():
             model.reset(model.position_for(HOME_VOLTAGE))
 
@@ -62,9 +133,15 @@ class Lab:
     def pixel_um(self) -> float:
         return self.settings.pixel_um
 
+    def _keep_sample(self) -> None:
+        if _SAMPLE_STACKS.get(self._sample_key) is not self.world.sem._stacks:
+            _SAMPLE_STACKS.clear()
+            _SAMPLE_STACKS[self._sample_key] = self.world.sem._stacks
+
     def scan(self, dwell_ns: float | None = None) -> tuple[np.ndarray, tuple[float, float]]:
         settings = self.settings if dwell_ns is None else replace(self.settings, dwell_ns=dwell_ns)
         pixels, start, end = self.world.scan(settings, wait=False)
+        self._keep_sample()
         self.clock.t = end + 1e-3
         return pixels, (start, end)
 
@@ -72,16 +149,28 @@ class Lab:
         samples = [self.world.pose(t) for t in np.linspace(interval[0], interval[1], 32)]
         return np.array([[p.x_um, p.y_um] for p in samples]).mean(axis=0)
 
-    def move(self, dx_um: float, dy_um: float) -> dict[str, float]:
-        """A relative stage move through the lab's displacement model, as the stage service makes it."""
+    def move(self, dx_um: float, dy_um: float, at: float | None = None) -> dict[str, float]:
+        """A relative stage move through the lab's displacement model, as the stage service
+        makes it, written at simulated time ``at`` (None: now, and the clock then waits
+        10 ms for the piezo)."""
         voltages = {}
         for channel, delta in ((0, dx_um), (1, dy_um)):
             model = self.models[channel]
             voltage = float(np.clip(model.voltage_for(model.position_um + delta), -20.0, 120.0))
-            self.world.set_voltage(channel, voltage, self.clock.t)
+            self.world.set_voltage(channel, voltage, self.clock.t if at is None else at)
             voltages["xy"[channel]] = voltage
-        self.clock.t += 0.01  # the piezo settles in milliseconds
+        if at is None:
+            self.clock.t += 0.01  # the piezo settles in milliseconds
         return voltages
+
+    def scan_at(self, start: float, dwell_ns: float | None = None) -> tuple[np.ndarray, tuple[float, float]]:
+        """A frame whose scan starts at simulated time ``start``."""
+        self.clock.t = start
+        settings = self.settings if dwell_ns is None else replace(self.settings, dwell_ns=dwell_ns)
+        pixels, start, end = self.world.scan(settings, wait=False)
+        self._keep_sample()
+        self.clock.t = end
+        return pixels, (start, end)
 
 
 def mask_of(reference: np.ndarray) -> np.ndarray:
@@ -115,7 +204,11 @@ def run_trial(case: str, method: str, start_um: tuple[float, float], *, seed: in
     outcome, reason = "failed", f"iteration limit ({settings.max_iterations}) reached"
     frame, interval = lab.scan()
     last_end = None
+    began = interval[0]
     for iteration in range(settings.max_iterations):
+        if settings.time_budget_s is not None and interval[1] - began > settings.time_budget_s:
+            reason = f"time budget ({settings.time_budget_s:g} s) spent"
+            break
         measured = measure(frame)
         record = {"iteration": iteration, "compute_ms": measured.compute_ms, "ok": measured.ok}
         if not measured.ok:
@@ -163,6 +256,233 @@ def run_trial(case: str, method: str, start_um: tuple[float, float], *, seed: in
     if keep_images:
         result["desired"] = desired
         result["final"] = frame
+    return result
+
+
+@dataclass(frozen=True)
+class TimedSettings:
+    """A timed trial's settings (:func:`run_timed_trial`); the controller's defaults where
+    it has them."""
+
+    tolerance_px: float = 0.1
+    #: The paper's law: converged when the mean error of this many fresh frames is under
+    #: tolerance (the controller's default). The position law decides it itself
+    #: (:attr:`semservo.control.PositionLaw.converged`).
+    converge_frames: int = 3
+    max_iterations: int = 150  # fresh frames acted on
+    #: Simulated seconds before the run is given up (None: only the iteration limit).
+    time_budget_s: float | None = None
+    lost_after: int = 5
+    max_move_um: float = 10.0
+    reference_frames: int = 4
+    #: From a frame's end to the move's write: transfer, estimate, decision, serial line.
+    latency_s: float = 0.05
+    #: After the start jog, before the run starts (the jog's settling and early creep).
+    start_after_s: float = 1.0
+    #: Keep servoing this long after converging (0: stop there), counting the corrections.
+    hold_s: float = 0.0
+    integral_time_s: float | None = 10.0  # the paper's law, as in run_trial
+
+
+def _law_for(name: str, model: str, settings: TimedSettings, noise_px: float):
+    # The position law is told how far to trust the stage's model: a run knows whether its
+    # stage service loaded a calibration (a miscalibrated one looks calibrated).
+    return make_law(name, ("x", "y"), gain=AdaptiveGain(), integral_time_s=settings.integral_time_s,
+                    model_uncertainty=MODEL_UNCERTAINTY["uncalibrated" if model == "uncalibrated" else "calibrated"],
+                    noise_px=noise_px,
+                    tolerance_px=settings.tolerance_px, max_move_um=settings.max_move_um)
+
+
+@dataclass(frozen=True)
+class Taught:
+    """What teaching at home left: the reference (and the mask a baseline sees in the mask
+    preset), the pose it was taught at, the estimate's noise per frame at rest (px) and
+    when teaching ended (simulated s). The same for every law, method and stage model of
+    one lab seed: trials share it rather than scan it again."""
+
+    reference: np.ndarray
+    mask: np.ndarray | None
+    taught_um: tuple[float, float]
+    noise_px: float
+    ended_s: float
+    #: The simulated SEM's charging of the sample when teaching ended (the scans so far
+    #: brightened the field they covered) and its noise generator's state: a lab that
+    #: starts here continues both (a fresh generator of the same seed would repeat the
+    #: noise of the reference's own scans, a false correlation peak).
+    charge: np.ndarray | None = None
+    noise_state: dict | None = None
+
+    def start(self, lab: "Lab") -> None:
+        """Put a fresh lab of the same case and seed where teaching left its own: its
+        frames are then the ones the teaching lab would have scanned."""
+        lab.clock.t = self.ended_s
+        if self.charge is not None:
+            lab.world.sem.charge = self.charge.copy()
+        if self.noise_state is not None:
+            lab.world.rng.bit_generator.state = self.noise_state
+
+    def measure(self, method: str):
+        desired = self.reference if method == "semservo" or self.mask is None \
+            else self.mask.astype(np.float32) * 255  # what a baseline sees: the mask itself
+        return methods.make(method, desired, mask=self.mask)
+
+
+def teach(lab: Lab, settings) -> Taught:
+    """The reference (``reference_frames`` scans at the reference dwell, averaged), the
+    pose it was taught at, and the estimate's noise per frame at rest: the scatter of as
+    many frames at the live dwell measured against it (semservo's estimator)."""
+    frames, intervals = zip(*(lab.scan(lab.reference_dwell_ns) for _ in range(settings.reference_frames)))
+    reference = np.mean(frames, axis=0, dtype=np.float32)
+    taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
+    mask = mask_of(reference) if lab.preset.mask_reference else None
+    measure = methods.make("semservo", reference, mask=mask)
+    at_rest = [measure(lab.scan()[0]) for _ in range(settings.reference_frames)]
+    at_rest = np.array([(m.dx, m.dy) for m in at_rest if m.ok])
+    noise_px = float(np.sqrt(np.mean(np.var(at_rest, axis=0, ddof=1)))) if len(at_rest) > 2 else 0.03
+    return Taught(reference, mask, (float(taught[0]), float(taught[1])), noise_px, lab.clock.t,
+                  lab.world.sem.charge.copy(), lab.world.rng.bit_generator.state)
+
+
+def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed: int = 1, stage_model: str = "calibrated",
+                    settings: TimedSettings = TimedSettings(), method: str = "semservo",
+                    taught: Taught | None = None) -> dict:
+    """One trial on a continuously scanning SEM (module docstring): teach at home, jog by
+    ``start_um``, servo with ``law`` ("paper" or "position") until converged (then, with
+    ``hold_s``, hold that long), the scene is lost, the law refuses, or the iteration
+    limit or time budget. ``taught``: what :func:`teach` left in a lab of the same case
+    and seed (else it teaches). Returns the outcome, the fresh frames used, the frames scanned in all and the
+    simulated seconds to the frame convergence was decided on, the true final error, and
+    the true error (px) at the end of every scan against simulated time (``trace``)."""
+    lab = Lab(case, seed, stage_model=stage_model)
+    if taught is None:
+        taught = teach(lab, settings)
+    else:  # taught in another lab of the same seed: this one starts where teaching ended
+        taught.start(lab)
+    measure = taught.measure(method)
+    controller = _law_for(law, stage_model, settings, taught.noise_px)
+    taught_um = np.array(taught.taught_um)
+    converge_frames = settings.converge_frames
+    lab.move(*start_um)
+    started = lab.clock.t + settings.start_after_s
+    frame_time = lab.settings.frame_time_s
+    pixel_nm = lab.pixel_um * 1000
+
+    towards = np.array(start_um) / max(float(np.hypot(*start_um)), 1e-12)
+    overshoot = [0.0]
+
+    def true_error_px(interval) -> float:
+        error = (lab.true_pose(interval) - taught_um) / lab.pixel_um
+        # Overshoot: how far the content went past the target, along the start's direction.
+        overshoot[0] = max(overshoot[0], -float(error @ towards))
+        return float(np.hypot(*error))
+
+    trace, records, recent = [], [], []
+    scanned = fresh_used = iterations = lost = corrections = 0
+    settled_at, last_end, converged_at = -math.inf, None, None
+    outcome, reason = "failed", f"iteration limit ({settings.max_iterations}) reached"
+    hold_worst_px, t = 0.0, started
+    final_interval = None
+    while True:
+        interval = (t, t + frame_time)
+        t = interval[1]
+        scanned += 1
+        if interval[0] < settled_at:  # scanned while the last move landed: a pose in between
+            trace.append((interval[1] - started, true_error_px(interval), False))
+            continue
+        frame, interval = lab.scan_at(interval[0])
+        fresh_used += 1
+        truth = true_error_px(interval)
+        trace.append((interval[1] - started, truth, True))
+        if converged_at is not None:
+            hold_worst_px = max(hold_worst_px, truth)
+            if interval[1] - converged_at >= settings.hold_s:
+                break
+        measured = measure(frame)
+        record = {"t_s": interval[1] - started, "fresh": fresh_used, "scanned": scanned, "ok": measured.ok,
+                  "true_error_px": truth}
+        if not measured.ok:
+            lost += 1
+            record["action"] = f"held: {measured.reason}"
+            records.append(record)
+            if lost >= settings.lost_after:
+                outcome, reason = "failed", f"scene lost: {measured.reason}"
+                break
+            continue
+        lost = 0
+        error_px = math.hypot(measured.dx, measured.dy)
+        recent = (recent + [(measured.dx, measured.dy)])[-converge_frames:]
+        record.update(dx_px=measured.dx, dy_px=measured.dy, error_px=error_px)
+        if controller.converged is None and converged_at is None and len(recent) == converge_frames \
+                and math.hypot(*np.mean(recent, axis=0)) <= settings.tolerance_px:
+            record["action"] = "within tolerance"
+            records.append(record)
+            outcome, reason = "converged", ""
+            converged_at, final_interval = interval[1], interval
+            summary = {"fresh_frames": fresh_used, "frames_scanned": scanned, "seconds": interval[1] - started,
+                       "iterations": iterations, "true_error_px": truth}
+            if settings.hold_s <= 0:
+                break
+            continue
+        if error_px > 0.45 * frame.shape[1]:
+            record["action"] = "held: beyond the field"
+            records.append(record)
+            outcome, reason = "failed", f"measured {error_px:.0f} px: beyond half the field (lost or diverged)"
+            break
+        if converged_at is None and iterations >= settings.max_iterations:
+            break
+        if converged_at is None and settings.time_budget_s is not None and t - started > settings.time_budget_s:
+            reason = f"time budget ({settings.time_budget_s:g} s) spent"
+            break
+        sampling = interval[1] - last_end if last_end is not None else 2 * frame_time
+        last_end = interval[1]
+        try:
+            step = controller.step(measured.dx, measured.dy, 0.0, pixel_nm, sampling, frame_interval_s=interval,
+                                   now_s=interval[1] + settings.latency_s)
+        except UnexpectedResponse as error:
+            outcome, reason = "failed", str(error)
+            record["action"] = "held: unexpected response"
+            records.append(record)
+            break
+        move = dict(step.move)
+        planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
+        if planar > settings.max_move_um:
+            move = {key: value * settings.max_move_um / planar for key, value in move.items()}
+        iterations += 1
+        if controller.converged and converged_at is None:
+            record["action"] = "within tolerance"
+            records.append(record)
+            outcome, reason = "converged", ""
+            converged_at, final_interval = interval[1], interval
+            summary = {"fresh_frames": fresh_used, "frames_scanned": scanned, "seconds": interval[1] - started,
+                       "iterations": iterations, "true_error_px": truth}
+            if settings.hold_s <= 0:
+                break
+            continue
+        if not move:
+            record["action"] = "held: within tolerance" if controller.converged else "held: measuring again"
+            controller.applied({})
+            records.append(record)
+            continue
+        written_at = interval[1] + settings.latency_s
+        record.update(cost=step.cost, gain=step.gain, move=move,
+                      voltages=lab.move(move.get("x_um", 0.0), move.get("y_um", 0.0), at=written_at), action="moved")
+        controller.applied(move, at_s=written_at)
+        settled_at = written_at + lab.settling.after_s(move)
+        if converged_at is not None:
+            corrections += 1
+        records.append(record)
+    if converged_at is None:
+        final_interval = (t - frame_time, t)
+        summary = {"fresh_frames": fresh_used, "frames_scanned": scanned, "seconds": t - started,
+                   "iterations": iterations, "true_error_px": true_error_px(final_interval)}
+    result = {
+        "case": case, "law": law, "method": method, "stage_model": stage_model, "start_um": list(start_um),
+        "seed": seed, "outcome": outcome, "reason": reason, **summary, "overshoot_px": overshoot[0],
+        "frame_time_s": frame_time, "pixel_um": lab.pixel_um, "settings": asdict(settings),
+        "records": records, "trace": trace,
+    }
+    if settings.hold_s > 0 and converged_at is not None:
+        result.update(hold_s=t - converged_at, hold_corrections=corrections, hold_worst_true_px=hold_worst_px)
     return result
 
 

@@ -9,11 +9,15 @@ scene (too few matches, a flow that is not one motion, a diverging photometric e
 
 Settings, chosen sensibly once and documented here (not tuned per case):
 
-* ``photometric``: direct visual servoing on the luminance (Tamadazte, Le Fort-Piat,
-  Marchand 2012; ViSP's vpFeatureLuminance): the error is I - I* on frames halved twice
-  and normalised to zero mean and unit spread (the SEM's brightness drifts), the
-  interaction matrix from the reference's gradients (translation: L = -grad I*), one
-  Levenberg-Marquardt step (H + diag H)^-1 L^T e per frame, as the paper's gain does.
+* ``photometric``: direct visual servoing on the luminance (Collewet and Marchand 2011;
+  Tamadazte, Le Fort-Piat, Marchand 2012; ViSP's vpFeatureLuminance), as its authors run
+  it: the error is I - I* normalised to zero mean and unit spread (the SEM's brightness
+  drifts), the interaction matrix from the reference's gradients (translation:
+  L = -grad I*), one Levenberg-Marquardt step (H + mu diag H)^-1 L^T e per frame, the
+  damping mu halved while the cost falls and quadrupled when it rises (gradient descent
+  far away, Gauss-Newton near), coarse to fine on an image pyramid (frames halved 4, 3
+  then 2 times: a level hands over to the finer one once its step has stayed under a
+  tenth of its pixel for three frames). ``photometric_single`` is the earlier setting (one level, halved twice, mu 1).
 * ``dis``, ``farneback``: OpenCV's dense optical flow (DIS preset MEDIUM; Farneback
   pyramid 0.5, 4 levels, window 21), coarse to fine: on the frames halved three times,
   then (the frame moved back by that) halved twice; the motion is the median flow,
@@ -71,23 +75,45 @@ def semservo_method(reference: np.ndarray, rotation: bool = False, mask=None) ->
     return measure
 
 
-def photometric_method(reference: np.ndarray) -> Callable:
-    halvings = 2
-    scale = 2 ** halvings
+#: The photometric pyramid: frames halved this many times, coarsest first; a level hands
+#: over once its step stays under this (its own pixels).
+PHOTOMETRIC_LEVELS = (4, 3, 2)
+HANDOVER_STEP = 0.1
+
+
+def _photometric_level(reference: np.ndarray, halvings: int) -> dict:
     desired = _normalised(reference, halvings)
     grad_y, grad_x = np.gradient(desired)
     # Content moved by t: I(p) = I*(p - t), so dI/dt = -grad I*.
     interaction = -np.column_stack([grad_x.ravel(), grad_y.ravel()])
-    hessian = interaction.T @ interaction
-    damped = hessian + np.diag(np.diag(hessian))
-    initial_cost = float((desired ** 2).sum()) * 2  # two unrelated images' e'e
+    return {"halvings": halvings, "desired": desired, "interaction": interaction,
+            "hessian": interaction.T @ interaction,
+            "initial_cost": float((desired ** 2).sum()) * 2}  # two unrelated images' e'e
+
+
+def photometric_method(reference: np.ndarray, levels: tuple[int, ...] = PHOTOMETRIC_LEVELS,
+                       adaptive_damping: bool = True) -> Callable:
+    """Photometric DVS (module docstring): a Levenberg-Marquardt step per frame, coarse to fine."""
+    pyramid = [_photometric_level(reference, halvings) for halvings in levels]
+    state = {"level": 0, "damping": 1.0, "cost": None}
 
     def measure(current: np.ndarray) -> Measured:
-        error = (_normalised(current, halvings) - desired).ravel()
+        level = pyramid[state["level"]]
+        error = (_normalised(current, level["halvings"]) - level["desired"]).ravel()
         cost = float(error @ error)
-        if cost > 1.5 * initial_cost:
+        if cost > 1.5 * level["initial_cost"]:
             return Measured(0.0, 0.0, 0.0, False, "photometric error beyond that of two unrelated images")
-        step = -np.linalg.solve(damped, interaction.T @ error)
+        if adaptive_damping and state["cost"] is not None:
+            state["damping"] = float(np.clip(state["damping"] * (0.5 if cost < state["cost"] else 4.0), 1e-3, 1e2))
+        state["cost"] = cost
+        hessian = level["hessian"]
+        step = -np.linalg.solve(hessian + state["damping"] * np.diag(np.diag(hessian)), level["interaction"].T @ error)
+        scale = 2 ** level["halvings"]
+        # Converged at this level (a step under a tenth of its pixel three frames running):
+        # the finer level takes over.
+        state["still"] = state.get("still", 0) + 1 if math.hypot(*step) < HANDOVER_STEP else 0
+        if state["still"] >= 3 and state["level"] < len(pyramid) - 1:
+            state.update(level=state["level"] + 1, cost=None, still=0)
         # The LM step is the content displacement's estimate; where the images differ by
         # more than the gradients' reach it is short and, far away, wrong: what DVS does.
         return Measured(float(-step[0] * scale), float(-step[1] * scale), 0.0, True)
@@ -170,6 +196,8 @@ def make(name: str, reference: np.ndarray, *, rotation: bool = False, mask=None)
         inner = semservo_method(reference, rotation, mask)
     elif name == "photometric":
         inner = photometric_method(reference)
+    elif name == "photometric_single":
+        inner = photometric_method(reference, levels=(2,), adaptive_damping=False)
     elif name in ("dis", "farneback"):
         inner = flow_method(reference, name)
     elif name in ("sift", "orb"):

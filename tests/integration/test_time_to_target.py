@@ -1,0 +1,90 @@
+"""Time to target (issue #28): the in-process timed loop on a continuously scanning
+simulated SEM, the position law beside the paper's, the experiment's resumable trials.
+Behaviour only (frames, truth, refusals); how fast is the benchmark's business."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from semservo import reproduce
+from semservo.reproduce import loop, report
+
+pytestmark = pytest.mark.integration
+
+
+def start(case: str, fraction: float, angle: float = 0.7) -> tuple[float, float]:
+    radius = fraction * reproduce.field_um(case)
+    return radius * math.cos(angle), radius * math.sin(angle)
+
+
+def test_the_position_law_reaches_the_target_in_a_few_fresh_frames_acting_on_fresh_frames_only():
+    result = loop.run_timed_trial("noisy", "position", start("noisy", 0.15), seed=3)
+    assert result["outcome"] == "converged", result["reason"]
+    assert result["fresh_frames"] <= 6 and result["true_error_px"] <= 0.1
+    moves = [r for r in result["records"] if r.get("action") == "moved"]
+    # Each move lands during the next scan, which is not acted on: one stale scan per move.
+    assert result["frames_scanned"] == result["fresh_frames"] + len(moves)
+    stale = [t for t, _, fresh in result["trace"] if not fresh]
+    assert len(stale) == len(moves)
+    assert result["seconds"] == pytest.approx(result["frames_scanned"] * result["frame_time_s"], rel=1e-6)
+
+
+def test_without_a_calibration_the_position_law_converges_without_overshoot():
+    result = loop.run_timed_trial("noisy", "position", start("noisy", 0.15, 2.0), seed=4, stage_model="uncalibrated")
+    assert result["outcome"] == "converged", result["reason"]
+    assert result["true_error_px"] <= 0.1
+    assert result["overshoot_px"] < 1.0  # from 77 px away
+
+
+def test_the_stage_models_move_the_stage_as_named():
+    moved = {}
+    for model in ("calibrated", "other-stage+15%", "other-stage-15%", "uncalibrated"):
+        lab = loop.Lab("optimal", 1, stage_model=model)
+        before = lab.true_pose((0.0, 0.01))
+        lab.move(8.0, 0.0, at=0.5)
+        moved[model] = float(lab.true_pose((2.0, 2.01))[0] - before[0])
+    # A model made for a stage that moves 15 % more: this stage moves 1 / 1.15 as far.
+    assert moved["other-stage+15%"] / moved["calibrated"] == pytest.approx(1 / 1.15, rel=0.03)
+    assert moved["other-stage-15%"] / moved["calibrated"] == pytest.approx(1 / 0.85, rel=0.03)
+    assert moved["uncalibrated"] / 8.0 > 1.0  # the nominal stroke undersells the piezo's gain
+
+
+@pytest.mark.timeout(300)  # four trials; slow on a loaded machine
+def test_the_experiment_keeps_each_trial_and_resumes(tmp_path, monkeypatch):
+    checkpoint = tmp_path / "time_to_target.partial.jsonl"
+    quiet = lambda total: reproduce.Progress("time", total, quiet=True)  # noqa: E731
+    arguments = dict(checkpoint=checkpoint, trials=1, cases=("noisy",), models=("calibrated", "uncalibrated"),
+                     baseline=False, offsets=("0.5 px",))
+    first = reproduce.experiment_time_to_target(True, quiet, **arguments)
+    rows = first["rows"]
+    assert len(rows) == 4 and len(checkpoint.read_text().splitlines()) == 4  # 2 laws x 2 stage models
+    assert {(r["law"], r["stage_model"]) for r in rows} == {(law, model) for law in ("position", "paper")
+                                                             for model in ("calibrated", "uncalibrated")}
+    assert all(r["outcome"] == "converged" for r in rows if r["law"] == "position")
+    # Run again: every trial comes from the checkpoint, none is run.
+    monkeypatch.setattr(reproduce, "time_trial", lambda job: pytest.fail(f"re-ran {job['key']}"))
+    again = reproduce.experiment_time_to_target(True, quiet, **arguments)
+    assert [r["key"] for r in again["rows"]] == [r["key"] for r in rows]
+    # The report's tables come out of it, the targets judged per preset.
+    again.update(quick=True)
+    assert any("noisy" in line for line in report.time_to_target_headline_lines(again))
+    targets = report.time_to_target_targets(again)
+    assert len(targets) == 3 and "met" in targets[2]
+    json.dumps(again, default=reproduce._jsonable)
+    report.plot_time_to_target(again, tmp_path / "time.png")
+    assert (tmp_path / "time.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_trial_taught_in_another_lab_is_the_trial_taught_in_its_own():
+    # Trials of one seed share the teaching; the lab that starts from it continues the
+    # simulated SEM's charging and noise, so nothing differs (a fresh noise generator of
+    # the same seed would repeat the reference's own noise: a false correlation peak).
+    args = ("optimal", "position", start("optimal", 0.05))
+    own = loop.run_timed_trial(*args, seed=5)
+    taught = loop.teach(loop.Lab("optimal", 5), loop.TimedSettings())
+    shared = loop.run_timed_trial(*args, seed=5, taught=taught)
+    assert shared["trace"] == own["trace"] and shared["true_error_px"] == own["true_error_px"]
