@@ -20,29 +20,40 @@ def texture(seed: int = 3) -> np.ndarray:
     return 100 + 60 * cv2.GaussianBlur(rng.normal(size=(SIZE, SIZE)), (0, 0), 1.2)
 
 
-def sweep_of_plane(alpha_deg: float, beta_deg: float, centre_um: float = 0.1, scene: np.ndarray | None = None,
-                   seed: int = 5) -> np.ndarray:
-    """Frames of a tilted plane at each working distance: each kernel blurred by its
-    distance from focus at its centre (depth = centre + tan(alpha) y - tan(beta) x / cos(alpha),
-    the module's convention), with shot-like noise."""
+def plane_depths(alpha_deg: float, beta_deg: float, centre_um: float = 0.1, size: int = SIZE,
+                 pixel_um: float = PIXEL_UM) -> np.ndarray:
+    """The depth of a tilted plane at each kernel's centre (kernel rows x kernel cols):
+    centre + tan(alpha) y - tan(beta) x / cos(alpha), the module's convention."""
+    centres = ((np.arange(size // KERNEL) + 0.5) * KERNEL - size / 2) * pixel_um
+    y, x = np.meshgrid(centres, centres, indexing="ij")
+    return (centre_um + np.tan(np.radians(alpha_deg)) * y
+            - np.tan(np.radians(beta_deg)) / np.cos(np.radians(alpha_deg)) * x)
+
+
+def sweep_of_depths(depths: np.ndarray, scene: np.ndarray | None = None, seed: int = 5) -> np.ndarray:
+    """Frames of a surface whose kernels lie at ``depths`` (kernel rows x kernel cols, um)
+    at each working distance: each kernel blurred by its distance from focus, with
+    shot-like noise."""
     scene = texture() if scene is None else scene
     rng = np.random.default_rng(seed)
-    centres = (np.arange(SIZE // KERNEL) + 0.5) * KERNEL - SIZE / 2
     frames = []
     for distance in WORKING_DISTANCES_UM:
-        frame = np.empty((SIZE, SIZE))
+        frame = np.empty(scene.shape)
         blurred: dict[float, np.ndarray] = {}
-        for row, y in enumerate(centres):
-            for col, x in enumerate(centres):
-                depth = (centre_um + np.tan(np.radians(alpha_deg)) * y * PIXEL_UM
-                         - np.tan(np.radians(beta_deg)) / np.cos(np.radians(alpha_deg)) * x * PIXEL_UM)
-                sigma = round(BLUR_PX_PER_UM * abs(depth - distance), 2)
-                if sigma not in blurred:
-                    blurred[sigma] = cv2.GaussianBlur(scene, (0, 0), sigma) if sigma > 0.05 else scene
-                frame[row * KERNEL:(row + 1) * KERNEL, col * KERNEL:(col + 1) * KERNEL] = \
-                    blurred[sigma][row * KERNEL:(row + 1) * KERNEL, col * KERNEL:(col + 1) * KERNEL]
+        for (row, col), depth in np.ndenumerate(depths):
+            sigma = round(BLUR_PX_PER_UM * abs(depth - distance), 2)
+            if sigma not in blurred:
+                blurred[sigma] = cv2.GaussianBlur(scene, (0, 0), sigma) if sigma > 0.05 else scene
+            frame[row * KERNEL:(row + 1) * KERNEL, col * KERNEL:(col + 1) * KERNEL] = \
+                blurred[sigma][row * KERNEL:(row + 1) * KERNEL, col * KERNEL:(col + 1) * KERNEL]
         frames.append(frame + rng.normal(0, 1.0, frame.shape))
     return np.stack(frames)
+
+
+def sweep_of_plane(alpha_deg: float, beta_deg: float, centre_um: float = 0.1, scene: np.ndarray | None = None,
+                   seed: int = 5) -> np.ndarray:
+    """Frames of a tilted plane at each working distance (:func:`sweep_of_depths`)."""
+    return sweep_of_depths(plane_depths(alpha_deg, beta_deg, centre_um), scene, seed)
 
 
 def test_the_focus_measure_is_the_variance_over_the_mean():
@@ -257,3 +268,70 @@ def test_a_good_estimate_carries_small_uncertainties():
     estimate = estimate_tilt(sweep_of_plane(4.0, -2.0), WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
     assert estimate.reason == "" and estimate.confidence > 0.5
     assert 0 < estimate.alpha_uncertainty_deg < 0.1 and 0 < estimate.beta_uncertainty_deg < 0.1
+
+
+# --------------------------------------------------------------------------------------
+# Every refusal of tilt_from_depths, each for its own reason, on synthetic sweeps
+
+
+def sweep_of_particles(kernel_depths: dict[tuple[int, int], float], seed: int = 5) -> np.ndarray:
+    """Texture in a few kernels only (particles on a featureless ground), each kernel's
+    texture at its own depth; every other kernel out of focus over the whole sweep, its
+    texture kept inside the kernel so that none bleeds into a neighbour."""
+    depths = np.full((SIZE // KERNEL, SIZE // KERNEL), 5.0)
+    scene, sharp = np.full((SIZE, SIZE), 100.0), texture()
+    for (row, col), depth in kernel_depths.items():
+        depths[row, col] = depth
+        inside = (slice(row * KERNEL + 6, (row + 1) * KERNEL - 6), slice(col * KERNEL + 6, (col + 1) * KERNEL - 6))
+        scene[inside] = sharp[inside]
+    return sweep_of_depths(depths, scene, seed)
+
+
+def test_too_few_kernels_in_focus_are_refused_with_the_count():
+    """Five particles in focus: fewer than MIN_KERNELS kernels with a clear peak."""
+    from semservo.estimation.tilt import MIN_KERNELS
+
+    particles = {(1, 1): 0.1, (1, 6): 0.2, (6, 1): -0.1, (6, 6): 0.0, (3, 4): 0.1}
+    estimate = estimate_tilt(sweep_of_particles(particles), WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
+    assert estimate.confidence == 0.0 and np.isnan(estimate.alpha_deg) and np.isnan(estimate.beta_deg)
+    assert estimate.kernels_used == len(particles) < MIN_KERNELS
+    assert estimate.reason.startswith(f"only {len(particles)} of 64 kernels have a clear focus peak")
+
+
+def test_a_plane_that_holds_for_too_few_kernels_is_refused():
+    """Six particles see focus, but one lies 0.8 um off the plane of the other five: the
+    robust plane leaves it out, and fewer than MIN_KERNELS remain to trust."""
+    particles = {(1, 1): 0.1, (1, 6): 0.1, (6, 1): 0.1, (6, 6): 0.1, (3, 4): 0.1, (4, 2): 0.9}
+    estimate = estimate_tilt(sweep_of_particles(particles), WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
+    assert estimate.confidence == 0.0 and np.isnan(estimate.alpha_deg)
+    assert "the plane holds for only" in estimate.reason and "of the 6 kernels with a clear focus peak" in estimate.reason
+    assert estimate.kernels_used < 6
+
+
+def test_a_rough_surface_is_refused_for_its_scatter_or_its_uncertainty():
+    """Every kernel in focus at its own depth, +-0.3 um about a tilted plane (a rough
+    sample: 1.2 sweep steps of spread). Over a 51 um field the plane's slopes are pinned
+    well enough (standard errors under 0.1 degree), so the scatter is the reason; over a
+    13 um field (the same sweep, smaller pixels) the slopes are not, and that is."""
+    from semservo.estimation.tilt import MAX_SCATTER_STEPS, MAX_TILT_UNCERTAINTY_DEG
+
+    rng = np.random.default_rng(0)
+    depths = plane_depths(2.0, -1.0, 0.1, pixel_um=0.2) + rng.uniform(-0.3, 0.3, (SIZE // KERNEL,) * 2)
+    sweep = sweep_of_depths(depths)
+    step = float(np.diff(WORKING_DISTANCES_UM).mean())
+    wide = estimate_tilt(sweep, WORKING_DISTANCES_UM, 0.2, kernel=KERNEL)
+    assert wide.confidence == 0.0 and np.isnan(wide.alpha_deg)
+    assert max(wide.alpha_uncertainty_deg, wide.beta_uncertainty_deg) <= MAX_TILT_UNCERTAINTY_DEG
+    assert wide.reason.startswith("the kernel depths scatter about the plane by") and "not one plane" in wide.reason
+    assert wide.residual > MAX_SCATTER_STEPS * step and wide.kernels_used == 64
+    narrow = estimate_tilt(sweep, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
+    assert narrow.confidence == 0.0 and "pin the tilts" in narrow.reason and "100% x 100% of the field" in narrow.reason
+    assert min(narrow.alpha_uncertainty_deg, narrow.beta_uncertainty_deg) > MAX_TILT_UNCERTAINTY_DEG
+
+
+def test_the_same_plane_without_the_roughness_is_measured():
+    """The control for the test above: the plane alone, over the same 51 um field."""
+    sweep = sweep_of_depths(plane_depths(2.0, -1.0, 0.1, pixel_um=0.2))
+    estimate = estimate_tilt(sweep, WORKING_DISTANCES_UM, 0.2, kernel=KERNEL)
+    assert estimate.reason == "" and estimate.confidence > 0.5
+    assert estimate.alpha_deg == pytest.approx(2.0, abs=0.1) and estimate.beta_deg == pytest.approx(-1.0, abs=0.1)

@@ -121,3 +121,41 @@ def test_the_aperture_sets_the_depth_of_field():
     narrow = sharpness(frame(world.sem, Pose(), replace(settings, aperture_um=50.0)))
     assert wide < narrow <= in_focus * 1.05
     assert world.sem.half_angle(replace(settings, aperture_um=50.0)) == pytest.approx(0.005, rel=0.01)
+
+
+@pytest.mark.parametrize("depth_of_field_um", [None, 3.5])
+def test_a_teach_with_tilts_on_a_deep_depth_of_field_is_refused_with_the_reason(depth_of_field_um):
+    """The ``optimal`` preset (x1200, the default aperture at 10 mm: a depth of field of
+    ~49 um over a 91 um field): a tilt of a few degrees moves the focus across the field
+    by a fraction of a depth of field, which focus cannot place. The estimator service's
+    sweep, planned with that depth of field or with the setting's default 3.5 um (a
+    user who did not change it), is refused with the reason, so a 5-DOF run there has
+    no taught sweep and cannot start (``test_a_tilt_run_needs_a_taught_sweep_and_says_so``):
+    it is never left servoing on tilts it cannot see."""
+    from semservo.wire import Frame, frame_header
+    from services.estimator.core import EstimatorCore, NoTiltReference, TiltSettings
+
+    preset = PRESETS["optimal"]
+    world = World(preset, speedup=1000.0)
+    settings = ScanSettings(dwell_ns=preset.dwell_ns, magnification=preset.magnification,
+                            working_distance_um=preset.focus_um)
+    depth_of_field = 2 * settings.pixel_um / world.sem.beam_half_angle
+    assert depth_of_field > 40.0
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE",
+                         tilt=TiltSettings(depth_of_field_um=depth_of_field_um or depth_of_field,
+                                           centre_um=preset.focus_um))
+    pixel_nm = settings.pixel_um * 1000
+    first = frame(world.sem, Pose(), settings)
+    core.process(Frame(frame_header(first, seq=0, acquired_at_ns=0, pixel_size_nm=pixel_nm,
+                                    magnification=preset.magnification, dwell_ns=preset.dwell_ns, source="test"), first))
+    core.teach_latest()
+    distances = core.next_sweep()
+    pose = Pose(tilt_x_deg=3.0, tilt_y_deg=-2.0)
+    sweep = np.stack([frame(world.sem, pose, replace(settings, working_distance_um=w), seed=i)
+                      for i, w in enumerate(distances)])
+    estimate = estimate_tilt(sweep, distances, settings.pixel_um)
+    assert estimate.confidence == 0.0 and np.isnan(estimate.alpha_deg) and np.isnan(estimate.beta_deg)
+    assert "pin the tilts" in estimate.reason and estimate.alpha_uncertainty_deg > 0.1
+    with pytest.raises(NoTiltReference, match="cannot tell the tilts: .*pin the tilts"):
+        core.teach_tilt(sweep, distances, pixel_nm)
+    assert core.tilt_reference is None

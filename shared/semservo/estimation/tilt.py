@@ -386,11 +386,21 @@ def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: f
         return refused(f"the plane holds for only {int(used.sum())} of the {clear} kernels with a clear focus peak "
                        f"(at least {MIN_KERNELS} are needed)")
     if max(alpha_error, beta_error) > MAX_TILT_UNCERTAINTY_DEG:
-        span = f"{(np.ptp(cols) + 1) / depths.shape[1]:.0%} x {(np.ptp(rows) + 1) / depths.shape[0]:.0%}"
-        return refused(f"the {int(used.sum())} kernels that see focus (of {total}, spanning {span} of the field) pin "
-                       f"the tilts to +-{alpha_error:.2f} and +-{beta_error:.2f} degree only (at most "
-                       f"{MAX_TILT_UNCERTAINTY_DEG:g}): too few, bunched, or scattered by "
-                       f"{plane.scale / step:.2f} sweep steps")
+        span_x, span_y = (np.ptp(cols) + 1) / depths.shape[1], (np.ptp(rows) + 1) / depths.shape[0]
+        pinned = (f"the {int(used.sum())} kernels that see focus (of {total}, spanning {span_x:.0%} x {span_y:.0%} of "
+                  f"the field) pin the tilts to +-{alpha_error:.2f} and +-{beta_error:.2f} degree only (at most "
+                  f"{MAX_TILT_UNCERTAINTY_DEG:g})")
+        if min(span_x, span_y) < 0.5:
+            return refused(f"{pinned}: too few or bunched in part of the field, their depths scattered by "
+                           f"{plane.scale / step:.2f} sweep steps")
+        # Spread over the field: each kernel's focus is placed too loosely against the
+        # depth a tenth of a degree spans across the field.
+        field_depth = float(np.radians(MAX_TILT_UNCERTAINTY_DEG) * min(span_x * depths.shape[1],
+                                                                       span_y * depths.shape[0]) * kernel * pixel_size)
+        return refused(f"{pinned}: their depths scatter by {plane.scale:.3g} ({plane.scale / step:.2f} sweep steps) "
+                       f"about the plane, where a tenth of a degree spans {field_depth:.2g} across the field. A depth "
+                       f"of field too large for the tilts to show across this field (a larger aperture or a shorter "
+                       f"working distance makes it smaller), too few kernels, or a surface that is not flat")
     if plane.scale > MAX_SCATTER_STEPS * step:
         return refused(f"the kernel depths scatter about the plane by {plane.scale / step:.2f} sweep steps (at most "
                        f"{MAX_SCATTER_STEPS:g}): the scene is not one plane in focus")
