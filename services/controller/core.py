@@ -37,7 +37,9 @@ from typing import Callable
 
 import numpy as np
 
-from semservo.control import AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, LawStep, TiltLaw
+from semservo.control import (
+    MODEL_UNCERTAINTY, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, TiltLaw, make_law,
+)
 from semservo.errors import BadRequest, CommandError, ServiceUnavailable
 from semservo.messages import MotionEstimate
 from semservo.protocol import Port
@@ -45,13 +47,25 @@ from semservo.protocol import estimator as estimator_protocol
 from semservo.protocol import stage as stage_protocol
 from semservo.protocol.controller import ControllerState, ControllerStatus, RunSettings
 from services.controller.run import (
-    IterationRecord, Run, Tilts, Verdict, admit, decide, gate, judge, measure, sampling_time, tilt_step,
+    IterationRecord, Run, Tilts, Verdict, admit, decide, gate, judge, law_step, measure, sampling_time, tilt_step,
 )
 from services.controller.split import BeamAxes, split
 
 log = logging.getLogger("controller")
 
-__all__ = ["ControllerCore", "RunSettings"]
+__all__ = ["ControllerCore", "RunSettings", "model_uncertainty"]
+
+
+def model_uncertainty(stage_state, dofs) -> float:
+    """How uncertain the stage's response to a commanded micrometre is, for the position
+    law's prior (:data:`semservo.control.MODEL_UNCERTAINTY`): a calibrated
+    displacement-voltage model (branches, from ``semservo calibrate``) or a driver in
+    physical units answers within 15 %; a linear model from the nominal stroke within 70 %."""
+    if stage_state.kind == "physical":
+        return MODEL_UNCERTAINTY["calibrated"]
+    planar = [axis for axis in ("x", "y") if axis in dofs]
+    kinds = {stage_state.models.get(axis, "linear") for axis in planar}
+    return MODEL_UNCERTAINTY["calibrated" if kinds and kinds <= {"branches"} else "uncalibrated"]
 
 #: The stage's axis for each turning DOF.
 TURN_AXES = {"rotation": "rotation_deg", "alpha": "tilt_x_deg", "beta": "tilt_y_deg"}
@@ -116,7 +130,11 @@ class ControllerCore:
         self.run = Run(
             id=time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6], reference_id=reference["id"],
             settings=settings, started_at_ns=now_ns, stage_at_start=stage_state.model_dump(mode="json"),
-            law=ControlLaw(planar, gain, self.camera, integral_time_s=settings.integral_time_s),
+            law=make_law(settings.law, planar, camera_to_stage=self.camera, gain=gain,
+                         integral_time_s=settings.integral_time_s,
+                         model_uncertainty=model_uncertainty(stage_state, planar),
+                         tolerance_px=settings.tolerance_px, tolerance_deg=settings.tolerance_deg,
+                         max_move_um=settings.max_move_um, max_turn_deg=settings.max_turn_deg),
             tilts=Tilts(TiltLaw(tilt_dofs, gain, self.camera), settled_ns=now_ns) if tilt_dofs else None,
             last_command_ns=now_ns, recent=deque(),
             beam=BeamAxes.of(stage_state) if settings.beam_shift_within_um > 0 else None)
@@ -257,6 +275,12 @@ class ControllerCore:
         record.error_px = math.hypot(estimate.dx_px, estimate.dy_px)
         sweeps_before = run.tilts.sweeps if run.tilts is not None else 0
         tilt = tilt_step(run, estimate, record) if run.tilts is not None else None
+        elapsed = sampling_time(run, estimate)
+        step = law_step(run, estimate, elapsed, time.time_ns())
+        if isinstance(step, Verdict):
+            self._record(record, step.action)
+            self._end(step)
+            return record.to_json()
         measurement = measure(run, estimate, new_sweep=run.tilts is not None and run.tilts.sweeps > sweeps_before)
         record.mean_error_px = measurement.mean_error_px
         verdict = judge(run, measurement)
@@ -265,9 +289,6 @@ class ControllerCore:
                 self._record(record, verdict.action)
             self._end(verdict)
             return record.to_json()
-        elapsed = sampling_time(run, estimate)
-        step = run.law.step(estimate.dx_px, estimate.dy_px, estimate.rotation_deg, estimate.pixel_size_nm, elapsed) \
-            if run.law.dofs else LawStep.idle()
         decision = decide(run, step, tilt)
         record.error, record.cost, record.gain, record.velocity = step.error, step.cost, step.gain, step.velocity
         record.sampling_time_s, record.move, record.saturated = elapsed, decision.step.move, decision.saturated
@@ -278,11 +299,19 @@ class ControllerCore:
         record.saturated = decision.saturated or decision.turn_saturated
         if decision.turns:
             record.turn_deg = decision.turns
-        if not decision.targets and not decision.turns:  # a tilts-only run between two sweeps
-            self._record(record, "held: waiting for a focus sweep")
+        if not decision.targets and not decision.turns:
+            # A tilts-only run between two sweeps, or the position law holding: what is
+            # left is within its dead band or not yet beyond the estimate's noise.
+            self._record(record, "held: waiting for a focus sweep" if not run.law.dofs
+                         else "held: nothing significant to correct")
             return record.to_json()
         if not self._command(run, decision, tilt is not None, record):
             return record.to_json()
+        # What the stage carried out, and when: the position law learns the stage's gain
+        # from it (the paper's law needs nothing).
+        carried = {f"{axis}_um": value for axis, value in decision.targets.items()}
+        carried.update({axis: value for axis, value in decision.turns.items() if axis == "rotation_deg"})
+        run.law.applied(carried, record.command_written_at_ns / 1e9 if record.command_written_at_ns else None)
         run.iterations += 1
         run.last_command_ns = max(record.command_written_at_ns, record.command_settled_at_ns or 0)
         interval = estimate.frame_source_interval_s

@@ -8,12 +8,14 @@ the run (and the estimate) that returns what it decided, so each is tested alone
 2. :func:`gate`: may it move the stage? The frames must carry a pixel size, and the
    estimate must be **fresh** (its frame scanned wholly after the last move settled: a
    frame scanned during a move shows both positions) and **confident**.
-3. :func:`measure`: the error convergence is judged on (the mean of the last
-   ``converge_frames`` fresh errors), and progress.
+3. :func:`law_step`: the law's step on the fresh, confident estimate (the paper's eq.
+   30-37, or the position law's Kalman step, which also judges its own convergence).
+   :func:`measure`: the error convergence is judged on (the mean of the last
+   ``converge_frames`` fresh errors, or the position law's own verdict), and progress.
 4. :func:`judge`: converged, out of iterations, or making no progress.
-5. :func:`decide`: the law's step (eq. 30-37), saturated, unless the cost is diverging.
-6. moving the stage is the core's (:class:`services.controller.core.ControllerCore`);
-   then the iteration is recorded.
+5. :func:`decide`: the law's move, saturated, unless the cost is diverging.
+6. moving the stage is the core's (:class:`services.controller.core.ControllerCore`),
+   which tells the law what was carried out (``applied``); then the iteration is recorded.
 
 The tilts (alpha, beta) are measured once per focus sweep: :func:`tilt_step` acts on
 each fresh sweep once.
@@ -28,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 
-from semservo.control import ControlLaw, LawStep, TiltLaw
+from semservo.control import ControlLaw, LawStep, PositionLaw, TiltLaw, UnexpectedResponse
 from semservo.messages import MotionEstimate
 from semservo.protocol.controller import RunSettings
 
@@ -149,7 +151,7 @@ class Run:
     settings: RunSettings
     started_at_ns: int
     stage_at_start: dict
-    law: ControlLaw
+    law: ControlLaw | PositionLaw
     tilts: Tilts | None = None
     iterations: int = 0  # moves made
     records: list[dict] = field(default_factory=list)
@@ -306,6 +308,10 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
     within = len(run.recent) == settings.converge_frames and within_tolerance(run, *mean)
     if settings.converge_on == "each":
         within = within and all(within_tolerance(run, *error) for error in run.recent)
+    if run.law.converged is not None and run.law.dofs:
+        # The position law judges its own: the error it predicts for now, one standard
+        # deviation added, within tolerance (the last frames measured poses left behind).
+        within = run.law.converged and within_tolerance(run, 0.0, 0.0, 0.0)
     if run.tilts is None or run.tilts.last_error is not None:
         run.progress.update(normalized_error(run, mean), new_sweep)
     return Measurement(math.hypot(estimate.dx_px, estimate.dy_px), mean, within)
@@ -354,6 +360,24 @@ def sampling_time(run: Run, estimate: MotionEstimate) -> float:
     if interval:
         return max(2 * (interval[1] - interval[0]), 1e-3)
     return 0.5
+
+
+def law_step(run: Run, estimate: MotionEstimate, sampling_time_s: float, now_ns: int) -> LawStep | Verdict:
+    """The planar law's step on a fresh, confident estimate (``gate`` let it through).
+    Either law is called the same way; the position law uses the frame's scan interval
+    and the time the move will be written (wall clock, as the stage's ``settled_at_ns``)
+    to follow the drift. A stage that did not move the content as commanded, twice in a
+    row, ends the run (:class:`~semservo.control.UnexpectedResponse`)."""
+    if not run.law.dofs:
+        return LawStep.idle()
+    started_ns = estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
+    try:
+        return run.law.step(estimate.dx_px, estimate.dy_px, estimate.rotation_deg, estimate.pixel_size_nm,
+                            sampling_time_s, fresh=True, confident=True,
+                            frame_interval_s=(started_ns / 1e9, estimate.frame_acquired_at_ns / 1e9),
+                            now_s=now_ns / 1e9)
+    except UnexpectedResponse as error:
+        return Verdict("held: unexpected response", "failed", f"the stage did not move as commanded: {error}")
 
 
 def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:

@@ -623,9 +623,10 @@ def command_demo(args: argparse.Namespace) -> int:
                 ("gamma", "alpha", "beta"), (args.turn, *(args.tilt if tilts else ())))))
         time.sleep(args.settle)
         # A 5-DOF run acts on every fresh frame while it waits for each focus sweep: more iterations.
-        run = lab.start(tolerance_px=args.tolerance, dofs=dofs, **({"max_iterations": 600} if tilts else {}))
+        run = lab.start(tolerance_px=args.tolerance, dofs=dofs, law=args.law,
+                        **({"max_iterations": 600} if tilts else {}))
         run_id = run.run_id
-        print(f"3. positioning run {run_id} started ({', '.join(dofs)}; tolerance {args.tolerance:g} px); "
+        print(f"3. positioning run {run_id} started ({', '.join(dofs)}; {args.law} law; tolerance {args.tolerance:g} px); "
               "waiting ...", flush=True)
         result = lab.wait(run_id, timeout=args.timeout, stop_on_timeout=True)
         print(f"4. {result.state} after {result.iterations} iterations ({result.fresh_frames or 0} fresh frames) "
@@ -828,6 +829,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="degrees of freedom: xy (default), rotation (x, y and the turn about the beam) or all five "
                            "(x, y, gamma and the tilts alpha, beta, from focus sweeps; a demo that starts the system "
                            "starts it in the small-depth-of-field 'tilts' preset)")
+    demo.add_argument("--law", choices=["paper", "position"], default="paper",
+                      help="the planar law: the paper's (default) or the position-based one, which takes a few "
+                           "moves (see the README's time-to-target table)")
     demo.add_argument("--turn", type=float, default=3.0, help="with --dof rotation/all: turn about the beam, degrees")
     demo.add_argument("--tilt", type=float, nargs=2, default=(2.0, -1.5), metavar=("ALPHA", "BETA"),
                       help="with --dof all: tilts about x and y, degrees (default 2 -1.5)")

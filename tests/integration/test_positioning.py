@@ -100,6 +100,33 @@ def test_positions_from_a_displaced_start_to_the_taught_pose(lab):
     assert (lab["runs"] / f"{run['run_id']}.json").is_file()
 
 
+def test_the_position_law_reaches_the_taught_pose_in_a_few_moves(lab):
+    """law="position" through the real processes: the whole displacement is commanded
+    through the stage's model, the residue corrected, and the run converges on the law's
+    own estimate (the paper's law takes 20-50 moves from here)."""
+    reference = teach_after_frames(lab)
+    scanned = lab["fakelab"].request("pose", interval_s=reference["source_interval_s"])
+    taught = scanned["x_um"], scanned["y_um"]
+    lab["stage"].request("move", targets={"x": 6.0, "y": -4.0}, relative=True)
+    pose_after(lab["fakelab"], lab["fakelab"].request("pose")["t_s"])
+
+    run = lab["controller"].request("start", law="position", tolerance_px=0.15)
+    status = wait_for(lambda: (s := lab["controller"].request("status"))["state"] != "servoing" and s, 90,
+                      "the run to end")
+    assert status["state"] == "converged", status
+    record = lab["controller"].request("run")
+    assert record["settings"]["law"] == "position" and record["id"] == run["run_id"]
+    moved = [r for r in record["records"] if r["action"] == "moved"]
+    assert 1 <= len(moved) <= 8, [r["action"] for r in record["records"]]
+    assert moved[0]["gain"] > 0.5  # the first move commands most of the measured displacement
+    pixel_um = record["records"][-1]["pixel_size_nm"] / 1000
+    scans = [r["frame_source_interval_s"] for r in record["records"]
+             if "frame_source_interval_s" in r and not r["action"].startswith("held: stale")][-2:]
+    pose = lab["fakelab"].request("pose", interval_s=[scans[0][0], scans[-1][1]])
+    error_px = [abs((pose["x_um"], pose["y_um"])[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
+    assert max(error_px) < 0.4, f"true final error {error_px} px"
+
+
 def test_servoes_the_rotation_about_the_beam_through_the_stage_service(lab):
     # Every axis goes through the stage service: the run turns the rotation stage with
     # the stage's rules (owner, travel, step), not the fake lab directly.
