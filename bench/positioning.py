@@ -279,9 +279,10 @@ def throughput(out: Path, seconds: float = 6.0, rates: tuple[float, ...] = (50.0
         stack.estimator.request("teach")
         # Holding (a held run never ends by converging); the replayed frames do not
         # follow the stage (they loop through a recorded approach), so divergence is
-        # not judged here.
-        stack.controller.request("start", tolerance_px=0.05, hold=True, max_iterations=100_000, max_move_um=0.05,
-                                 min_confidence=0.0, diverge_iterations=100_000)
+        # not judged here. The paper's law: it acts on every fresh frame (the position law
+        # would stop acting on frames that do not follow its moves).
+        stack.controller.request("start", law="paper", tolerance_px=0.05, hold=True, max_iterations=100_000,
+                                 max_move_um=0.05, min_confidence=0.0, diverge_iterations=100_000)
         for fps in rates:
             imageserver.request("set_fps", fps=fps)
             time.sleep(1.0)  # the new rate settles
@@ -376,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="fresh frames whose error is judged (default: the controller's, 3)")
     parser.add_argument("--converge-on", choices=["mean", "each"], default="mean",
                         help="converged when their mean error is under tolerance (default), or each one's")
+    parser.add_argument("--law", choices=["position", "paper"], default="position",
+                        help="the planar law (default: position, the controller's default; paper: eq. 30-37)")
     parser.add_argument("--no-throughput", action="store_true", help="skip the replay runs at 50-200 frames/s")
     parser.add_argument("--sample-images", nargs="+", metavar="IMAGE",
                         help="real pictures as the sample instead of the presets' scenes: files, or names of "
@@ -387,13 +390,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
-    run_settings = {"tolerance_px": args.tolerance_px, "max_iterations": 150, "converge_on": args.converge_on}
+    run_settings = {"tolerance_px": args.tolerance_px, "max_iterations": 150, "converge_on": args.converge_on,
+                    "law": args.law}
     if args.converge_frames:
         run_settings["converge_frames"] = args.converge_frames
     results = []
-    name = "positioning"
+    name = "positioning" if args.law == "position" else "positioning-paper-law"
     if args.sample_images:
-        name = "positioning-sample-images"
+        name += "-sample-images"
         for picture in args.sample_images:
             if picture == "scene":  # the preset's own scene, the same settings: the row to compare with
                 say(f"{args.sample_preset}: its own scene, {PRESETS[args.sample_preset].description}")

@@ -289,6 +289,11 @@ class ControlLaw:
         """The move as the stage carried it out: nothing to learn for this law (the same
         call as :meth:`PositionLaw.applied`, so a caller treats every law alike)."""
 
+    def view_moved(self) -> None:
+        """The view moved by design (a tilt about a pivot below the surface): nothing to
+        forget for this law, which acts on each frame's error alone (the same call as
+        :meth:`PositionLaw.view_moved`)."""
+
     def _with_integral(self, error: np.ndarray, sampling_time_s: float) -> np.ndarray:
         if not self.integral_time_s:
             return error
@@ -553,6 +558,13 @@ class PositionLaw:
         self._time = self._pending = self._last_error = None
         self._implausible, self.converged = {}, False
         self._kept_gains = kept
+
+    def view_moved(self) -> None:
+        """The view moved by design (a tilt about a pivot below the surface shifts it): the
+        position and drift start afresh from the next fresh frame; what was learned of the
+        stage's gains and the noise stays. Without this, the view's jump would read as the
+        stage's implausible response to the last planar move."""
+        self.reset()
 
     def noise(self) -> np.ndarray:
         """The estimate's noise per frame (px, or degrees for the rotation), per DOF."""
