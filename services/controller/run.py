@@ -311,8 +311,12 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
         within = within and all(within_tolerance(run, *error) for error in run.recent)
     if run.law.converged is not None and run.law.dofs:
         # The position law judges its own: the error it predicts for now, one standard
-        # deviation added, within tolerance (the last frames measured poses left behind).
+        # deviation added, within tolerance (the last frames measured poses left behind);
+        # its estimate is the error the run reports (status, records).
         within = run.law.converged and within_tolerance(run, 0.0, 0.0, 0.0)
+        estimated = run.law.planar_estimate()[0]
+        if math.isfinite(estimated):
+            mean = (estimated, 0.0, mean_turn)
     if run.tilts is None or run.tilts.last_error is not None:
         run.progress.update(normalized_error(run, mean), new_sweep)
     return Measurement(math.hypot(estimate.dx_px, estimate.dy_px), mean, within)
@@ -322,6 +326,11 @@ def judge(run: Run, measurement: Measurement) -> Verdict | None:
     """Converged, out of iterations, or no longer making progress; None: go on."""
     settings = run.settings
     if measurement.within and not settings.hold:
+        if run.law.converged is not None and run.law.dofs:
+            error, spread = run.law.planar_estimate()
+            return Verdict("within tolerance", "converged",
+                           f"the position law's estimate {error:.3f} px (one standard deviation {spread:.3f} px) "
+                           f"within {settings.tolerance_px:g} px, from {run.fresh_frames} fresh frames")
         return Verdict("within tolerance", "converged",
                        f"mean error of the last {len(run.recent)} fresh frames {measurement.mean_error_px:.3f} px, "
                        f"under {settings.tolerance_px:g} px")

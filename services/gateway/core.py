@@ -235,7 +235,8 @@ class GatewayCore:
                 outcome.pop("stage_log_error")
         for iteration in record.get("records", []):
             self.store.add_iteration(run_id, iteration)
-        # The final error as the controller judged it: the mean over its last fresh frames.
+        # The final error as the controller judged it: the position law's estimate, or the
+        # paper's law's mean over its last fresh frames.
         judged = [r["mean_error_px"] for r in record.get("records", []) if r.get("mean_error_px") is not None]
         final_error_px = judged[-1] if judged else None
         truth, truth_note, retry = self._true_final_error(record)
@@ -318,12 +319,18 @@ class GatewayCore:
                                                                          "run_id": run["id"]}})
 
     def _true_final_error(self, record: dict) -> tuple[dict | None, str | None, bool]:
-        """On simulated hardware: the true pose over the scans of the run's last three
-        fresh frames (what it judged convergence on) against the true pose over the
-        reference's scans, in um and px; or (None, why not, worth asking again)."""
-        fresh = [r for r in record.get("records", []) if r.get("frame_source_interval_s")
-                 and not r.get("action", "").startswith("held")]
+        """On simulated hardware: the true pose over the scans of what the run judged
+        convergence on (the paper's law: its last three fresh frames; the position law:
+        the fresh frames since its last move, where the stage rests) against the true pose
+        over the reference's scans, in um and px; or (None, why not, worth asking again)."""
+        records = record.get("records", [])
+        fresh = [r for r in records if r.get("frame_source_interval_s") and not r.get("action", "").startswith("held")]
         scans = [r["frame_source_interval_s"] for r in fresh[-3:]]
+        if (record.get("settings") or {}).get("law", "paper") == "position":
+            moves = [index for index, r in enumerate(records) if r.get("action") == "moved"]
+            resting = [r["frame_source_interval_s"] for r in records[moves[-1] + 1 if moves else 0:]
+                       if r.get("frame_source_interval_s") and not r.get("action", "").startswith("held: stale")]
+            scans = resting[-3:] or scans
         if self.ports.get("fakelab") is None or not scans:
             return None, None, False
         saved = self.store.reference(record.get("reference_id"))

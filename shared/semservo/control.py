@@ -773,6 +773,14 @@ class PositionLaw:
                                   if axis in move and nominal[i]]))
         return LawStep(_floats(error), cost(error), fraction, (), move)
 
+    def planar_estimate(self) -> tuple[float, float]:
+        """The planar error as the law estimates it (px) and its spread (one standard
+        deviation, px), at the last frame; (nan, nan) before the first."""
+        if self.state is None:
+            return math.nan, math.nan
+        position, spread = self._forecast(None)
+        return self._norms(position), self._norms(spread) / math.sqrt(max(sum(~self._rotation), 1))
+
     def _forecast(self, at_s: float | None) -> tuple[np.ndarray, np.ndarray]:
         """The error predicted at ``at_s`` and its spread, per DOF."""
         n = len(self.dofs)

@@ -95,7 +95,13 @@ def test_a_teach_with_tilts_shows_its_sweep_then_a_five_dof_run_every_angle(open
         for readout in ("gamma", "alpha", "beta"):
             expect(page.locator(f"#readout-{readout}")).to_be_visible()
         # The tilts a focus sweep measured reach the header and the angle plot.
-        expect(page.locator("#alpha")).not_to_have_text("–", timeout=60_000)
+        try:
+            expect(page.locator("#alpha")).not_to_have_text("–", timeout=60_000)
+        except AssertionError as error:  # say where the run stood: the page alone does not
+            status, record = lab.status(), lab.run(run.run_id)
+            actions = [(r.get("action"), r.get("tilt_action"), r.get("alpha_deg")) for r in record.trajectory][-20:]
+            raise AssertionError(f"no tilt reached the header: the run is {status.state} ({status.reason}); "
+                                 f"its last iterations {actions}") from error
         page.wait_for_function("window.semservo.series && window.semservo.series.angle.alpha.some((v) => v !== null)",
                                timeout=30_000)
         page.wait_for_function("document.querySelectorAll('#plot-angles .u-legend .u-series').length === 4")

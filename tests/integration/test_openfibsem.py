@@ -275,7 +275,7 @@ def test_a_lab_script_positions_with_semservo_in_at_most_ten_lines():
     result = subprocess.run([sys.executable, str(example)], capture_output=True, text=True, timeout=300, cwd=REPO,
                             env={**os.environ, "FIBSEM_SIM_NO_DELAY": "1"})
     assert result.returncode == 0, result.stdout + result.stderr
-    assert re.search(r"^converged: mean error of the last 3 fresh frames 0\.\d+ px", result.stdout, flags=re.M), \
+    assert re.search(r"^converged: the position law's estimate 0\.\d+ px", result.stdout, flags=re.M), \
         result.stdout
 
 

@@ -235,10 +235,11 @@ def test_converging_on_each_frame_asks_every_one_to_be_within(stage, tmp_path):
 
     # Mean of (0.15, -0.04) is 0.055 px: under 0.1 px on the mean, not on each frame.
     on_mean = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
-    on_mean.start(RunSettings(converge_frames=2), "ref")
+    # The paper's law's rule (the position law converges on its own estimate).
+    on_mean.start(RunSettings(law="paper", converge_frames=2), "ref")
     assert feed(on_mean, [0.15, -0.04]) == "converged"
     on_each = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
-    on_each.start(RunSettings(converge_frames=2, converge_on="each"), "ref")
+    on_each.start(RunSettings(law="paper", converge_frames=2, converge_on="each"), "ref")
     assert feed(on_each, [0.15, -0.04]) == "servoing"
     assert on_each.on_estimate(estimate(3, -0.03, 0.0, scan_started_at_ns=time.time_ns()))["action"] == "within tolerance"
     assert on_each.state == "converged"
@@ -296,7 +297,9 @@ def test_a_killed_controllers_run_is_finished_from_its_journal(stage, tmp_path):
     import time
 
     first = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
-    first.start(RunSettings(), "ref")
+    # The paper's law moves on each of these made-up estimates; the position law would end
+    # the run on the second (the content did not follow its move: see the next test).
+    first.start(RunSettings(law="paper"), "ref")
     for seq in (1, 2, 3):
         first.on_estimate(estimate(seq, 20.0, -10.0, scan_started_at_ns=time.time_ns()))
     run_id = first.run.id
@@ -311,6 +314,25 @@ def test_a_killed_controllers_run_is_finished_from_its_journal(stage, tmp_path):
     assert [r["seq"] for r in record["records"]] == [1, 2, 3] and record["iterations"] == 3
     assert any(entry["text"].startswith("set,") for entry in record["stage_log"]), "the stage's log, since the start"
     assert second.recover() == [], "recovered once"
+
+
+def test_the_position_law_ends_a_run_whose_content_does_not_follow_its_moves(stage, tmp_path):
+    """A wrong camera-to-stage sign, a blocked axis or wrong estimates: the content does
+    not move as commanded, twice in a row, and the run fails with the reason instead of
+    moving again."""
+    import time
+
+    core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    core.start(RunSettings(), "ref")
+    actions = []
+    for seq in range(1, 6):
+        if core.state != "servoing":
+            break
+        stage.clock.now += 1.0  # the stage's rate limit: a second later
+        time.sleep(0.01)  # each frame scanned after the last move has settled
+        actions.append(core.on_estimate(estimate(seq, 20.0, -10.0, scan_started_at_ns=time.time_ns()))["action"])
+    assert actions == ["moved", "moved", "held: unexpected response"], actions
+    assert core.state == "failed" and "did not move as commanded" in core.reason, core.reason
 
 
 def test_a_restarted_stage_comes_back_held_with_its_command_log(link, tmp_path):

@@ -420,6 +420,7 @@ function showRunSettings(run) {
   if (settings.tolerance_px !== undefined) $("tolerance").value = settings.tolerance_px;
   if (settings.max_iterations !== undefined) $("max-iterations").value = settings.max_iterations;
   if (settings.hold !== undefined) $("hold").checked = settings.hold;
+  if (settings.law !== undefined) $("law").value = settings.law;
   for (const box of document.querySelectorAll("input[name=dof]")) box.checked = dofs.includes(box.value);
 }
 
@@ -624,7 +625,7 @@ action($("teach-mask"), "click", async () => {
 
 function positionSettings() {
   return {
-    tolerance_px: Number($("tolerance").value), max_iterations: Number($("max-iterations").value),
+    tolerance_px: Number($("tolerance").value), max_iterations: Number($("max-iterations").value), law: $("law").value,
     dofs: [...document.querySelectorAll("input[name=dof]:checked")].map((box) => box.value), hold: $("hold").checked,
   };
 }

@@ -45,10 +45,10 @@ class RunSettings(BaseModel):
     tolerance_tilt_deg: PositiveFloat = Field(0.1, le=10, description="and each tilt error below (alpha, beta DOFs)")
     max_turn_deg: PositiveFloat = Field(5.0, le=30, description="largest turn or tilt per iteration (saturation)")
     min_tilt_confidence: float = Field(0.3, ge=0, le=1, description="less confident tilt measurements hold the tilts")
-    converge_frames: Count = Field(3, le=100, description="converged when the mean error size (each frame's, errors either side do not cancel) of this many fresh frames "
-                                                          "is under tolerance")
+    converge_frames: Count = Field(3, le=100, description="the paper's law: converged when the mean error size (each frame's, errors either side do not cancel) of this many fresh frames "
+                                                          "is under tolerance (the position law converges on its own estimate)")
     converge_on: Literal["mean", "each"] = Field(
-        "mean", description="'mean': their mean error is under tolerance; 'each': every one of them is too "
+        "mean", description="the paper's law: 'mean': their mean error is under tolerance; 'each': every one of them is too "
                             "(lands nearer, takes more frames, and may never end where vibration exceeds the tolerance)")
     max_iterations: Count = Field(150, le=100_000, description="moves before the run fails")
     law: Literal["position", "paper"] = Field(
