@@ -303,7 +303,7 @@ class ControllerCore:
             # A tilts-only run between two sweeps, or the position law holding: what is
             # left is within its dead band or not yet beyond the estimate's noise.
             self._record(record, "held: waiting for a focus sweep" if not run.law.dofs
-                         else "held: nothing significant to correct")
+                         else step.held or "held: nothing significant to correct")
             return record.to_json()
         if not self._command(run, decision, tilt is not None, record):
             return record.to_json()

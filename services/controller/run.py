@@ -420,7 +420,7 @@ def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:
     run.rising = run.rising + 1 if step.cost > settings.diverge_factor * max(run.min_cost, floor) else 0
     diverging = (f"diverging: cost above {settings.diverge_factor:g}x its minimum for {run.rising} moves"
                  if run.rising >= settings.diverge_iterations else None)
-    return Decision(LawStep(step.error, step.cost, step.gain, step.velocity, move, step.integral), targets, turns,
+    return Decision(LawStep(step.error, step.cost, step.gain, step.velocity, move, step.integral, step.held), targets, turns,
                     saturated, turn_saturated, diverging)
 
 

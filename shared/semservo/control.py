@@ -223,7 +223,7 @@ NO_OVERSHOOT_GAIN_TIMES_T = 4 * (3 - 2 * math.sqrt(2))
 @dataclass(frozen=True)
 class LawStep:
     """What one iteration of a law computed: the same record for every law
-    (:class:`ControlLaw`, :class:`TiltLaw`, :class:`semservo.position_law.PositionLaw`)."""
+    (:class:`ControlLaw`, :class:`TiltLaw`, :class:`PositionLaw`)."""
 
     error: tuple[float, ...]  # e = s - s* (eq. 31) in the law's units (px, rad)
     cost: float  # C = e^T e (eq. 32)
@@ -231,6 +231,8 @@ class LawStep:
     velocity: tuple[float, ...]  # eq. 36
     move: dict[str, float]  # stage displacement by axis: "x_um", "y_um", "rotation_deg", "tilt_x_deg", "tilt_y_deg"
     integral: tuple[float, ...] | None = None
+    #: Why nothing moves, when the law says (recorded as the iteration's action).
+    held: str = ""
 
     @classmethod
     def idle(cls) -> "LawStep":
@@ -461,9 +463,11 @@ class PositionLaw:
     ``caution`` spreads above the estimate does not overshoot; else held for another frame.
 
     Safety: every move within ``max_move_um`` (planar, the direction kept) and
-    ``max_turn_deg``; noise is not chased; a response implausible twice in a row on one
-    axis (the content moved less than 0.2 or more than 5 times the commanded move, or the
-    wrong way) raises :class:`UnexpectedResponse`.
+    ``max_turn_deg``; noise is not chased; a response implausible (the content moved less
+    than 0.2 or more than 5 times the commanded move, or the wrong way) on the first fresh
+    frame after a move is asked again on the next one without moving (a move that landed
+    late reads as none); implausible there too, it counts, and two such moves in a row on
+    one axis group raise :class:`UnexpectedResponse`.
 
     What the caller (the controller) provides, each iteration:
 
@@ -656,9 +660,13 @@ class PositionLaw:
         self.covariance = (np.eye(3 * n) - gain @ observation) @ self.covariance
         self.covariance = (self.covariance + self.covariance.T) / 2
 
-    def _check_response(self, error: np.ndarray) -> None:
+    def _check_response(self, error: np.ndarray) -> bool:
         """The move just seen: the content's motion against the motion the move should
-        have made, for the planar axes together and for the rotation."""
+        have made, for the planar axes together and for the rotation. False: implausible
+        on this first frame after the move, so the frame is not used and the next one is
+        asked again (a move that landed late, after the frame's scan began, reads as no
+        move at all; a loaded computer's emulated amplifier did that); implausible on
+        that second frame too, it counts."""
         n = len(self.dofs)
         before, move = self._pending["before"], self._pending["move"]
         commanded = np.array([move.get(axis, 0.0) for axis in self.axes])
@@ -674,6 +682,9 @@ class PositionLaw:
             if 0.2 <= ratio <= 5.0:
                 self._implausible[group] = 0
                 continue
+            if not self._pending.get("asked_again"):
+                self._pending["asked_again"] = True
+                return False
             self._implausible[group] = self._implausible.get(group, 0) + 1
             # Learn nothing from it: the gains are held where they were.
             for index in np.flatnonzero(chosen):
@@ -684,6 +695,7 @@ class PositionLaw:
                 raise UnexpectedResponse(
                     f"{group}: the stage moved the content {ratio:+.2f} x the commanded move twice in a row "
                     "(a wrong camera-to-stage sign, a blocked axis, or wrong estimates)")
+        return True
 
     # -- the law ---------------------------------------------------------------------
     def applied(self, move: dict[str, float] | None, at_s: float | None = None) -> None:
@@ -720,7 +732,9 @@ class PositionLaw:
         else:
             self._predict(middle)
             if self._pending is not None:
-                self._check_response(units)
+                if not self._check_response(units):
+                    return LawStep(_floats(error), cost(error), 0.0, (), {},
+                                   held="held: the last move not seen yet (asked again on the next frame)")
             elif self._last_error is not None:  # the same pose as the last frame: its scatter is the noise
                 difference = (units - self._last_error)[~self._rotation]
                 self._scatter[0] += float((difference**2).mean()) / 2

@@ -325,13 +325,15 @@ def test_the_position_law_ends_a_run_whose_content_does_not_follow_its_moves(sta
     core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
     core.start(RunSettings(), "ref")
     actions = []
-    for seq in range(1, 6):
+    for seq in range(1, 8):
         if core.state != "servoing":
             break
         stage.clock.now += 1.0  # the stage's rate limit: a second later
         time.sleep(0.01)  # each frame scanned after the last move has settled
         actions.append(core.on_estimate(estimate(seq, 20.0, -10.0, scan_started_at_ns=time.time_ns()))["action"])
-    assert actions == ["moved", "moved", "held: unexpected response"], actions
+    # Each move not seen is asked again on the next frame (a late move reads as none), then counts.
+    asked_again = "held: the last move not seen yet (asked again on the next frame)"
+    assert actions == ["moved", asked_again, "moved", asked_again, "held: unexpected response"], actions
     assert core.state == "failed" and "did not move as commanded" in core.reason, core.reason
 
 

@@ -213,6 +213,30 @@ def test_a_stage_moving_the_wrong_way_stops_the_position_law():
         position_plant(law, (40.0, 0.0), gain=-1.0)
 
 
+def test_a_move_that_lands_late_is_asked_again_not_counted_against_the_stage():
+    """The first fresh frame after a move still shows the old pose (the move landed after
+    the frame's scan began: a loaded computer's emulated amplifier did that): the law
+    holds and asks the next frame, which shows the move; it carries on, no error. A stage
+    that never follows is still stopped, two frames later than without the second look."""
+    asked = "held: the last move not seen yet (asked again on the next frame)"
+    law = PositionLaw(("x", "y"), noise_px=0.01)
+    first = law.step(40.0, -25.0, 0.0, 177.0)
+    law.applied(first.move)
+    late = law.step(40.0, -25.0, 0.0, 177.0)  # not there yet
+    assert late.move == {} and late.held == asked
+    moved = CameraToStage().content_move_px(first.move["x_um"], first.move["y_um"], 177.0)
+    landed = law.step(40.0 + moved[0], -25.0 + moved[1], 0.0, 177.0)
+    assert landed.held == "" and not law._implausible.get("x/y")
+    blocked = PositionLaw(("x", "y"), noise_px=0.01)
+    steps = []
+    with pytest.raises(UnexpectedResponse):
+        for _ in range(6):
+            step = blocked.step(40.0, -25.0, 0.0, 177.0)
+            steps.append(step.held or "moved")
+            blocked.applied(step.move)
+    assert steps == ["moved", asked, "moved", asked], steps
+
+
 def test_the_position_law_holds_against_drift_and_does_not_chase_noise():
     law = PositionLaw(("x", "y"), noise_px=0.03)
     history, steps, converged_at = position_plant(law, (0.05, 0.0), noise_px=0.03, frames=1)
