@@ -83,7 +83,9 @@ def print_table_one(result: dict, summary: dict) -> None:
         f"{summary['gamma_compensated']['max']:.4f} | | | 1 | | |")
 
 
-def print_runs(runs: list[dict], first: str = "Fig. 8") -> None:
+def print_runs(runs: list[dict], first: str | None = "Fig. 8") -> None:
+    """The runs' table: the first labelled ``first`` and the rest numbered from 1 (all
+    numbered from 1 when ``first`` is None)."""
     say("\n| run | from alpha, beta, gamma (deg), x, y (um) | outcome | iterations | sweeps acted on | "
         "true error alpha, beta, gamma (deg) | stage x, y (px) | view x, y (px) |")
     say("| --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -91,7 +93,8 @@ def print_runs(runs: list[dict], first: str = "Fig. 8") -> None:
         error = run["truth"].get("error_deg", {})
         view = run.get("view_error_px")
         a, b, g, x, y = run["initial"]
-        say(f"| {first if index == 0 else index} | {a:+.1f}, {b:+.1f}, {g:+.1f}, {x:+.1f}, {y:+.1f} | "
+        label = index + 1 if first is None else (first if index == 0 else index)
+        say(f"| {label} | {a:+.1f}, {b:+.1f}, {g:+.1f}, {x:+.1f}, {y:+.1f} | "
             f"{run['state']} | {run['iterations']} | {run['tilt_iterations']} | "
             f"{error.get('tilt_x_deg', math.nan):+.3f}, {error.get('tilt_y_deg', math.nan):+.3f}, "
             f"{error.get('rotation_deg', math.nan):+.4f} | {run['truth'].get('error_norm_px', math.nan):.2f} | "
@@ -144,7 +147,7 @@ def sample_image_runs(args, rng: np.random.Generator) -> int:
             say(f"{name}: refused: {error}")
             output["scenes"][name] = {"refused": str(error)}
             continue
-        print_runs(runs, first="1")
+        print_runs(runs, first=None)
         summary = summarize_runs(runs)
         say(f"{name}: {summary['converged']}/{summary['runs']} converged; true final tilts {summary['tilt_deg']}, "
             f"gamma {summary['gamma_deg']}, view {summary['view_px']} px")

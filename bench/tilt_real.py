@@ -15,8 +15,9 @@ the paper's three poses and ``--poses`` random ones (tilts within +-15 degrees, 
 within +-90).
 
 What was tuned on what: the tilt estimate's changes for this issue (the noise taken out
-of eq. 13's measure, the clear-peak test, the robust plane, the refusals) were developed
-on fibsem_slice_cells, hole_low_mag and the drift pair with the Gaussian model
+of eq. 13's measure, the clear-peak test, the robust plane, the refusals, each kernel's
+depth as its focus curve's centre of symmetry) were developed on fibsem_slice_cells,
+hole_low_mag and the drift pair with the Gaussian model, and the simulator's scene
 ("developed on"); jeol_grid and tescan_aperture, and the disc model on every image,
 were only measured ("held out").
 

@@ -580,10 +580,17 @@ def command_demo(args: argparse.Namespace) -> int:
             reference = lab.teach(frames=args.frames, tilts=tilts)
         except SemservoError as error:
             if tilts and error.code == "no_tilt_reference":
+                if launcher is not None and sample_options:
+                    # Its own system, in the tilts preset: the picture is what cannot show them.
+                    hint = ("This picture, under the 'tilts' preset's optics, does not show focus over enough of its "
+                            "field to pin the tilts to a tenth of a degree (a texture over the whole field does; a "
+                            "few shapes on a dark ground does not). Try another picture, or `--dof rotation` (x, y "
+                            "and the turn about the beam).")
+                else:
+                    hint = ("A running system in another preset cannot measure them: start it with `semservo up "
+                            "--preset tilts`, or let the demo start its own (stop the running one).")
                 print(f"demo: {error.message}\n   The tilts are measured from focus, so they need a depth of field "
-                      "small against the depth a tilt spans across the field (the 'tilts' preset: 3.5 um). A "
-                      "running system in another preset cannot measure them: start it with "
-                      "`semservo up --preset tilts`, or let the demo start its own (stop the running one).",
+                      f"small against the depth a tilt spans across the field (the 'tilts' preset: 3.5 um). {hint}",
                       file=sys.stderr)
                 return 1
             raise

@@ -110,3 +110,34 @@ def test_tilts_are_measured_against_the_taught_sweep_and_refused_without_one():
     assert estimate.tilt_seq == measured["tilt_seq"] and estimate.alpha_deg == measured["alpha_deg"]
     core.teach_latest()  # a new reference needs its own sweep
     assert core.tilt_reference is None
+
+
+@pytest.mark.parametrize("precision, rotation", [("full", False), ("full", True), ("fast", True)])
+def test_a_scene_with_nothing_to_register_is_refused_and_never_moves_the_stage(precision, rotation):
+    """A featureless sample (a flat grey under shot noise: each scan is fresh noise, no
+    content to register): every estimate against it is refused for its low confidence,
+    whatever shift it reads, and the controller holds each one, then ends the run as
+    scene lost, without a single move."""
+    from collections import deque
+
+    from semservo.control import ControlLaw
+    from semservo.pairs import poisson_gaussian
+    from semservo.protocol.controller import RunSettings
+    from services.controller.run import Run, gate
+
+    rng = np.random.default_rng(23)
+    flat = np.full((256, 256), 120.0)
+    core = EstimatorCore(rotation=rotation, precision=precision, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(poisson_gaussian(flat, 200, 2.0, rng).astype(np.float32), 0))
+    core.teach_latest()
+    settings = RunSettings(lost_after=8)
+    run = Run(id="r", reference_id=core.reference.id, settings=settings, started_at_ns=0, stage_at_start={},
+              law=ControlLaw(("x", "y")), recent=deque())
+    estimates = [core.process(frame(poisson_gaussian(flat, 200, 2.0, rng).astype(np.float32), seq))
+                 for seq in range(1, 9)]
+    verdicts = [gate(run, estimate) for estimate in estimates]
+    assert max(estimate.confidence for estimate in estimates) < settings.min_confidence
+    assert max(np.hypot(estimate.dx_px, estimate.dy_px) for estimate in estimates) > 1.0  # the reading is noise
+    assert all(verdict is not None and verdict.action == "held: low confidence" for verdict in verdicts)
+    assert [verdict.ending for verdict in verdicts] == [None] * 7 + ["failed"]
+    assert "scene lost" in verdicts[-1].reason and run.iterations == 0

@@ -310,28 +310,29 @@ def test_a_plane_that_holds_for_too_few_kernels_is_refused():
 
 def test_a_rough_surface_is_refused_for_its_scatter_or_its_uncertainty():
     """Every kernel in focus at its own depth, +-0.3 um about a tilted plane (a rough
-    sample: 1.2 sweep steps of spread). Over a 51 um field the plane's slopes are pinned
+    sample: 1.2 sweep steps of spread). Over a 64 um field the plane's slopes are pinned
     well enough (standard errors under 0.1 degree), so the scatter is the reason; over a
     13 um field (the same sweep, smaller pixels) the slopes are not, and that is."""
     from semservo.estimation.tilt import MAX_SCATTER_STEPS, MAX_TILT_UNCERTAINTY_DEG
 
     rng = np.random.default_rng(0)
-    depths = plane_depths(2.0, -1.0, 0.1, pixel_um=0.2) + rng.uniform(-0.3, 0.3, (SIZE // KERNEL,) * 2)
+    depths = plane_depths(2.0, -1.0, 0.1, pixel_um=0.25) + rng.uniform(-0.3, 0.3, (SIZE // KERNEL,) * 2)
     sweep = sweep_of_depths(depths)
     step = float(np.diff(WORKING_DISTANCES_UM).mean())
-    wide = estimate_tilt(sweep, WORKING_DISTANCES_UM, 0.2, kernel=KERNEL)
+    wide = estimate_tilt(sweep, WORKING_DISTANCES_UM, 0.25, kernel=KERNEL)
     assert wide.confidence == 0.0 and np.isnan(wide.alpha_deg)
     assert max(wide.alpha_uncertainty_deg, wide.beta_uncertainty_deg) <= MAX_TILT_UNCERTAINTY_DEG
     assert wide.reason.startswith("the kernel depths scatter about the plane by") and "not one plane" in wide.reason
-    assert wide.residual > MAX_SCATTER_STEPS * step and wide.kernels_used == 64
+    # Every kernel sees focus; the robust plane may leave out one at the roughness's extremes.
+    assert wide.residual > MAX_SCATTER_STEPS * step and wide.kernels_used >= 60
     narrow = estimate_tilt(sweep, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
     assert narrow.confidence == 0.0 and "pin the tilts" in narrow.reason and "100% x 100% of the field" in narrow.reason
     assert min(narrow.alpha_uncertainty_deg, narrow.beta_uncertainty_deg) > MAX_TILT_UNCERTAINTY_DEG
 
 
 def test_the_same_plane_without_the_roughness_is_measured():
-    """The control for the test above: the plane alone, over the same 51 um field."""
-    sweep = sweep_of_depths(plane_depths(2.0, -1.0, 0.1, pixel_um=0.2))
-    estimate = estimate_tilt(sweep, WORKING_DISTANCES_UM, 0.2, kernel=KERNEL)
+    """The control for the test above: the plane alone, over the same 64 um field."""
+    sweep = sweep_of_depths(plane_depths(2.0, -1.0, 0.1, pixel_um=0.25))
+    estimate = estimate_tilt(sweep, WORKING_DISTANCES_UM, 0.25, kernel=KERNEL)
     assert estimate.reason == "" and estimate.confidence > 0.5
     assert estimate.alpha_deg == pytest.approx(2.0, abs=0.1) and estimate.beta_deg == pytest.approx(-1.0, abs=0.1)
