@@ -130,7 +130,8 @@ def sample_image_runs(args, rng: np.random.Generator) -> int:
     starts = random_starts(rng, args.runs)
     pixel_nm = scan_pixel_um(PRESETS["tilts"].magnification, 512) * 1000
     tolerance = 0.1 if args.tolerance_px is None else args.tolerance_px
-    output = {"run_settings": {"tolerance_px": tolerance, "converge_on": args.converge_on}, "scenes": {}}
+    output = {"run_settings": {"tolerance_px": tolerance, "converge_on": args.converge_on, "law": args.law},
+              "scenes": {}}
     for name in args.sample_images:
         environment = {}
         if name != "scene":
@@ -142,7 +143,8 @@ def sample_image_runs(args, rng: np.random.Generator) -> int:
             f"optics, tolerance {tolerance:g} px)")
         try:
             runs = five_dof_runs(starts, speedup=args.speedup, say=say, environment=environment,
-                                 run_settings={"tolerance_px": tolerance, "converge_on": args.converge_on})
+                                 run_settings={"tolerance_px": tolerance, "converge_on": args.converge_on,
+                                               "law": args.law})
         except SemservoError as error:  # e.g. a picture whose focus sweep cannot tell the tilts
             say(f"{name}: refused: {error}")
             output["scenes"][name] = {"refused": str(error)}
@@ -186,6 +188,9 @@ def main(argv: list[str] | None = None) -> int:
                              "settings); writes tilt-sample-images-{mean,each}.json")
     parser.add_argument("--tolerance-px", type=float, default=None,
                         help="the runs' x, y tolerance (default 0.3 px; 0.1 with --sample-images)")
+    parser.add_argument("--law", choices=["paper", "position"], default="paper",
+                        help="the planar law of the 5-DOF runs (default: the paper's, as the README's tables; "
+                             "position: the controller's default)")
     parser.add_argument("--converge-on", choices=["mean", "each"], default="mean",
                         help="with --sample-images: converged when the mean of the last frames' errors is within "
                              "tolerance (default), or each one")
@@ -215,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.runs:
         initial = [FIG8_START] + random_starts(rng, args.runs)
         say(f"\nFig. 8: {len(initial)} 5-DOF runs through the whole stack (fake lab x{args.speedup:g})")
-        runs = five_dof_runs(initial, speedup=args.speedup, say=say)
+        runs = five_dof_runs(initial, speedup=args.speedup, say=say, run_settings={"law": args.law})
         plot_fig8(runs[0], RESULTS / "tilt_fig8.png")
         converged = sum(run["state"] == "converged" for run in runs[1:])
         say(f"\n{converged}/{len(runs) - 1} random runs converged (plus the Fig. 8 run: {runs[0]['state']}); "

@@ -261,7 +261,7 @@ def summarize(result: dict) -> dict:
 #: A 5-DOF run's settings (the README's Fig. 8 table): tolerances 0.3 px, 0.05 degree of
 #: gamma and 0.1 of tilt, at most 4 degrees per turn or tilt command.
 RUN_SETTINGS = {"tolerance_px": 0.3, "tolerance_deg": 0.05, "tolerance_tilt_deg": 0.1, "max_iterations": 600,
-                "max_turn_deg": 4.0}
+                "max_turn_deg": 4.0, "law": "paper"}  # Fig. 8: the paper's law
 
 
 def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: float = 20.0,
