@@ -70,7 +70,7 @@ def teach(estimator: Estimator, request: protocol.TeachRequest) -> protocol.Refe
     elif request.mask_b64 is not None:
         reference = core.teach_mask(mask=decode_upload(request.mask_b64))
     else:
-        reference = core.teach_latest(frames=request.frames)
+        reference = core.teach_latest(frames=request.frames, scanned_after_ns=request.scanned_after_ns)
     if request.tilts:  # the taught pose's focus sweep, now, before anything moves: in the background
         tracker.teach(reference["id"], frames=sweep_frames)
     elif tracker is not None:

@@ -252,18 +252,26 @@ class EstimatorCore:
         self.counters["references_taught"] += 1
         return self.reference.describe()
 
-    def teach_latest(self, frames: int = 1) -> dict:
+    def teach_latest(self, frames: int = 1, scanned_after_ns: int | None = None) -> dict:
         """The latest frame becomes the reference, or the mean of the latest ``frames``
         (frame integration, as an SEM does for a clean image: it also averages out the
         stage vibration each single scan samples, which at x5000 is ~0.2 px; the stage
-        must stand still over those frames)."""
+        must stand still over those frames). ``scanned_after_ns``: only frames whose scan
+        began then or later (the stage's last move had settled): a frame scanned during a
+        move is a blend of two views, and a reference averaged with it is a place the
+        stage never was (a run then 'converged' 10 px from the target)."""
         if self.latest is None:
             raise NotEnoughFrames("no frame has been received yet; is the image server running?")
         if not isinstance(frames, int) or not 1 <= frames <= self.recent.maxlen:
             raise TeachError(f"frames must be a whole number from 1 to {self.recent.maxlen}, got {frames!r}")
-        chosen = list(self.recent)[-frames:]
+        candidates = list(self.recent)
+        if scanned_after_ns:
+            candidates = [frame for frame in candidates
+                          if (frame.header.scan_started_at_ns or frame.header.acquired_at_ns) >= scanned_after_ns]
+        chosen = candidates[-frames:]
         if len(chosen) < frames:
-            raise NotEnoughFrames(f"only {len(chosen)} frames received so far; {frames} asked for averaging")
+            since = " scanned since the stage's last move settled" if scanned_after_ns else " received so far"
+            raise NotEnoughFrames(f"only {len(chosen)} frames{since}; {frames} asked for averaging")
         shapes = {frame.pixels.shape for frame in chosen}
         if len(shapes) > 1 or len({frame.header.pixel_size_nm for frame in chosen}) > 1:
             raise TeachError("the scan changed during the frames to average; teach again")

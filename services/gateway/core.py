@@ -465,12 +465,19 @@ class GatewayCore:
         return self.reference if self.reference and self.reference["id"] == described["id"] else described
 
     def _teach_live(self, frames: int, tilts: bool = False):
-        """Teach from the live frames, waiting (up to ``TEACH_FRAMES_WAIT_S``) for as many
-        as asked to average: a system that has just started has sent fewer."""
+        """Teach from the live frames scanned after the stage's last move had settled,
+        waiting (up to ``TEACH_FRAMES_WAIT_S``) for as many as asked to average: a system
+        that has just started has sent fewer, and a jog just before the teach makes the
+        frames scanned during it unusable (a blend of two views)."""
         deadline = self.clock() + TEACH_FRAMES_WAIT_S
+        try:
+            settled_at_ns = self.ask("stage", stage_protocol.STATE).settled_at_ns or None
+        except (CommandError, ServiceUnavailable):
+            settled_at_ns = None  # no stage to ask (an image-only set-up): the newest frames
         while True:
             try:
-                return self.ask("estimator", estimator_protocol.TEACH, frames=frames, tilts=tilts)
+                return self.ask("estimator", estimator_protocol.TEACH, frames=frames, tilts=tilts,
+                                scanned_after_ns=settled_at_ns)
             except CommandError as error:
                 if error.code != "not_enough_frames" or self.clock() > deadline:
                     raise

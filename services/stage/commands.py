@@ -15,21 +15,28 @@ def state(core: StageCore, _request: NoArguments) -> protocol.StageState:
     return protocol.StageState.model_validate(core.describe())
 
 
+def _settles(core: StageCore, reply: dict) -> dict:
+    """Keep when the stage will have settled after this command (``state``'s
+    ``settled_at_ns``: a teach averages only frames scanned after it)."""
+    core.settled_at_ns = max(core.settled_at_ns, int(reply.get("settled_at_ns") or 0))
+    return reply
+
+
 @handlers.handles(protocol.MOVE)
 def move(core: StageCore, request: protocol.MoveRequest) -> protocol.MoveReply:
-    return protocol.MoveReply.model_validate(core.move(request.targets, relative=request.relative,
-                                                       owner=request.owner))
+    return protocol.MoveReply.model_validate(_settles(core, core.move(request.targets, relative=request.relative,
+                                                                      owner=request.owner)))
 
 
 @handlers.handles(protocol.ROTATE)
 def rotate(core: StageCore, request: protocol.RotateRequest) -> protocol.RotateReply:
-    return protocol.RotateReply.model_validate(core.rotate(request.targets, relative=request.relative,
-                                                           owner=request.owner))
+    return protocol.RotateReply.model_validate(_settles(core, core.rotate(request.targets, relative=request.relative,
+                                                                          owner=request.owner)))
 
 
 @handlers.handles(protocol.SET_VOLTAGES)
 def set_voltages(core: StageCore, request: protocol.SetVoltagesRequest) -> protocol.MoveReply:
-    return protocol.MoveReply.model_validate(core.set_voltages(request.voltages, owner=request.owner))
+    return protocol.MoveReply.model_validate(_settles(core, core.set_voltages(request.voltages, owner=request.owner)))
 
 
 @handlers.handles(protocol.ARM)

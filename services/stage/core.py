@@ -135,6 +135,9 @@ class StageCore:
         self.counters = {"moves": 0, "turns": 0, "refused": 0, "link_lost": 0, "reconnects": 0,
                          "uncommanded_changes": 0}
         self.log_archive: list = []  # entries of drivers closed after a link loss, and of earlier processes
+        #: When the last move, turn or voltage write has settled (Unix ns; 0: none since
+        #: the start): frames scanned before it show a pose in between (a teach waits).
+        self.settled_at_ns = 0
         self.rotation_angles: dict[str, float] | None = None  # as last read (see _rotation_state)
         self.rotation_travel: dict[str, list[float]] = {}
         self.rotation_targets: dict[str, float] = {}  # where the last commands sent each axis
@@ -576,7 +579,7 @@ class StageCore:
                          "owner": self.watchdog.owner},
             "models": {axis: model.to_dict()["kind"] for axis, model in self.models.items()},
             "settle_s": {axis: self.settle_s.get(axis, DEFAULT_SETTLE_S) for axis in self.channels},
-            "rotation": self._rotation_state(),
+            "rotation": self._rotation_state(), "settled_at_ns": self.settled_at_ns,
             "last_error": self.last_error, **self.counters,
         }
 

@@ -648,8 +648,8 @@ def command_demo(args: argparse.Namespace) -> int:
             if result.state == "converged" and truth["error_norm_px"] > args.tolerance:
                 print(f"   (above the {args.tolerance:g} px tolerance: the run stops when its *estimate* is within it; "
                       "the truth also carries the stage's vibration and creep over the last frames' scans and "
-                      "the estimates' noise. `--converge-on each`-style settings land further inside: see the "
-                      "README's positioning benchmark)")
+                      "the estimates' noise; with the paper's law, the run setting converge_on=\"each\" lands further "
+                      "inside: see the README's positioning benchmark)")
             angles = truth.get("error_deg") or {}
             if turns and angles:
                 print("   true final angles (simulator): " + ", ".join(

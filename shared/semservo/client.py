@@ -2,7 +2,7 @@
 
     from semservo.client import Client
 
-    with Client() as lab:                        # $SEMSERVO_URL, else http://127.0.0.1:8000
+    with Client() as lab:                        # $SEMSERVO_URL, else 127.0.0.1:$SEMSERVO_GATEWAY__HTTP_PORT or :8000
         lab.teach()                              # the live frame is the target
         lab.move(x_um=6, y_um=-4)                # jog away (relative, um)
         run = lab.start(tolerance_px=0.1)        # servo back
@@ -33,6 +33,13 @@ from semservo.api import (MoveReply, RotateReply, RunRecord, RunSummary, StageSt
                           Target, TeachResult)
 
 DEFAULT_URL = "http://127.0.0.1:8000"
+
+
+def default_url() -> str:
+    """``$SEMSERVO_URL``, else the local gateway on ``$SEMSERVO_GATEWAY__HTTP_PORT`` (the
+    port ``semservo up`` and the demo use), else :data:`DEFAULT_URL`."""
+    port = os.environ.get("SEMSERVO_GATEWAY__HTTP_PORT")
+    return os.environ.get("SEMSERVO_URL") or (f"http://127.0.0.1:{port}" if port else DEFAULT_URL)
 FINISHED = ("converged", "failed", "stopped")
 
 
@@ -265,7 +272,7 @@ class Client(_Endpoints):
     """Synchronous client. ``token``: the API token (default ``$SEMSERVO_API_TOKEN``)."""
 
     def __init__(self, url: str | None = None, *, token: str | None = None, timeout: float = 10.0):
-        url = url or os.environ.get("SEMSERVO_URL", DEFAULT_URL)
+        url = url or default_url()
         self.http = httpx.Client(base_url=url, headers=_headers(token), timeout=timeout)
 
     def __enter__(self) -> "Client":
@@ -335,7 +342,7 @@ class AsyncClient(_Endpoints):
     """The same API for asyncio scripts: every method is awaited."""
 
     def __init__(self, url: str | None = None, *, token: str | None = None, timeout: float = 10.0):
-        url = url or os.environ.get("SEMSERVO_URL", DEFAULT_URL)
+        url = url or default_url()
         self.http = httpx.AsyncClient(base_url=url, headers=_headers(token), timeout=timeout)
 
     async def __aenter__(self) -> "AsyncClient":

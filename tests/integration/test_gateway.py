@@ -251,6 +251,26 @@ def test_the_examples_run(system, script, args, expect, tmp_path):
     assert re.search(expect, done.stdout), done.stdout
 
 
+def test_a_teach_right_after_a_jog_averages_only_frames_scanned_after_it(system):
+    """examples/visit_targets.py once taught two of its targets from frames scanned while
+    the stage was still moving: the reference was a blend of two views, and the runs to
+    them 'converged' 8-15 px from where the stage had been. The teach now waits for
+    frames scanned after the stage's last move settled."""
+    lab = system["client"]
+    frames_flowing(lab)
+    seq = lab.status()["latest_frame_seq"]
+    lab.move(x_um=8.0, y_um=0.0)
+    settled_at_ns = lab.stage().settled_at_ns
+    # As the example did: two frames on (the first of them was being scanned during the move).
+    wait_for(lambda: lab.status()["latest_frame_seq"] >= seq + 2, 30, "two more frames")
+    taught = lab.teach(frames=2)
+    assert settled_at_ns > 0 and taught.detail["frames_averaged"] == 2
+    run = lab.start(tolerance_px=0.1)
+    result = lab.wait(run.run_id, timeout=120, stop_on_timeout=True)
+    assert result.state == "converged", result.reason
+    assert result.truth is not None and result.truth["error_norm_px"] < 0.3, result.truth
+
+
 def test_a_demo_that_gives_up_stops_the_run_it_started(system, tmp_path):
     """`./dev demo` against a running system once gave up after its timeout and left its
     run servoing for hundreds of iterations."""

@@ -24,6 +24,9 @@ class TeachRequest(CommandRequest):
     path), a polygon or a mask image drawn on the live frame (paper case 6)."""
 
     frames: int = Field(1, ge=1, le=16, description="average the last frames (the stage must stand still)")
+    scanned_after_ns: int | None = Field(
+        None, ge=0, description="live frames only if their scan began at or after this (Unix ns; the stage's "
+                                "settled_at_ns): `not_enough_frames` until as many as asked have come")
     image_b64: Base64 | None = Field(None, description="a PNG/TIFF of the current scan's size")
     path: str | None = Field(None, max_length=4096, description="a PNG/TIFF on the estimator's machine")
     label: str | None = Field(None, max_length=500)

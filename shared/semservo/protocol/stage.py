@@ -156,6 +156,9 @@ class StageState(CommandReply):
                                                                         "channels) or physical (um and degrees)")
     axes: dict[str, AxisState] = Field(default_factory=dict, description="a physical driver's axes (x, y, beam_x, "
                                                                          "beam_y, ...)")
+    settled_at_ns: int = Field(0, description="Unix time (ns) the last move, turn or voltage write has settled (0: "
+                                             "none since the service started); frames scanned before show a pose "
+                                             "in between")
     last_error: str | None
     moves: int
     turns: int
