@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import math
+import textwrap
 
 import matplotlib
 
@@ -85,7 +86,9 @@ def report_figure(run: dict) -> Figure:
         if name != "cost" and subplot.get_legend_handles_labels()[0]:
             subplot.legend(fontsize=8)
     outcome = run.get("outcome") or {}
-    figure.suptitle(f"run {run['id']}: {run.get('state')} after {run.get('iterations')} iterations"
-                    f"{' (' + outcome.get('reason', '') + ')' if outcome.get('reason') else ''}", fontsize=10)
+    title = (f"run {run['id']}: {run.get('state')} after {run.get('iterations')} iterations"
+             f"{' (' + outcome.get('reason', '') + ')' if outcome.get('reason') else ''}")
+    # Wrapped to the figure's width: a reason in words is often longer than one line.
+    figure.suptitle(textwrap.fill(title, width=120), fontsize=9)
     figure.tight_layout()
     return figure
