@@ -610,27 +610,27 @@ class Stack:
         very start they wait for)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(f"{self.url}/status", timeout=5) as response:
-                    status = json.load(response)
-                services = status.get("services") or {}
-                if status.get("latest_frame_seq") is not None and services and \
-                        all(service.get("up") for service in services.values()):
-                    return
-            except (urllib.error.URLError, OSError, ValueError):
-                pass
+            status = self._gateway_status() or {}
+            services = status.get("services") or {}
+            if status.get("latest_frame_seq") is not None and services and \
+                    all(service.get("up") for service in services.values()):
+                return
             time.sleep(0.5)
+
+    def _gateway_status(self) -> dict | None:
+        """The gateway's GET /status, or None while it does not answer (yet)."""
+        try:
+            with urllib.request.urlopen(f"{self.url}/status", timeout=5) as response:
+                return json.load(response)
+        except (urllib.error.URLError, OSError, ValueError):
+            return None
 
     def wait_frames(self, timeout_s: float = 60.0) -> None:
         """Until the gateway has a frame: the image server's frames crossed to PC 2."""
         deadline = time.monotonic() + timeout_s
         while True:
-            try:
-                with urllib.request.urlopen(f"{self.url}/status", timeout=5) as response:
-                    if json.load(response).get("latest_frame_seq") is not None:
-                        return
-            except (urllib.error.URLError, OSError, ValueError):
-                pass
+            if (self._gateway_status() or {}).get("latest_frame_seq") is not None:
+                return
             if time.monotonic() > deadline:
                 raise StackError(f"no frame reached the gateway at {self.url} within {timeout_s:.0f} s")
             time.sleep(0.5)

@@ -15,6 +15,7 @@ threads, a watched folder's events) through a pipe the poller watches.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import time
@@ -25,6 +26,7 @@ from semservo.logs import configure
 from semservo.messages import ScanRequest
 from semservo.service import ServiceRuntime
 from semservo.transport import FramePublisher
+
 from services.imageserver.commands import ImageServer, handlers
 from services.imageserver.core import FreezeWatch, ImageServerCore
 from services.imageserver.sources import BackgroundAcquisition, ReplaySource, SimSource, SourceUnavailable, adapter_source
@@ -90,17 +92,14 @@ class Wakeup:
         os.set_blocking(self.write_fd, False)
 
     def notify(self) -> None:
-        try:
+        # Full (a wake-up is pending anyway), or closed at exit: nothing to wake.
+        with contextlib.suppress(BlockingIOError, OSError):
             os.write(self.write_fd, b"!")
-        except (BlockingIOError, OSError):  # full (a wake-up is pending anyway), or closed at exit
-            pass
 
     def drain(self) -> None:
-        try:
+        with contextlib.suppress(BlockingIOError):  # empty: every wake-up read
             while os.read(self.read_fd, 4096):
-                pass
-        except BlockingIOError:
-            pass
+                continue
 
     def close(self) -> None:
         for fd in (self.read_fd, self.write_fd):

@@ -23,12 +23,14 @@ stops the stage with the reason, as a knob on the NV 40/3 does.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
 
 from semservo.instruments import PHYSICAL, Axis, DeviceError, LinkError, MotionDriver, driver_kind
+
 from services.stage.core import DEFAULT_SETTLE_S, Refused, StageCore, log
 
 #: Read-back further than this from where the axis was left is a move nobody commanded
@@ -233,10 +235,8 @@ class PhysicalStageCore(StageCore):
         return {"written_at_ns": written_at_ns, "goal": goal, "settled_at_ns": written_at_ns + int(settle_s * 1e9)}
 
     def _refresh(self) -> None:
-        try:
+        with contextlib.suppress(Refused):  # unreadable now: the positions last read stand
             self.where.update(self._io(self._read_back))
-        except Refused:
-            pass
 
     def move(self, targets: dict[str, float], *, relative: bool = False, owner: str | None = None) -> dict:
         """Move micrometre axes to ``targets`` (the device's coordinates) or by them

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import importlib
 import os
@@ -29,12 +30,12 @@ import zmq
 
 from semservo import __version__, security
 from semservo.config import Settings, connect
-from semservo.simulation.world import PRESETS
-from semservo.launcher import SERVICES, LaunchError, Launcher, spec, stage_rate_for
-from semservo.monitor import FrameStats, acquisition_text
+from semservo.launcher import SERVICES, Launcher, LaunchError, spec, stage_rate_for
 from semservo.messages import MOTION_TOPIC, MotionEstimate
+from semservo.monitor import FrameStats, acquisition_text
 from semservo.protocol import ServicePort
 from semservo.simulation import sample_image
+from semservo.simulation.world import PRESETS
 from semservo.transport import CommandError, ControlClient, FrameSubscriber, MessageSubscriber, ServiceUnavailable
 
 
@@ -671,10 +672,8 @@ def command_demo(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         if run_id is not None:
-            try:
+            with contextlib.suppress(SemservoError):  # the system is going down with it
                 lab.stop("the demo was interrupted")
-            except SemservoError:
-                pass
         return 130
     finally:
         lab.close()

@@ -5,6 +5,7 @@ say so in words (tests/browser/layout.py measures it all in the browser)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
 
@@ -51,10 +52,8 @@ def scene(lab):
     assert record.state == "converged", record.reason
     lab.save_target(TARGET, note=NOTE, replace=True)
     yield {"run_id": run.run_id}
-    try:
+    with contextlib.suppress(Exception):  # already gone
         lab.delete_target(TARGET)
-    except Exception:  # noqa: BLE001 - already gone
-        pass
 
 
 @pytest.mark.parametrize("width", WIDTHS)

@@ -4,11 +4,12 @@ launcher killed it)."""
 
 from __future__ import annotations
 
+import collections
 import io
 
 import pytest
-
 from semservo.client import Client
+
 from tests.conftest import simulated_stack
 from tests.integration.helpers import wait_for
 
@@ -51,8 +52,7 @@ def test_the_stack_stops_cleanly_with_dashboards_listening():
 
         def listen(socket) -> None:
             try:
-                for _ in socket:
-                    pass
+                collections.deque(socket, maxlen=0)  # every message, until the server closes it
             finally:
                 closed.append(socket.close_code)
 
