@@ -290,6 +290,12 @@ def normalized_error(run: Run, mean: tuple[float, float, float]) -> float:
     return max(parts)
 
 
+def law_judges_convergence(run: Run) -> bool:
+    """Whether the run's planar law says itself when the target is reached (the position
+    law: ``converged`` is a bool; the paper's law leaves it to :func:`measure`'s mean)."""
+    return run.law.converged is not None and bool(run.law.dofs)
+
+
 def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> Measurement:
     """The fresh estimate's errors: convergence is judged on the mean of the last
     ``converge_frames`` errors' sizes (the mean, not each one, so estimation noise or
@@ -309,7 +315,7 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
     within = len(run.recent) == settings.converge_frames and within_tolerance(run, *mean)
     if settings.converge_on == "each":
         within = within and all(within_tolerance(run, *error) for error in run.recent)
-    if run.law.converged is not None and run.law.dofs:
+    if law_judges_convergence(run):
         # The position law judges its own: the error it predicts for now, one standard
         # deviation added, within tolerance (the last frames measured poses left behind);
         # its estimate is the error the run reports (status, records).
@@ -326,7 +332,7 @@ def judge(run: Run, measurement: Measurement) -> Verdict | None:
     """Converged, out of iterations, or no longer making progress; None: go on."""
     settings = run.settings
     if measurement.within and not settings.hold:
-        if run.law.converged is not None and run.law.dofs:
+        if law_judges_convergence(run):
             error, spread = run.law.planar_estimate()
             return Verdict("within tolerance", "converged",
                            f"the position law's estimate {error:.3f} px (one standard deviation {spread:.3f} px) "

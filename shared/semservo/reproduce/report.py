@@ -411,8 +411,9 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                   "not acted on), and the next frame scanned wholly after the move has settled (the stage's settling "
                   "model) is the next fresh one; seconds at each preset's real frame rate. Starts 5, 15, 30 % of the "
                   f"field and half a pixel away, {timing['trials']} per cell in random directions, the same for both "
-                  f"laws; moves saturate at {settings['max_move_um']:g} um; the paper's law converges on the mean of "
-                  f"its last {settings['converge_frames']} fresh frames (the controller's default), the position law "
+                  f"laws; moves saturate at {settings['max_move_um']:g} um; the paper's law converges when the mean of "
+                  f"its last {settings['converge_frames']} fresh errors is within tolerance (the controller now asks "
+                  "the mean of their sizes, which is stricter), the position law "
                   "on its own estimate (error plus one standard deviation within tolerance); tolerance "
                   f"{settings['tolerance_px']:g} px; a budget of {settings['time_budget_s']:g} simulated seconds."
                   + quick, "", "### Per preset (calibrated stage model, every offset)", ""]
