@@ -312,9 +312,8 @@ class ControllerCore:
         carried = {f"{axis}_um": value for axis, value in decision.targets.items()}
         carried.update({axis: value for axis, value in decision.turns.items() if axis == "rotation_deg"})
         run.law.applied(carried, record.command_written_at_ns / 1e9 if record.command_written_at_ns else None)
-        if run.tilted:  # the pivot's lever moves the view by design: the law starts afresh
-            run.law.view_moved()
-            run.tilted = False
+        if decision.turns.keys() & {TURN_AXES["alpha"], TURN_AXES["beta"]}:
+            run.law.view_moved()  # the pivot's lever moves the view by design: the law starts afresh
         run.iterations += 1
         run.last_command_ns = max(record.command_written_at_ns, record.command_settled_at_ns or 0)
         interval = estimate.frame_source_interval_s
@@ -354,7 +353,6 @@ class ControllerCore:
                     # A tilt about the pivot below the surface shifts the view: the planar
                     # cost jumps by design, so divergence is judged afresh from here.
                     run.min_cost, run.rising = math.inf, 0
-                    run.tilted = True
         except CommandError as refusal:
             self._record(record, f"refused by the stage: {refusal.code}")
             if refusal.code == "stopped":

@@ -166,7 +166,6 @@ class Run:
     foreign: int = 0  # estimates in a row against another reference
     min_cost: float = math.inf
     rising: int = 0  # moves in a row with the cost above diverge_factor x its minimum
-    tilted: bool = False  # the last command tilted the sample (the view moved by design)
     held_stale: int = 0
     fresh_frames: int = 0  # fresh, confident estimates used
     recent: deque = field(default_factory=deque)  # the last converge_frames fresh (dx, dy, rotation)
