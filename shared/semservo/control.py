@@ -467,7 +467,7 @@ class PositionLaw:
     gain: k's spread is raised to ``reversal_spread`` there.
 
     Each fresh frame: converged (:attr:`converged`) when the error predicted for now,
-    plus one standard deviation, is within tolerance; else a move when the error predicted
+    plus one standard deviation, is within tolerance and no move is due (below); else a move when the error predicted
     for the next fresh frame is beyond ``deadband`` x tolerance and ``significance``
     standard deviations: u = -(M diag(k + ``caution`` spread(k)))^-1 p, so a gain up to
     ``caution`` spreads above the estimate does not overshoot; else held for another frame.
@@ -758,8 +758,6 @@ class PositionLaw:
         tolerances = np.where(self._rotation, self.tolerance_deg, self.tolerance_px)
         planar, rotation = self._norms(position), self._norms(position, rotation=True)
         planar_spread = self._norms(spread) / math.sqrt(max(sum(~self._rotation), 1))
-        self.converged = bool(planar + self.margin * planar_spread <= self.tolerance_px
-                              and rotation + self.margin * self._norms(spread, rotation=True) <= self.tolerance_deg)
         # Act on what is significant now; aim at where the drift will have taken it (a
         # converged run that holds still corrects what will have drifted beyond the dead band).
         act = (np.abs(aim) > self.deadband * tolerances) & (np.abs(position) > self.significance * spread)
@@ -767,6 +765,13 @@ class PositionLaw:
         if (~self._rotation).any():
             act[~self._rotation] = (self._norms(aim) > self.deadband * self.tolerance_px
                                     and planar > self.significance * planar_spread)
+        # Arrived: within tolerance by a margin, and nothing left the law would still trim
+        # (a residue beyond the dead band that the frames show clearly: stopping there
+        # leaves the stage at the tolerance's edge, where a bias of the estimate or the
+        # next creep puts it beyond).
+        self.converged = bool(planar + self.margin * planar_spread <= self.tolerance_px
+                              and rotation + self.margin * self._norms(spread, rotation=True) <= self.tolerance_deg
+                              and not act.any())
         if not act.any():
             return LawStep(_floats(error), cost(error), 0.0, (), {})
         gains = self.state[2 * n:]

@@ -253,6 +253,20 @@ def test_the_position_law_holds_against_drift_and_does_not_chase_noise():
     assert sum(1 for step in steps if step.move) <= 5
 
 
+def test_the_position_law_trims_a_clear_residue_at_the_tolerance_edge_before_it_declares_arrival():
+    """0.09 px off, seen clearly (estimates 0.005 px noisy): within the 0.1 px tolerance,
+    but a bias of the estimate or the next creep would put the stage beyond it; the law
+    trims it first, then arrives near the centre. Under noise as large as the residue it
+    does not chase it (arrives at once)."""
+    law = PositionLaw(("x", "y"), noise_px=0.005)
+    history, steps, converged_at = position_plant(law, (0.09, 0.0), noise_px=0.005, pixel_nm=177.0)
+    assert steps[0].move and converged_at == 1  # trimmed, then arrived on the next fresh frame
+    assert np.hypot(*history[-1]) <= 0.05
+    noisy = PositionLaw(("x", "y"), noise_px=0.06)
+    _, steps, converged_at = position_plant(noisy, (0.03, 0.0), noise_px=0.0, pixel_nm=42.0)
+    assert converged_at == 0 and steps[0].move == {}
+
+
 def test_settling_follows_a_first_order_model():
     assert settling_time_s(10.0, 0.003, 0.001) == pytest.approx(0.003 * math.log(1e4))
     assert settling_time_s(0.0005, 0.003, 0.001) == 0.0
