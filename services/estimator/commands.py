@@ -68,7 +68,9 @@ def teach(estimator: Estimator, request: protocol.TeachRequest) -> protocol.Refe
     elif request.polygon is not None:
         reference = core.teach_mask(polygon=request.polygon)
     elif request.mask_b64 is not None:
-        reference = core.teach_mask(mask=decode_upload(request.mask_b64))
+        # A mask is drawn at the scan's size and has no data bar: its black-and-white
+        # bottom rows looked like one (a full-scale overlay) and were cropped.
+        reference = core.teach_mask(mask=decode_upload(request.mask_b64, data_bar=0))
     else:
         reference = core.teach_latest(frames=request.frames, scanned_after_ns=request.scanned_after_ns)
     if request.tilts:  # the taught pose's focus sweep, now, before anything moves: in the background

@@ -66,15 +66,16 @@ def acquisition_of(frame: Frame | None) -> dict[str, Any]:
     return {key: getattr(frame.header, key) for key in ACQUISITION_FIELDS if getattr(frame.header, key) is not None}
 
 
-def decode_upload(encoded: str, *, with_metadata: bool = False):
+def decode_upload(encoded: str, *, with_metadata: bool = False, data_bar="auto"):
     """Pixels of a base64-encoded PNG or TIFF upload (and, ``with_metadata``, what the
-    file says of its acquisition)."""
+    file says of its acquisition); a data bar cropped as ``data_bar`` says
+    (:func:`semservo.imagefiles.read_sem_image`)."""
     try:
         raw = base64.b64decode(encoded, validate=True)
     except (ValueError, TypeError) as error:
         raise TeachError(f"image_b64 is not base64: {error}") from None
     try:
-        pixels, metadata = read_image(raw)
+        pixels, metadata = read_image(raw, data_bar=data_bar)
     except ImageFileError as error:
         raise TeachError(str(error)) from None
     return (pixels, metadata) if with_metadata else pixels

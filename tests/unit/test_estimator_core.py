@@ -141,3 +141,40 @@ def test_a_scene_with_nothing_to_register_is_refused_and_never_moves_the_stage(p
     assert all(verdict is not None and verdict.action == "held: low confidence" for verdict in verdicts)
     assert [verdict.ending for verdict in verdicts] == [None] * 7 + ["failed"]
     assert "scene lost" in verdicts[-1].reason and run.iterations == 0
+
+
+def test_a_mask_upload_keeps_every_row_even_where_it_looks_like_a_data_bar():
+    """A mask whose part reaches the bottom edge: its last rows are full-scale white over
+    a black row, the look of a vendor's text overlay, and an upload read as an SEM image
+    loses them. A mask has no data bar: the teach reads it whole (the positioning
+    benchmark's Otsu mask of a live frame was refused as 512 x 501 against 512 x 512)."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    from semservo.protocol.estimator import TeachRequest
+    from services.estimator.commands import teach
+    from services.estimator.core import decode_upload
+
+    mask = np.zeros((128, 128), np.uint8)
+    mask[40:, 30:70] = 255  # the part, down to the bottom edge
+    mask[120:, ::3] = 255  # with bright specks in the last rows
+    buffer = io.BytesIO()
+    Image.fromarray(mask).save(buffer, format="PNG")
+    encoded = base64.b64encode(buffer.getvalue()).decode()
+    assert decode_upload(encoded).shape[0] < 128  # read as an SEM picture: a "data bar" cropped
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(scene(0.0, 1), 0))
+
+    class Estimator:  # what the handler reads: the core, and no focus sweeps
+        tracker = None
+
+        def __init__(self, core):
+            self.core = core
+
+        def taught(self, reference):
+            return reference
+
+    reply = teach(Estimator(core), TeachRequest(mask_b64=encoded))
+    assert core.describe_reference()["kind"] == "mask" and reply is not None
