@@ -361,6 +361,10 @@ def plot(results: list[dict], path: Path) -> None:
             axes[row, 2].set_title("channel voltages (V)")
             axes[row, 0].legend(fontsize=7)
             axes[row, 2].legend(fontsize=7)
+    from matplotlib.ticker import MaxNLocator
+
+    for axis in axes.flat:  # iterations are whole: a run of a few has no 1.5th
+        axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     for axis in axes[-1]:
         axis.set_xlabel("iteration")
     figure.tight_layout()
