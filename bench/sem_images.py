@@ -21,7 +21,8 @@ through ``semservo.imagefiles``, data bars cropped. For each image:
   turn under    the same square turned by -20 to +20 degrees and its view moved by up to
   a shift       a quarter of the field (semservo.pairs.turned_and_moved: the content
                 that enters comes from the rest of the image, mirrored beyond it): the
-                first estimate of a run that starts far from the goal.
+                first estimate of a run that starts far from the goal; the turn's error
+                and the shift's of the estimates semservo accepts.
   hard frames   the translation pairs as a noisy, low-contrast frame (contrast cut to
                 0.3 and 0.2 about the mean, 200 and 100 electrons per grey level): every
                 method, and semservo's refusals.
@@ -284,7 +285,7 @@ def run_turn_under_shift(images: dict, rng, min_confidence: float, progress, pee
         rows = {}
         for fraction in SHIFT_FRACTIONS:
             errors: dict[str, list[float]] = {"semservo": [], "imreg_dft.similarity": []}
-            accepted, refused, wrong_acted_on = [], 0, 0
+            accepted, refused, wrong_acted_on, shift_errors = [], 0, 0, []
             for angle in SHIFT_ANGLES:
                 for _ in range(SHIFT_DIRECTIONS if fraction else 1):
                     direction = rng.uniform(0, 2 * np.pi)
@@ -296,6 +297,7 @@ def run_turn_under_shift(images: dict, rng, min_confidence: float, progress, pee
                     if motion.confidence >= min_confidence:
                         accepted.append(error)
                         wrong_acted_on += error > FAILURE_DEG
+                        shift_errors.append(float(np.hypot(motion.dx - dx, motion.dy - dy)))
                     else:
                         refused += 1
                     if peer:
@@ -306,7 +308,9 @@ def run_turn_under_shift(images: dict, rng, min_confidence: float, progress, pee
                                      if values}
             rows[f"{fraction:g}"]["semservo accepted"] = {
                 **(peers.summarize(accepted, FAILURE_DEG) if accepted else {"mean": float("nan"), "max": float("nan")}),
-                "refused": refused, "wrong_acted_on": int(wrong_acted_on)}
+                "refused": refused, "wrong_acted_on": int(wrong_acted_on),
+                "shift_mean_px": float(np.mean(shift_errors)) if shift_errors else float("nan"),
+                "shift_max_px": float(np.max(shift_errors)) if shift_errors else float("nan")}
         everything = [row["semservo accepted"] for row in rows.values()]
         results[name] = {"side_px": side, "fractions": rows}
         progress(f"turn under a view shift, {name}: worst mean of accepted "
@@ -396,6 +400,13 @@ def print_tables(results: dict) -> None:
                          if peer else "-")
             print(f"| {name} | {'developed on' if name in TUNED_ON else 'held out'} | {row['side_px']} | "
                   + " | ".join(cells) + f" | {refused} | {wrong} | {peer_cell} |")
+        print("\nThe shift of the same accepted estimates (px): mean / max")
+        print("| image | " + " | ".join(f"shift {float(f) * 100:g} %" for f in fractions) + " |")
+        print("| --- " * (len(fractions) + 1) + "|")
+        for name, row in results["turn_under_shift"].items():
+            cells = [f"{row['fractions'][f]['semservo accepted']['shift_mean_px']:.3f} / "
+                     f"{row['fractions'][f]['semservo accepted']['shift_max_px']:.3f}" for f in fractions]
+            print(f"| {name} | " + " | ".join(cells) + " |")
     if "confidence_stress" in results:
         electrons, read = STRESS
         print(f"\n### Confidence where estimates go wrong ({electrons} electrons per grey level, read noise {read};"

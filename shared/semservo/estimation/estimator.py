@@ -19,12 +19,13 @@ from semservo.estimation.resolutions import FullResolution, HalfResolution, Half
 from semservo.estimation.rotation import (
     ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_distinct,
     confidence_from_match, confidence_from_sharpness, overlap_windows, probe_top, rotate_about_centre,
+    visible_window,
 )
 from semservo.estimation.snr import (
     DEFAULT_SNR_THRESHOLD_DB, FrameStatistics, estimate_snr_db, frame_statistics, gaussian_lowpass,
     noise_variance, snr_from_statistics,
 )
-from semservo.estimation.translation import BandFit, Shift, confidence_from_psr
+from semservo.estimation.translation import BandFit, Shift, confidence_from_psr, refine_on_band
 
 #: Turns smaller than this are not undone before measuring translation (they are still
 #: reported): a rotation about the image centre adds no net shift, and undoing a turn
@@ -38,8 +39,12 @@ DEROTATE_ABOVE_DEG = 0.05
 #: the right angle it was 3.4-40 on real scenes turned by up to 20 degrees and moved by
 #: up to a quarter of the field (once 1.2, on a hole's disc), for a wrong one 1.0-1.9.
 UNDECIDED_BELOW = 3.5
-#: Then the search's peak is also scanned over turns this far apart (degrees).
-SCAN_STEP_DEG = 1.5
+#: Then the correlation on the scene both images share is scanned over all turns, this
+#: far apart (degrees; ``MotionEstimator._shared_scene_angles``), and each top narrowed
+#: by halving the step twice. At the right turn that correlation fell by about 0.01
+#: within 1.5 degrees, and stood 0.02-0.07 above every wrong turn's, on a hole moved by a
+#: quarter of the field; on a finer texture (a synthetic rim's) its top is narrower.
+SHARED_SCAN_STEP_DEG = 1.5
 #: The least weight the windows over the shared scene may keep, as a fraction of the
 #: fixed window's: a view moved (or turned) so far that they keep less shares too little.
 MIN_OVERLAP = 0.1
@@ -213,7 +218,10 @@ class MotionEstimator:
         same spectrum; then the search runs on the halved image turned back by it, theta
         and theta + 180 are told apart by the translation peak, the angle is refined on
         the image itself (:meth:`_refine_rotation`), and the shift is fitted on the frame
-        turned back by the refined angle (at full resolution with ``precision="full"``).
+        turned back by the refined angle (at full resolution with ``precision="full"``;
+        on the scene both images share when the view moved far, :meth:`_fit_on_overlap`).
+        An undecided angle is sought among more candidates, judged on the image
+        (:meth:`_shared_scene_angles`, :meth:`_best_of`).
         """
         image, statistics = self._check(image)
         mean = float(statistics.mean)
@@ -277,24 +285,24 @@ class MotionEstimator:
             return self._estimate_small_with_rotation(image, mean, angle, snr_db, filtered)
         self._probes.load(image, noise)
         turn = self._refined_far(mean, self._turn_from(mean, spectrum, angle, filtered), filtered)
-        if turn.heights.decisive < UNDECIDED_BELOW:
-            # Neither theta nor theta + 180 matches clearly: the log-polar peak may be the
-            # wrong angle (on a sparse scene whose view moved far, its second or third
-            # peak was the turn, or none was), or the search may not tell theta from
-            # theta + 180. So the next log-polar peaks and the best turns of a scan of
-            # the search's peak are tried too, each as it is and turned by 180 degrees,
-            # and judged by how well the image correlates at its refined angle.
-            candidates = [angle] + self._log_polar.candidates(ANGLE_CANDIDATES)[1:] + self._scanned_angles(mean)
+        if turn.heights.decisive < UNDECIDED_BELOW or turn.sharpness == 0.0:
+            # Neither theta nor theta + 180 matches clearly, or the image shows no top
+            # near the log-polar angle: the log-polar peak may be the wrong angle (the
+            # magnitude spectrum's strongest peak can be the scene's axis-aligned edges
+            # or the window's, a turn near 90 degrees read as 0; on a sparse scene whose
+            # view moved far, its second or third peak was the turn, or none was), or
+            # the search may not tell theta from theta + 180. So the next log-polar
+            # peaks are tried too, each as it is and turned by 180 degrees, and the best
+            # turns of a scan over all turns of the correlation on the shared scene;
+            # each judged by how well the image correlates at its refined angle. The
+            # scan (the costly part) only when the search's peak stands out of the
+            # noise: a frame without one is refused whatever its turn (a flat grey
+            # would pay for it on every frame of a lost scene).
+            candidates = [(candidate, flip) for candidate in [angle] + self._log_polar.candidates(ANGLE_CANDIDATES)[1:]
+                          for flip in (False, True)]
+            if _distinct(turn.search):
+                candidates += [(candidate, False) for candidate in self._shared_scene_angles(mean, filtered)]
             turn = self._best_of(mean, spectrum, candidates, filtered)
-        elif turn.sharpness == 0.0:
-            # No top near the log-polar peak: the magnitude spectrum's strongest peak can
-            # be the scene's axis-aligned edges or the window's (a turn near 90 degrees
-            # read as 0). Its next peaks are tried, each verified on the image.
-            for candidate in self._log_polar.candidates(ANGLE_CANDIDATES)[1:]:
-                other = self._refined_far(mean, self._turn_from(mean, spectrum, candidate, filtered), filtered)
-                if other.sharpness > 0.0:
-                    turn = other
-                    break
         return self._fit_turned(image, mean, spectrum, turn, snr_db, filtered)
 
     def _refined_far(self, mean: float, turn: Turn, filtered: bool) -> Turn:
@@ -316,32 +324,74 @@ class MotionEstimator:
                                  correlation=refined.correlation, match=refined.match)
         return turn._replace(sharpness=0.0, correlation=0.0, match=0.0)
 
-    def _scanned_angles(self, mean: float, step_deg: float = SCAN_STEP_DEG, count: int = ANGLE_CANDIDATES) -> list[float]:
-        """The ``count`` turns (within [-90, 90), every ``step_deg``) at which the search's
-        peak on the halved frame turned back is highest, as it is or turned by 180
-        degrees (both from one spectrum, see :meth:`HalfResolution.half_turn_heights`),
-        local tops only, highest first."""
-        angles = np.arange(-90.0, 90.0, step_deg)
-        heights = []
-        for angle in angles:
-            search, spectrum = self._half_search(mean, float(angle))
-            heights.append(self._half.half_turn_heights(spectrum, self._half.reference_conjugate,
-                                                        as_is=search.height).best)
-        heights = np.array(heights)
-        tops = (heights >= np.roll(heights, 1)) & (heights > np.roll(heights, -1))
-        order = np.flatnonzero(tops)[np.argsort(heights[tops])[::-1]][:count]
-        return [float(angles[index]) for index in order]
+    def _shared_scene_angles(self, mean: float, filtered: bool, count: int = ANGLE_CANDIDATES) -> list[float]:
+        """The ``count`` turns (degrees, within [-180, 180)) at which the halved frame,
+        turned back and searched (the whole-pixel shift), correlates best with the
+        reference on the scene both show (:meth:`_shared_scene_correlation`): a scan
+        every ``SHARED_SCAN_STEP_DEG`` over the full turn, local tops only, highest first,
+        each narrowed by halving the step twice.
 
-    def _best_of(self, mean: float, spectrum: np.ndarray, candidates: list[float], filtered: bool) -> Turn:
-        """Of the candidate angles, each as it is and turned by 180 degrees, the one whose
-        refined angle correlates best with the reference (on the scene both show, when
-        the view moved far); its ``distinct``: how much more the runner-up (another
+        For a view moved far the other measures mislead: the log-polar spectrum carries
+        the content the two views do not share, and the search's peak under the fixed
+        window (scanned over turns before) favours matching what fills both windows'
+        middles. On a scene that is
+        mostly one round object (a hole's disc) that is the object turned about its own
+        centre, which matches at every turn: the search's peak at the right turn was
+        below its median over turns. The correlation on the shared scene, at each turn's
+        own best shift, is what the candidates are finally judged by; at the object's
+        wrong turns the rest of the shared scene does not match (0.92-0.96 against
+        0.98-0.998 at the right turn, a hole moved by a quarter of the field)."""
+        step = SHARED_SCAN_STEP_DEG
+        window = self._half.moved_window(0, 0)
+        half_turns = np.arange(-180.0, 0.0, step)
+        scores = np.empty((2, half_turns.size))
+        for index, angle in enumerate(half_turns):
+            # A turn and the turn plus a half turn share the frame turned back (flipped)
+            # and the window it carries (the window is symmetric).
+            visible = visible_window(window, float(angle))
+            for flip in (0, 1):
+                scores[flip, index] = self._shared_scene_correlation(mean, float(angle) + 180.0 * flip, filtered,
+                                                                     visible)
+        angles, scores = np.concatenate([half_turns, half_turns + 180.0]), scores.ravel()
+        tops = (scores >= np.roll(scores, 1)) & (scores > np.roll(scores, -1))
+        order = np.flatnonzero(tops)[np.argsort(scores[tops])[::-1]][:count]
+        found = []
+        for index in order:
+            best, best_score = float(angles[index]), float(scores[index])
+            for half_step in (step / 2, step / 4):
+                for angle in (best - half_step, best + half_step):
+                    score = self._shared_scene_correlation(mean, angle, filtered)
+                    if score > best_score:
+                        best, best_score = angle, score
+            found.append((best + 180.0) % 360.0 - 180.0)
+        return found
+
+    def _shared_scene_correlation(self, mean: float, angle: float, filtered: bool,
+                                  visible: np.ndarray | None = None) -> float:
+        """The normalized band-limited correlation (the refinement's, eq. 18-22) of the
+        halved frame turned back by ``angle`` with the reference, at the search's shift,
+        both weighted by windows over the scene they then share (:func:`overlap_windows`;
+        ``visible``: the window the turned-back frame carries, when made already); -1
+        when they share too little."""
+        half, probes = self._half, self._probes
+        search, _ = self._half_search(mean, angle)
+        window = half.moved_window(0, 0)
+        windows = overlap_windows(window, angle, (search.dy / 2, search.dx / 2), visible)
+        if windows.reference.sum() < MIN_OVERLAP * window.sum():
+            return -1.0
+        frame_spectrum = np.array(half.weighted_spectrum(probes.turned_back(angle), windows.frame))
+        reference = np.conj(half.weighted_spectrum(probes.halved[0], windows.reference))
+        return half.fit(frame_spectrum, reference, search.shift, filtered, with_correlation=True).correlation
+
+    def _best_of(self, mean: float, spectrum: np.ndarray, candidates: list[tuple[float, bool]], filtered: bool) -> Turn:
+        """Of the candidate angles (each with whether to turn it by 180 degrees), the one
+        whose refined angle correlates best with the reference (on the scene both show,
+        when the view moved far); its ``distinct``: how much more the runner-up (another
         angle, more than a degree away) misses of a perfect correlation than it does."""
         turns = []
-        for candidate in candidates:
-            for flip in (False, True):
-                turns.append(self._refined_far(mean, self._turn_from(mean, spectrum, candidate, filtered, flip=flip),
-                                               filtered))
+        for candidate, flip in candidates:
+            turns.append(self._refined_far(mean, self._turn_from(mean, spectrum, candidate, filtered, flip=flip),
+                                           filtered))
         best = max(turns, key=lambda turn: turn.correlation)
         others = [turn.correlation for turn in turns
                   if turn.sharpness > 0.0 and abs((turn.angle - best.angle + 180) % 360 - 180) > 1.0]
@@ -513,10 +563,41 @@ class MotionEstimator:
             return _motion(Shift(fit.dy, fit.dx), turn.angle, True, turn.search, snr_db, filtered,
                            rotation_confidence)
         derotated = abs(turn.angle) > DEROTATE_ABOVE_DEG
-        if derotated:
-            spectrum = self._full.spectrum(rotate_about_centre(image, -turn.angle, self._full.frame_buffer()), mean)
-        return _motion(self._full.fit(spectrum, turn.shift, filtered, _distinct(turn.search)), turn.angle, derotated, turn.search, snr_db,
-                       filtered, rotation_confidence)
+        frame = rotate_about_centre(image, -turn.angle, self._full.frame_buffer()) if derotated else image
+        shift = self._fit_on_overlap(frame, turn, derotated, filtered) if self._moved_far(turn) else None
+        if shift is None:
+            if derotated:
+                spectrum = self._full.spectrum(frame, mean)
+            shift = self._full.fit(spectrum, turn.shift, filtered, _distinct(turn.search))
+        return _motion(shift, turn.angle, derotated, turn.search, snr_db, filtered, rotation_confidence)
+
+    def _fit_on_overlap(self, frame: np.ndarray, turn: Turn, derotated: bool, filtered: bool) -> Shift | None:
+        """The final sub-pixel fit (eq. 18-22) of a view moved far, on the scene both
+        images share: the frame (turned back by the turn when ``derotated``) and the
+        reference weighted by windows over it (:func:`overlap_windows`, at full
+        resolution), from the refinement's shift and kept near it (:func:`kept_near`);
+        None when they share too little.
+
+        The fixed window's fit weights the reference under the window moved with the
+        content, which keeps what the frame does not show, at full weight, and runs off
+        the frame's edge; on a scene whose strong edges lie there (a hole's rim moved by
+        a quarter of the field) that pulled the shift by 0.3-0.9 px, 0.01-0.08 on the
+        shared scene."""
+        full = self._full
+        windows = overlap_windows(full.window, turn.angle if derotated else 0.0, turn.shift)
+        if windows.reference.sum() < MIN_OVERLAP * full.window.sum():
+            return None
+        frame_spectrum = np.array(full.weighted_spectrum(frame, windows.frame))
+        reference = np.conj(full.weighted_spectrum(full.reference, windows.reference))
+
+        def fitted(band) -> Shift:
+            fit = refine_on_band(frame_spectrum, reference, band, turn.shift, workspace=full.band_workspace)
+            return Shift(fit.dy, fit.dx)
+
+        band = full.filtered_fit_band if filtered else full.fit_band
+        if not _distinct(turn.search):
+            return fitted(band)
+        return kept_near(turn.shift, fitted, band, full.filtered_fit_band)
 
     def _estimate_small_with_rotation(self, image: np.ndarray, mean: float, angle: float, snr_db: float,
                                       filtered: bool) -> Motion:

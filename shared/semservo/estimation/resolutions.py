@@ -179,6 +179,14 @@ class FullResolution:
             return fitted(band)
         return kept_near(shift, fitted, band, self.filtered_fit_band)
 
+    def weighted_spectrum(self, image: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """FFT of a full-resolution image under ``weights``, less its weighted mean (so the
+        weights' own spectrum does not leak into the band). The plan's buffer."""
+        total = float(weights.sum())
+        mean = float(np.vdot(image, weights)) / total if total > 0 else 0.0
+        _kernels.apodize_into(image, mean, weights, 0, 0, self.plans.forward.input_array)
+        return self.plans.forward()
+
     def frame_buffer(self) -> np.ndarray:
         """A frame-sized buffer (for the frame turned back by its rotation), made once."""
         if self.turned_back_buffer is None:

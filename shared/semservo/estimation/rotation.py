@@ -384,9 +384,15 @@ class ProbeReferences:
         self.half_noise = noise_variance / 4
 
     def turned_back(self, angle: float) -> np.ndarray:
-        """The halved frame turned back by ``angle`` degrees (bicubic, kept per angle)."""
+        """The halved frame turned back by ``angle`` degrees (bicubic, kept per angle; a
+        half turn from the kept angle is the kept image flipped, exactly: the turns are
+        about the pixel grid's centre)."""
         if self.half_turned_back_by != angle:
-            rotate_about_centre(self.half_image, -angle, self.half_turned_back, PROBE_INTERPOLATION)
+            kept = self.half_turned_back_by
+            if kept is not None and abs((angle - kept) % 360.0 - 180.0) < 1e-9:
+                self.half_turned_back[...] = self.half_turned_back[::-1, ::-1].copy()
+            else:
+                rotate_about_centre(self.half_image, -angle, self.half_turned_back, PROBE_INTERPOLATION)
             self.half_turned_back_by = angle
         return self.half_turned_back
 
@@ -407,6 +413,18 @@ def moved(image: np.ndarray, row_shift: int, col_shift: int) -> np.ndarray:
     return out
 
 
+def visible_window(window: np.ndarray, turned_back_deg: float) -> np.ndarray:
+    """``window`` as a frame turned back by ``turned_back_deg`` (about its centre) carries
+    it: zero where the turned-back frame has no data. A symmetric window's is the same
+    for a turn and that turn plus a half turn."""
+    if not turned_back_deg:
+        return window
+    rows, cols = window.shape
+    matrix = cv2.getRotationMatrix2D(((cols - 1) / 2, (rows - 1) / 2), -turned_back_deg, 1.0)
+    return cv2.warpAffine(window, matrix, (cols, rows), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0)
+
+
 class OverlapWindows(NamedTuple):
     """Windows that weight the same scene in the reference and in a frame that shows it
     moved (:func:`overlap_windows`), and the reference window's centroid (x, y), in
@@ -417,7 +435,8 @@ class OverlapWindows(NamedTuple):
     centroid: tuple[float, float]
 
 
-def overlap_windows(window: np.ndarray, turned_back_deg: float, shift: tuple[float, float]) -> OverlapWindows:
+def overlap_windows(window: np.ndarray, turned_back_deg: float, shift: tuple[float, float],
+                    visible: np.ndarray | None = None) -> OverlapWindows:
     """The windows under which a reference and a frame showing its content moved by
     ``shift`` (dy, dx; the frame turned back by ``turned_back_deg`` about its centre
     first) weight the same scene the same way.
@@ -430,16 +449,12 @@ def overlap_windows(window: np.ndarray, turned_back_deg: float, shift: tuple[flo
     So both images are weighted by the product of the two windows carried onto each:
     the reference's point q by window(q) x visible(q + shift), the frame's point p by the
     same, window(p - shift) x visible(p), where ``visible`` is the frame's own window
-    (turned back with it: zero where the turned-back frame has no data). Both taper to
-    zero inside the overlap, so neither has a hard edge.
+    (turned back with it: zero where the turned-back frame has no data; it may be given,
+    made by :func:`visible_window`). Both taper to zero inside the overlap, so neither
+    has a hard edge.
     """
-    if turned_back_deg:
-        rows, cols = window.shape
-        matrix = cv2.getRotationMatrix2D(((cols - 1) / 2, (rows - 1) / 2), -turned_back_deg, 1.0)
-        visible = cv2.warpAffine(window, matrix, (cols, rows), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    else:
-        visible = window
+    if visible is None:
+        visible = visible_window(window, turned_back_deg)
     row_shift, col_shift = int(round(shift[0])), int(round(shift[1]))
     reference = window * moved(visible, -row_shift, -col_shift)
     total = float(reference.sum())
