@@ -3,9 +3,13 @@
 A sweep takes seconds of scanning; the estimator keeps measuring every streamed frame
 meanwhile, and its control socket keeps answering. The tracker runs two kinds of job:
 
-* **the taught pose's sweep**, after a teach with tilts (:meth:`TiltTracker.teach`): the
-  teach answers at once, and ``report``'s reference says how far the sweep is
-  (``tilt_teach``: sweeping, scanned of frames; done; or failed with the reason);
+* **the taught pose's sweeps**, after a teach with tilts (:meth:`TiltTracker.teach`): the
+  teach answers at once, and ``report``'s reference says how far they are
+  (``tilt_teach``: sweeping, which sweep of at most how many, scanned of frames, how
+  well the sweeps so far pin the tilts; done; or failed with the reason). One sweep
+  when it pins the tilts; another of the same view, pooled with the first, while they
+  are pinned loosely (up to the settings' ``teach_sweeps``,
+  :meth:`~services.estimator.core.EstimatorCore.teach_tilt`);
 * **tracking**, while tilts are measured (``measure {tilts: true}``, set by a run that
   servoes them): a sweep planned from the last one, measured against the taught sweep,
   then the next. Every motion estimate carries the latest tilt measurement; the
@@ -86,7 +90,8 @@ class TiltTracker:
         """Sweep the focus at the taught pose of ``reference_id``, in the background; the
         state (``core.tilt_teach``) says how far it is."""
         self.core.tilt_teach = {"state": "sweeping", "reference_id": reference_id, "scanned": 0, "frames": frames,
-                                "error": None, "code": None}
+                                "error": None, "code": None, "sweep": 1,
+                                "max_sweeps": self.core.tilt_settings.teach_sweeps, "pinned_deg": None}
         self._teach_for = reference_id
         self.wake()
         return dict(self.core.tilt_teach)
@@ -123,11 +128,23 @@ class TiltTracker:
                 state.update(scanned=scanned, frames=frames)
 
         try:
-            sweep, reply = run_sweep(self.client(), core.next_sweep(), self.timeout_s, cancelled=replaced,
-                                     progress=progress)
-            core.teach_tilt(sweep, reply["working_distances_um"], reply["pixel_size_nm"], reference_id=reference_id)
-            state.update(state="done", scanned=len(sweep), frames=len(sweep))
-            log.info("taught the tilts of reference %s (%d frames)", reference_id, len(sweep))
+            while True:
+                sweep, reply = run_sweep(self.client(), core.next_sweep(), self.timeout_s, cancelled=replaced,
+                                         progress=progress)
+                taught = core.teach_tilt(sweep, reply["working_distances_um"], reply["pixel_size_nm"],
+                                         reference_id=reference_id)
+                if taught is not None:
+                    break
+                pinned = core.teach_pool.estimate
+                state.update(sweep=state["sweep"] + 1, scanned=0,
+                             pinned_deg=[pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg])
+                log.info("reference %s: %d focus sweeps pin the tilts to +-%.3f and +-%.3f degree; sweeping again",
+                         reference_id, pinned.sweeps, pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg)
+            tilt = taught["tilt"]
+            state.update(state="done", scanned=len(sweep), frames=len(sweep),
+                         pinned_deg=[tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"]])
+            log.info("taught the tilts of reference %s (%d sweeps of %d frames: +-%.3f, +-%.3f degree)", reference_id,
+                     tilt["sweeps"], len(sweep), tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"])
         except SweepFailed as error:
             state.update(state="failed", code="sweep_failed", error=f"the focus sweep failed: {error}")
         except CommandError as error:  # the sweep cannot tell the tilts, or the reference changed
