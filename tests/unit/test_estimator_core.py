@@ -141,3 +141,59 @@ def test_a_scene_with_nothing_to_register_is_refused_and_never_moves_the_stage(p
     assert all(verdict is not None and verdict.action == "held: low confidence" for verdict in verdicts)
     assert [verdict.ending for verdict in verdicts] == [None] * 7 + ["failed"]
     assert "scene lost" in verdicts[-1].reason and run.iterations == 0
+
+
+def test_a_teach_whose_sweep_pins_the_tilts_loosely_sweeps_again_and_pools_them():
+    from services.estimator.core import NoTiltReference, TiltSettings
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", tilt=TiltSettings(teach_sweeps=4))
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    # A faint texture: one sweep pins the tilts to +-0.11-0.14 degree only (refused alone).
+    faint = 100 + 3 * (texture() - 100) / 60
+    distances = list(WORKING_DISTANCES_UM)
+    answers = []
+    for seed in range(10):
+        answers.append(core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, seed), distances,
+                                       PIXEL_UM * 1000))
+        if answers[-1] is not None:
+            break
+        pool = core.teach_pool
+        assert pool.estimate.sweeps == len(answers) and core.tilt_reference is None  # not taught yet
+    taught = answers[-1]
+    assert answers[0] is None and 1 < len(answers) <= 4
+    tilt = taught["tilt"]
+    assert tilt["sweeps"] == len(answers) and max(tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"]) < 0.1
+    assert tilt["alpha_deg"] == pytest.approx(2.0, abs=0.3) and tilt["beta_deg"] == pytest.approx(-1.0, abs=0.3)
+    assert core.tilt_reference is not None and core.teach_pool is None
+    # Runs measure against the pooled reference.
+    assert core.measure(None, tilts=True)["tilts"] is True
+
+    # A texture too faint to pin them in four sweeps: refused, with how well after how many; bounded.
+    core.measure(None, tilts=False)
+    core.teach_latest()
+    fainter = 100 + 1.5 * (texture() - 100) / 60
+    calls = 0
+    refused = r"cannot tell the tilts: .*(pin the tilts to \+-|clear focus peak)"
+    with pytest.raises(NoTiltReference, match=refused) as refusal:
+        for seed in range(10):
+            calls += 1
+            core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), fainter, seed), distances, PIXEL_UM * 1000)
+    assert calls <= 4 and core.tilt_reference is None and core.teach_pool is None
+    assert calls == 1 or f"{calls} focus sweeps" in str(refusal.value)
+
+
+def test_a_new_reference_does_not_pool_the_sweeps_of_the_one_before():
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    faint = 100 + 3 * (texture() - 100) / 60
+    assert core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, 0), list(WORKING_DISTANCES_UM),
+                           PIXEL_UM * 1000) is None
+    core.teach_latest()  # a new reference: its tilts need sweeps of their own
+    assert core.teach_pool is None
+    core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, 1), list(WORKING_DISTANCES_UM), PIXEL_UM * 1000)
+    assert core.teach_pool is None or core.teach_pool.estimate.sweeps == 1
