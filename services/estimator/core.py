@@ -100,6 +100,9 @@ class TiltSettings:
     #: The most focus sweeps a teach takes of the taught pose, pooled, before it refuses
     #: (:func:`semservo.estimation.tilt.wants_another_sweep`).
     teach_sweeps: int = MAX_TEACH_SWEEPS
+    #: During a run, sweeps near the goal (tilts within this many degrees of the taught
+    #: ones) pinned more loosely than the teach's aim are pooled too (:meth:`EstimatorCore.sweep_again`).
+    pool_near_deg: float = 0.5
 
 
 @dataclass
@@ -181,6 +184,43 @@ class EstimatorCore:
         return plan_sweep(settings.centre_um, settings.depth_of_field_um, field_um,
                           max_tilt_deg=settings.max_tilt_deg).tolist()
 
+    def sweep_depths(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None
+                     ) -> np.ndarray:
+        """A sweep's kernel depths (:func:`semservo.estimation.tilt.depth_map`; NaN where
+        no clear peak), refused as :meth:`_tilt_of` refuses input that is not a sweep."""
+        return self._tilt_of(sweep, working_distances, pixel_size_nm)[1]
+
+    def sweep_again(self, depth_maps: list[np.ndarray], working_distances: list[float],
+                    pixel_size_nm: float | None) -> bool:
+        """During a run, whether the tracker should sweep the same view again and pool it
+        with these sweeps' depths before it reports the tilts: when they cannot pin them
+        (refused for their uncertainty, and more sweeps could,
+        :func:`semservo.estimation.tilt.wants_another_sweep`), or when the tilts are
+        within ``TiltSettings.pool_near_deg`` of the taught ones but pinned more loosely
+        than the teach's aim (near the goal, where the run converges on the measurement,
+        a sweep's noise of +-0.1 degree would be acted on as tilt); at most
+        ``TiltSettings.teach_sweeps`` in all. Far from the goal one sweep is enough: the
+        next move is larger than its noise."""
+        reference = self.tilt_reference
+        if reference is None or len(depth_maps) >= self.tilt_settings.teach_sweeps:
+            return False
+        estimate = self.pooled_estimate(depth_maps, working_distances, pixel_size_nm)
+        if not wants_another_sweep(estimate, self.tilt_settings.teach_sweeps):
+            return False
+        if estimate.confidence <= 0:
+            return True
+        near = max(abs(estimate.alpha_deg - reference.estimate.alpha_deg),
+                   abs(estimate.beta_deg - reference.estimate.beta_deg))
+        return near <= self.tilt_settings.pool_near_deg
+
+    def pooled_estimate(self, depth_maps: list[np.ndarray], working_distances: list[float],
+                        pixel_size_nm: float | None) -> TiltEstimate:
+        """The tilts of the pooled depths of sweeps of one view on these working distances."""
+        if pixel_size_nm is None:
+            raise TeachError("the sweep's frames carry no pixel size: tilts cannot be measured")
+        step = (working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)
+        return pooled_tilt(depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000, float(step))
+
     def _tilt_of(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None):
         if pixel_size_nm is None:
             raise TeachError("the sweep's frames carry no pixel size: tilts cannot be measured")
@@ -236,15 +276,19 @@ class EstimatorCore:
 
     def tilt_from_sweep(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None, *,
                         scan_started_at_ns: int | None = None, source_interval_s=None, took_s: float | None = None,
-                        ) -> dict:
+                        earlier: list[np.ndarray] | None = None) -> dict:
         """The tilts of a sweep against the taught one's: alpha and beta (degrees, the
         convention of :mod:`semservo.estimation.tilt`) with a confidence (0: not measured, the
-        reason given). With ``method="egi"`` the rotation between the two EGIs."""
+        reason given). With ``method="egi"`` the rotation between the two EGIs.
+        ``earlier``: the kernel depths of earlier sweeps of the same view on the same
+        working distances (:meth:`sweep_depths`), pooled with this one's
+        (:func:`semservo.estimation.tilt.pooled_tilt`)."""
         reference = self.tilt_reference
         if reference is None or self.reference is None or reference.reference_id != self.reference.id:
             raise NoTiltReference("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
         started = time.perf_counter()
-        estimate, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
+        maps = [*(earlier or []), self.sweep_depths(sweep, working_distances, pixel_size_nm)]
+        estimate, depths = self.pooled_estimate(maps, working_distances, pixel_size_nm), pool_depths(maps)
         if self.tilt_settings.method == "egi":
             alpha, beta, peak = egi_tilt_between(reference.depths, depths, self.tilt_settings.kernel_px,
                                                  reference.pixel_size_um)
@@ -260,7 +304,9 @@ class EstimatorCore:
             "confidence": float(confidence), "reason": estimate.reason,
             "absolute_alpha_deg": estimate.alpha_deg, "absolute_beta_deg": estimate.beta_deg,
             "centre_um": estimate.centre_depth, "kernels_used": estimate.kernels_used,
-            "kernels_total": estimate.kernels_total, "frames": len(sweep),
+            "kernels_total": estimate.kernels_total, "frames": len(sweep), "sweeps": estimate.sweeps,
+            "alpha_uncertainty_deg": estimate.alpha_uncertainty_deg,
+            "beta_uncertainty_deg": estimate.beta_uncertainty_deg,
             "working_distances_um": [float(value) for value in working_distances],
             "scan_started_at_ns": scan_started_at_ns, "source_interval_s": source_interval_s, "sweep_s": took_s,
             "estimation_ms": (time.perf_counter() - started) * 1e3,

@@ -12,8 +12,10 @@ meanwhile, and its control socket keeps answering. The tracker runs two kinds of
   :meth:`~services.estimator.core.EstimatorCore.teach_tilt`);
 * **tracking**, while tilts are measured (``measure {tilts: true}``, set by a run that
   servoes them): a sweep planned from the last one, measured against the taught sweep,
-  then the next. Every motion estimate carries the latest tilt measurement; the
-  controller acts on each one once.
+  then the next. A sweep that cannot pin the tilts, or pins them loosely near the goal,
+  is followed by another of the same plan, their depths pooled, before the tilts are
+  reported (:meth:`~services.estimator.core.EstimatorCore.sweep_again`). Every motion
+  estimate carries the latest tilt measurement; the controller acts on each one once.
 """
 
 from __future__ import annotations
@@ -60,6 +62,13 @@ def run_sweep(client: ControlClient, working_distances_um: list[float], timeout_
             time.sleep(POLL_S)
     except (ServiceUnavailable, CommandError) as error:
         raise SweepFailed(f"the image server: {error}") from None
+
+
+def _spanning(first, last):
+    """The source interval from the first sweep's start to the last one's end."""
+    if not first or not last:
+        return last or first
+    return [first[0], last[1]]
 
 
 class TiltTracker:
@@ -163,15 +172,27 @@ class TiltTracker:
         core = self.core
         try:
             plan = core.next_sweep()
-            sweep, reply = run_sweep(self.client(), plan, self.timeout_s,
-                                     cancelled=lambda: self._stop.is_set() or not core.measure_tilts
-                                     or self._teach_for is not None)
-            if core.measure_tilts:
-                result = core.tilt_from_sweep(
-                    sweep, reply["working_distances_um"], reply["pixel_size_nm"],
-                    scan_started_at_ns=reply.get("scan_started_at_ns"),
-                    source_interval_s=reply.get("source_interval_s"), took_s=reply.get("took_s"))
-                core.tilt_error = None if result["confidence"] > 0 else f"tilts not measured: {result['reason']}"
+            cancelled = (lambda: self._stop.is_set() or not core.measure_tilts or self._teach_for is not None)
+            earlier: list = []  # the same view's sweeps before this one, while they are pooled
+            first, took_s = None, 0.0
+            while True:
+                sweep, reply = run_sweep(self.client(), plan, self.timeout_s, cancelled=cancelled)
+                first = first or reply
+                took_s += reply.get("took_s") or 0.0
+                if not core.measure_tilts:
+                    return
+                distances, pixel_nm = reply["working_distances_um"], reply["pixel_size_nm"]
+                depths = core.sweep_depths(sweep, distances, pixel_nm)
+                if not core.sweep_again([*earlier, depths], distances, pixel_nm):
+                    break
+                earlier.append(depths)
+            # Reported as scanned from the first sweep's start: a tilt move during any of
+            # them leaves the whole measurement stale (the controller holds it).
+            result = core.tilt_from_sweep(
+                sweep, distances, pixel_nm, scan_started_at_ns=first.get("scan_started_at_ns"),
+                source_interval_s=_spanning(first.get("source_interval_s"), reply.get("source_interval_s")),
+                took_s=took_s or None, earlier=earlier)
+            core.tilt_error = None if result["confidence"] > 0 else f"tilts not measured: {result['reason']}"
         except Exception as error:  # noqa: BLE001 - say why, wait, try again; never die
             if core.measure_tilts:
                 core.tilt_error = f"tilt measurement failed: {error}"

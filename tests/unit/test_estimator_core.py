@@ -197,3 +197,37 @@ def test_a_new_reference_does_not_pool_the_sweeps_of_the_one_before():
     assert core.teach_pool is None
     core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, 1), list(WORKING_DISTANCES_UM), PIXEL_UM * 1000)
     assert core.teach_pool is None or core.teach_pool.estimate.sweeps == 1
+
+
+def test_a_run_pools_sweeps_that_cannot_pin_the_tilts_or_pin_them_loosely_near_the_goal():
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    distances, pixel_nm = list(WORKING_DISTANCES_UM), PIXEL_UM * 1000
+    assert core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0)), distances, pixel_nm) is not None  # one sweep
+
+    def depths(alpha: float, contrast: float, seed: int) -> np.ndarray:
+        scene = 100 + contrast * (texture() - 100) / 60
+        return core.sweep_depths(sweep_of_depths(plane_depths(alpha, -1.0), scene, seed), distances, pixel_nm)
+
+    loose_near = depths(2.0, 4.0, 0)  # accepted alone (+-0.08 degree), at the taught tilts
+    assert core.pooled_estimate([loose_near], distances, pixel_nm).confidence > 0
+    assert core.sweep_again([loose_near], distances, pixel_nm)
+    # Far from the goal, a loose sweep is acted on as it is: the next move is larger than its noise.
+    assert not core.sweep_again([depths(4.0, 4.0, 0)], distances, pixel_nm)
+    # Refused alone for its uncertainty: swept again wherever it is.
+    refused = depths(4.0, 3.0, 1)
+    assert core.pooled_estimate([refused], distances, pixel_nm).confidence == 0
+    assert core.sweep_again([refused], distances, pixel_nm)
+    # Never beyond the bound.
+    assert not core.sweep_again([depths(2.0, 4.0, seed) for seed in range(4)], distances, pixel_nm)
+    # The reported measurement pools them: fewer degrees of noise, and says how many sweeps.
+    single = core.tilt_from_sweep(sweep_of_depths(plane_depths(2.0, -1.0), 100 + 4 * (texture() - 100) / 60, 3),
+                                  distances, pixel_nm)
+    pooled = core.tilt_from_sweep(sweep_of_depths(plane_depths(2.0, -1.0), 100 + 4 * (texture() - 100) / 60, 3),
+                                  distances, pixel_nm, earlier=[loose_near, depths(2.0, 4.0, 1)])
+    assert single["sweeps"] == 1 and pooled["sweeps"] == 3 and pooled["confidence"] > 0
+    assert pooled["alpha_uncertainty_deg"] < 0.8 * single["alpha_uncertainty_deg"]
+    assert abs(pooled["alpha_deg"]) < 0.3 and abs(pooled["beta_deg"]) < 0.3
