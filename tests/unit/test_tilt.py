@@ -436,3 +436,28 @@ def test_a_hopeless_texture_is_refused_at_once_with_how_well_it_pinned_the_tilts
     few[0, :3] = 0.1
     refused = pooled_tilt([few], KERNEL, PIXEL_UM, step)
     assert refused.confidence == 0 and "clear focus peak" in refused.reason and not wants_another_sweep(refused)
+
+
+def test_the_benchmarks_teach_pools_its_reference_as_the_service_does():
+    from semservo.reproduce.tilts import teach_reference
+
+    faint = 100 + 3 * (texture() - 100) / 60
+
+    class FaintLab:
+        """A flat view of a faint texture: one sweep pins its tilts to +-0.11-0.14 degree."""
+
+        pixel_um = PIXEL_UM
+
+        def __init__(self):
+            self.sweeps = 0
+
+        def sweep(self, pose, working_distances):
+            self.sweeps += 1
+            return sweep_of_depths(plane_depths(*pose[:2]), faint, seed=self.sweeps)
+
+    lab = FaintLab()
+    pooled, depths = teach_reference(lab, WORKING_DISTANCES_UM, max_sweeps=4)
+    assert 1 < pooled.sweeps == lab.sweeps <= 4 and pooled.confidence > 0 and depths.shape == (SIZE // KERNEL,) * 2
+    assert pooled.alpha_deg == pytest.approx(0.0, abs=0.3) and pooled.beta_deg == pytest.approx(0.0, abs=0.3)
+    single, _ = teach_reference(FaintLab(), WORKING_DISTANCES_UM, max_sweeps=1)
+    assert single.sweeps == 1

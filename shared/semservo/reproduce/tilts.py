@@ -134,14 +134,17 @@ def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
 
 
 def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print,
-              lab=None, reference_sweeps: int = 1) -> dict:
+              lab=None, reference_sweeps: int = 1, sweeps_when_refused: int = 1) -> dict:
     """Table I on ``poses`` ((alpha, beta, gamma) in degrees), each against a reference
     taught at (0, 0, 0): per pose, the errors (measured - true) of both methods, signs,
     frames, simulated scan time and compute time (see the module's text). ``lab``: the
     simulated SEM's tilts preset (:class:`Lab`) unless given (e.g. :class:`TextureLab`).
     A sweep whose estimate is refused (confidence 0) counts as refused, its reason kept;
     the rest of the pose is still measured. ``reference_sweeps``: the most focus sweeps
-    the reference is taught from (:func:`teach_reference`; 1, a single sweep)."""
+    the reference is taught from (:func:`teach_reference`; 1, a single sweep);
+    ``sweeps_when_refused``: the most sweeps of a pose whose first sweep is refused for
+    its uncertainty, pooled as the estimator service pools them in a run (1: none; the
+    paper's EGI and the tracking sweep are measured on the first sweep only)."""
     lab = Lab(seed) if lab is None else lab
     depth_of_field = lab.depth_of_field_um
     reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
@@ -165,6 +168,18 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         clock = time.perf_counter()
         egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep), 32, lab.pixel_um)
         egi_ms = (time.perf_counter() - clock) * 1e3
+        pose_sweeps = 1
+        if plane.confidence <= 0 and wants_another_sweep(plane, sweeps_when_refused):
+            # As the estimator service does in a run: a sweep that cannot pin the tilts
+            # is followed by more of the same plan, their depths pooled.
+            step = float(first_sweep[1] - first_sweep[0])
+            maps = [depth_map(frames, first_sweep)]
+            while True:
+                maps.append(depth_map(lab.sweep(pose, first_sweep), first_sweep))
+                plane = pooled_tilt(maps, 32, lab.pixel_um, step)
+                if not wants_another_sweep(plane, sweeps_when_refused):
+                    break
+            pose_sweeps = len(maps)
         refused = plane.confidence <= 0 or taught.confidence <= 0
         measured_alpha, measured_beta = plane.alpha_deg - taught.alpha_deg, plane.beta_deg - taught.beta_deg
         if refused:
@@ -192,7 +207,7 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
             "signs_egi": [_sign_ok(egi_alpha, alpha), _sign_ok(egi_beta, beta)],
             "frames_first": len(first_sweep), "frames_tracking": len(tracking_sweep),
             "scan_s_first": len(first_sweep) * frame_time, "scan_s_tracking": len(tracking_sweep) * frame_time,
-            "plane_ms": plane_ms, "egi_ms": egi_ms, "kernels_used": plane.kernels_used,
+            "plane_ms": plane_ms, "egi_ms": egi_ms, "kernels_used": plane.kernels_used, "sweeps": pose_sweeps,
         })
         left = (time.monotonic() - started) / index * (len(poses) - index)
         outcome = (f"refused ({plane.reason or taught.reason})" if refused else
