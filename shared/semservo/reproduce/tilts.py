@@ -330,9 +330,10 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
                 time.sleep(0.2)
             reference = lab.teach(frames=4, tilts=True)
             taught_tilt = reference.tilt or {}
-            say(f"  taught: {taught_tilt.get('sweeps', 1)} focus sweep(s) of {taught_tilt.get('frames')} frames pin the "
-                f"tilts to +-{taught_tilt.get('alpha_uncertainty_deg', math.nan):.3f} and "
-                f"+-{taught_tilt.get('beta_uncertainty_deg', math.nan):.3f} deg")
+            say(f"  taught: {taught_tilt.get('sweeps', 1)} focus sweep(s) of {taught_tilt.get('frames')} frames read the "
+                f"plane's tilts {taught_tilt.get('alpha_deg', math.nan):+.3f}, {taught_tilt.get('beta_deg', math.nan):+.3f}"
+                f" deg, pinned to +-{taught_tilt.get('alpha_uncertainty_deg', math.nan):.3f} and "
+                f"+-{taught_tilt.get('beta_uncertainty_deg', math.nan):.3f}")
             # The taught pose: over the scans of the frames the reference was made from.
             scanned = reference.get("source_interval_s") or (reference.get("detail") or {}).get("source_interval_s")
             taught_pose = _pose(fakelab.request("pose", interval_s=scanned)) if scanned else None
