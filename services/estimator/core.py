@@ -13,8 +13,8 @@ import numpy as np
 
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
-from semservo.estimation.tilt import (TiltEstimate, depth_map, egi_tilt_between, estimate_tilt, plan_sweep,
-                           undo_foreshortening)
+from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
+                                      plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, wants_another_sweep)
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
 from semservo.wire import Frame
@@ -98,6 +98,12 @@ class TiltSettings:
     max_tilt_deg: float = 15.0  # the first sweep is wide enough for this much tilt
     kernel_px: int = 32
     method: str = "plane"  # or "egi": the paper's extended Gaussian image correlation
+    #: The most focus sweeps a teach takes of the taught pose, pooled, before it refuses
+    #: (:func:`semservo.estimation.tilt.wants_another_sweep`).
+    teach_sweeps: int = MAX_TEACH_SWEEPS
+    #: During a run, sweeps near the goal (tilts within this many degrees of the taught
+    #: ones) pinned more loosely than the teach's aim are pooled too (:meth:`EstimatorCore.sweep_again`).
+    pool_near_deg: float = 0.5
 
 
 @dataclass
@@ -115,6 +121,17 @@ class TiltReference:
     def grid(self) -> tuple[float, float]:
         """The taught sweep's (first working distance, step): later sweeps sample the same places."""
         return self.working_distances[0], (self.working_distances[-1] - self.working_distances[0]) / (self.frames - 1)
+
+
+@dataclass
+class TeachPool:
+    """The taught pose's focus sweeps so far, while a teach pools them: each one's kernel
+    depths and sweep step, and the tilts of them all pooled."""
+
+    reference_id: str
+    depth_maps: list[np.ndarray] = field(default_factory=list)
+    steps: list[float] = field(default_factory=list)
+    estimate: TiltEstimate | None = None
 
 
 class EstimatorCore:
@@ -141,6 +158,8 @@ class EstimatorCore:
         #: The taught pose's focus sweep after a teach with tilts: it runs in the background
         #: (``services.estimator.tilts``); its state, scans done and outcome.
         self.tilt_teach: dict | None = None
+        #: The taught pose's sweeps so far, while a teach pools them (:meth:`teach_tilt`).
+        self.teach_pool: TeachPool | None = None
         #: What the reference looks like (the taught image; for a mask, the live frame it
         #: was drawn on): the gateway and the dashboard show it.
         self.reference_pixels: np.ndarray | None = None
@@ -166,6 +185,43 @@ class EstimatorCore:
         return plan_sweep(settings.centre_um, settings.depth_of_field_um, field_um,
                           max_tilt_deg=settings.max_tilt_deg).tolist()
 
+    def sweep_depths(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None
+                     ) -> np.ndarray:
+        """A sweep's kernel depths (:func:`semservo.estimation.tilt.depth_map`; NaN where
+        no clear peak), refused as :meth:`_tilt_of` refuses input that is not a sweep."""
+        return self._tilt_of(sweep, working_distances, pixel_size_nm)[1]
+
+    def sweep_again(self, depth_maps: list[np.ndarray], working_distances: list[float],
+                    pixel_size_nm: float | None) -> bool:
+        """During a run, whether the tracker should sweep the same view again and pool it
+        with these sweeps' depths before it reports the tilts: when they cannot pin them
+        (refused for their uncertainty, and more sweeps could,
+        :func:`semservo.estimation.tilt.wants_another_sweep`), or when the tilts are
+        within ``TiltSettings.pool_near_deg`` of the taught ones but pinned more loosely
+        than the teach's aim (near the goal, where the run converges on the measurement,
+        a sweep's noise of +-0.1 degree would be acted on as tilt); at most
+        ``TiltSettings.teach_sweeps`` in all. Far from the goal one sweep is enough: the
+        next move is larger than its noise."""
+        reference = self.tilt_reference
+        if reference is None or len(depth_maps) >= self.tilt_settings.teach_sweeps:
+            return False
+        estimate = self.pooled_estimate(depth_maps, working_distances, pixel_size_nm)
+        if not wants_another_sweep(estimate, self.tilt_settings.teach_sweeps):
+            return False
+        if estimate.confidence <= 0:
+            return True
+        near = max(abs(estimate.alpha_deg - reference.estimate.alpha_deg),
+                   abs(estimate.beta_deg - reference.estimate.beta_deg))
+        return near <= self.tilt_settings.pool_near_deg
+
+    def pooled_estimate(self, depth_maps: list[np.ndarray], working_distances: list[float],
+                        pixel_size_nm: float | None) -> TiltEstimate:
+        """The tilts of the pooled depths of sweeps of one view on these working distances."""
+        if pixel_size_nm is None:
+            raise TeachError("the sweep's frames carry no pixel size: tilts cannot be measured")
+        step = (working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)
+        return pooled_tilt(depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000, float(step))
+
     def _tilt_of(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None):
         if pixel_size_nm is None:
             raise TeachError("the sweep's frames carry no pixel size: tilts cannot be measured")
@@ -177,36 +233,63 @@ class EstimatorCore:
         return estimate, depth_map(sweep, working_distances, kernel)
 
     def teach_tilt(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None,
-                   reference_id: str | None = None) -> dict:
-        """The taught pose's sweep (with the reference image just taught, ``reference_id``
-        when given): refused with the reason when it cannot tell the tilts (a flat scene,
-        focus outside it, a depth of field too large for the field's depth)."""
+                   reference_id: str | None = None) -> dict | None:
+        """One focus sweep of the taught pose (with the reference image just taught,
+        ``reference_id`` when given), pooled with the ones before it for this reference
+        (:func:`semservo.estimation.tilt.pooled_tilt`). Returns the reference's
+        description when the tilts are taught; None when the sweeps so far pin them too
+        loosely and another sweep of the same view may pin them better (at most
+        ``TiltSettings.teach_sweeps`` in all: :func:`semservo.estimation.tilt.wants_another_sweep`;
+        ``teach_pool`` holds them and their estimate so far); refused with the reason (how
+        well the tilts were pinned, after how many sweeps) when it cannot tell the tilts
+        (a flat scene, focus outside it, a depth of field too large for the field's depth)."""
         if self.reference is None:
             raise TeachError("teach an image before its tilt sweep")
         if reference_id is not None and reference_id != self.reference.id:
             raise TeachError(f"reference {reference_id} was replaced by {self.reference.id} during its focus sweep")
-        estimate, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
+        _, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
+        pool = self.teach_pool
+        if pool is None or pool.reference_id != self.reference.id:
+            pool = TeachPool(self.reference.id)
+        pool.depth_maps.append(depths)
+        steps = pool.steps + [(working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)]
+        pool.steps = steps
+        pool.estimate = pooled_tilt(pool.depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000,
+                                    float(np.mean(steps)))
+        estimate = pool.estimate
+        if wants_another_sweep(estimate, self.tilt_settings.teach_sweeps):
+            self.teach_pool = pool
+            return None
+        self.teach_pool = None
         if estimate.confidence <= 0:
-            raise NoTiltReference(f"the reference's focus sweep cannot tell the tilts: {estimate.reason}")
-        self.tilt_reference = TiltReference(self.reference.id, depths, estimate, pixel_size_nm / 1000, len(sweep),
+            swept = "focus sweep" if estimate.sweeps == 1 else f"{estimate.sweeps} focus sweeps"
+            raise NoTiltReference(f"the reference's {swept} cannot tell the tilts: {estimate.reason}")
+        self.tilt_reference = TiltReference(self.reference.id, pool_depths(pool.depth_maps), estimate,
+                                            pixel_size_nm / 1000, len(sweep),
                                             tuple(float(value) for value in working_distances))
         self.last_tilt = None
-        self.reference.detail["tilt"] = {"alpha_deg": estimate.alpha_deg, "beta_deg": estimate.beta_deg,
-                                         "centre_um": estimate.centre_depth, "kernels_used": estimate.kernels_used,
-                                         "frames": len(sweep)}
+        self.reference.detail["tilt"] = {
+            "alpha_deg": estimate.alpha_deg, "beta_deg": estimate.beta_deg, "centre_um": estimate.centre_depth,
+            "kernels_used": estimate.kernels_used, "frames": len(sweep), "sweeps": estimate.sweeps,
+            "alpha_uncertainty_deg": estimate.alpha_uncertainty_deg,
+            "beta_uncertainty_deg": estimate.beta_uncertainty_deg}
         return self.reference.describe()
 
     def tilt_from_sweep(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None, *,
                         scan_started_at_ns: int | None = None, source_interval_s=None, took_s: float | None = None,
-                        ) -> dict:
+                        earlier: list[np.ndarray] | None = None) -> dict:
         """The tilts of a sweep against the taught one's: alpha and beta (degrees, the
         convention of :mod:`semservo.estimation.tilt`) with a confidence (0: not measured, the
-        reason given). With ``method="egi"`` the rotation between the two EGIs."""
+        reason given). With ``method="egi"`` the rotation between the two EGIs.
+        ``earlier``: the kernel depths of earlier sweeps of the same view on the same
+        working distances (:meth:`sweep_depths`), pooled with this one's
+        (:func:`semservo.estimation.tilt.pooled_tilt`)."""
         reference = self.tilt_reference
         if reference is None or self.reference is None or reference.reference_id != self.reference.id:
             raise NoTiltReference("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
         started = time.perf_counter()
-        estimate, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
+        maps = [*(earlier or []), self.sweep_depths(sweep, working_distances, pixel_size_nm)]
+        estimate, depths = self.pooled_estimate(maps, working_distances, pixel_size_nm), pool_depths(maps)
         if self.tilt_settings.method == "egi":
             alpha, beta, peak = egi_tilt_between(reference.depths, depths, self.tilt_settings.kernel_px,
                                                  reference.pixel_size_um)
@@ -222,7 +305,9 @@ class EstimatorCore:
             "confidence": float(confidence), "reason": estimate.reason,
             "absolute_alpha_deg": estimate.alpha_deg, "absolute_beta_deg": estimate.beta_deg,
             "centre_um": estimate.centre_depth, "kernels_used": estimate.kernels_used,
-            "kernels_total": estimate.kernels_total, "frames": len(sweep),
+            "kernels_total": estimate.kernels_total, "frames": len(sweep), "sweeps": estimate.sweeps,
+            "alpha_uncertainty_deg": estimate.alpha_uncertainty_deg,
+            "beta_uncertainty_deg": estimate.beta_uncertainty_deg,
             "working_distances_um": [float(value) for value in working_distances],
             "scan_started_at_ns": scan_started_at_ns, "source_interval_s": source_interval_s, "sweep_s": took_s,
             "estimation_ms": (time.perf_counter() - started) * 1e3,
@@ -244,7 +329,8 @@ class EstimatorCore:
             raise TeachError(str(error)) from None
         # Only now, with the new estimator built, is the old reference replaced.
         self.estimator = estimator
-        self.tilt_reference, self.last_tilt, self.tilt_teach = None, None, None  # a new reference needs its own sweep
+        # A new reference needs its own sweep.
+        self.tilt_reference, self.last_tilt, self.tilt_teach, self.teach_pool = None, None, None, None
         self.reference_pixels = np.array(pixels if shown is None else shown)
         self.reference = Reference(
             id=uuid.uuid4().hex[:12], kind=kind, shape=pixels.shape, pixel_size_nm=pixel_size_nm,
@@ -369,6 +455,7 @@ class EstimatorCore:
         self.reference = None
         self.reference_pixels = None
         self.tilt_reference, self.last_tilt, self.measure_tilts, self.tilt_teach = None, None, False, None
+        self.teach_pool = None
         return {"cleared": had}
 
     # -- per frame ------------------------------------------------------------

@@ -3,13 +3,19 @@
 A sweep takes seconds of scanning; the estimator keeps measuring every streamed frame
 meanwhile, and its control socket keeps answering. The tracker runs two kinds of job:
 
-* **the taught pose's sweep**, after a teach with tilts (:meth:`TiltTracker.teach`): the
-  teach answers at once, and ``report``'s reference says how far the sweep is
-  (``tilt_teach``: sweeping, scanned of frames; done; or failed with the reason);
+* **the taught pose's sweeps**, after a teach with tilts (:meth:`TiltTracker.teach`): the
+  teach answers at once, and ``report``'s reference says how far they are
+  (``tilt_teach``: sweeping, which sweep of at most how many, scanned of frames, how
+  well the sweeps so far pin the tilts; done; or failed with the reason). One sweep
+  when it pins the tilts; another of the same view, pooled with the first, while they
+  are pinned loosely (up to the settings' ``teach_sweeps``,
+  :meth:`~services.estimator.core.EstimatorCore.teach_tilt`);
 * **tracking**, while tilts are measured (``measure {tilts: true}``, set by a run that
   servoes them): a sweep planned from the last one, measured against the taught sweep,
-  then the next. Every motion estimate carries the latest tilt measurement; the
-  controller acts on each one once.
+  then the next. A sweep that cannot pin the tilts, or pins them loosely near the goal,
+  is followed by another of the same plan, their depths pooled, before the tilts are
+  reported (:meth:`~services.estimator.core.EstimatorCore.sweep_again`). Every motion
+  estimate carries the latest tilt measurement; the controller acts on each one once.
 """
 
 from __future__ import annotations
@@ -58,6 +64,13 @@ def run_sweep(client: ControlClient, working_distances_um: list[float], timeout_
         raise SweepFailed(f"the image server: {error}") from None
 
 
+def _spanning(first, last):
+    """The source interval from the first sweep's start to the last one's end."""
+    if not first or not last:
+        return last or first
+    return [first[0], last[1]]
+
+
 class TiltTracker:
     def __init__(self, core, make_client: Callable[[], ControlClient], *, timeout_s: float = 120.0):
         self.core = core
@@ -86,7 +99,8 @@ class TiltTracker:
         """Sweep the focus at the taught pose of ``reference_id``, in the background; the
         state (``core.tilt_teach``) says how far it is."""
         self.core.tilt_teach = {"state": "sweeping", "reference_id": reference_id, "scanned": 0, "frames": frames,
-                                "error": None, "code": None}
+                                "error": None, "code": None, "sweep": 1,
+                                "max_sweeps": self.core.tilt_settings.teach_sweeps, "pinned_deg": None}
         self._teach_for = reference_id
         self.wake()
         return dict(self.core.tilt_teach)
@@ -123,11 +137,23 @@ class TiltTracker:
                 state.update(scanned=scanned, frames=frames)
 
         try:
-            sweep, reply = run_sweep(self.client(), core.next_sweep(), self.timeout_s, cancelled=replaced,
-                                     progress=progress)
-            core.teach_tilt(sweep, reply["working_distances_um"], reply["pixel_size_nm"], reference_id=reference_id)
-            state.update(state="done", scanned=len(sweep), frames=len(sweep))
-            log.info("taught the tilts of reference %s (%d frames)", reference_id, len(sweep))
+            while True:
+                sweep, reply = run_sweep(self.client(), core.next_sweep(), self.timeout_s, cancelled=replaced,
+                                         progress=progress)
+                taught = core.teach_tilt(sweep, reply["working_distances_um"], reply["pixel_size_nm"],
+                                         reference_id=reference_id)
+                if taught is not None:
+                    break
+                pinned = core.teach_pool.estimate
+                state.update(sweep=state["sweep"] + 1, scanned=0,
+                             pinned_deg=[pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg])
+                log.info("reference %s: %d focus sweeps pin the tilts to +-%.3f and +-%.3f degree; sweeping again",
+                         reference_id, pinned.sweeps, pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg)
+            tilt = taught["tilt"]
+            state.update(state="done", scanned=len(sweep), frames=len(sweep),
+                         pinned_deg=[tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"]])
+            log.info("taught the tilts of reference %s (%d sweeps of %d frames: +-%.3f, +-%.3f degree)", reference_id,
+                     tilt["sweeps"], len(sweep), tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"])
         except SweepFailed as error:
             state.update(state="failed", code="sweep_failed", error=f"the focus sweep failed: {error}")
         except CommandError as error:  # the sweep cannot tell the tilts, or the reference changed
@@ -146,15 +172,27 @@ class TiltTracker:
         core = self.core
         try:
             plan = core.next_sweep()
-            sweep, reply = run_sweep(self.client(), plan, self.timeout_s,
-                                     cancelled=lambda: self._stop.is_set() or not core.measure_tilts
-                                     or self._teach_for is not None)
-            if core.measure_tilts:
-                result = core.tilt_from_sweep(
-                    sweep, reply["working_distances_um"], reply["pixel_size_nm"],
-                    scan_started_at_ns=reply.get("scan_started_at_ns"),
-                    source_interval_s=reply.get("source_interval_s"), took_s=reply.get("took_s"))
-                core.tilt_error = None if result["confidence"] > 0 else f"tilts not measured: {result['reason']}"
+            cancelled = (lambda: self._stop.is_set() or not core.measure_tilts or self._teach_for is not None)
+            earlier: list = []  # the same view's sweeps before this one, while they are pooled
+            first, took_s = None, 0.0
+            while True:
+                sweep, reply = run_sweep(self.client(), plan, self.timeout_s, cancelled=cancelled)
+                first = first or reply
+                took_s += reply.get("took_s") or 0.0
+                if not core.measure_tilts:
+                    return
+                distances, pixel_nm = reply["working_distances_um"], reply["pixel_size_nm"]
+                depths = core.sweep_depths(sweep, distances, pixel_nm)
+                if not core.sweep_again([*earlier, depths], distances, pixel_nm):
+                    break
+                earlier.append(depths)
+            # Reported as scanned from the first sweep's start: a tilt move during any of
+            # them leaves the whole measurement stale (the controller holds it).
+            result = core.tilt_from_sweep(
+                sweep, distances, pixel_nm, scan_started_at_ns=first.get("scan_started_at_ns"),
+                source_interval_s=_spanning(first.get("source_interval_s"), reply.get("source_interval_s")),
+                took_s=took_s or None, earlier=earlier)
+            core.tilt_error = None if result["confidence"] > 0 else f"tilts not measured: {result['reason']}"
         except Exception as error:  # noqa: BLE001 - say why, wait, try again; never die
             if core.measure_tilts:
                 core.tilt_error = f"tilt measurement failed: {error}"

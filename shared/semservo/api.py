@@ -58,12 +58,17 @@ class PolygonTeach(BaseModel):
 
 
 class TiltTeach(Response):
-    """The taught pose's focus sweep: it runs after a teach with tilts (seconds)."""
+    """The taught pose's focus sweeps: they run after a teach with tilts (seconds each):
+    one, or more of the same view pooled while they pin the tilts loosely."""
 
     state: str = Field(description="sweeping, done or failed")
     reference_id: str | None = None
     scanned: int = 0
     frames: int = 0
+    sweep: int = Field(1, description="which sweep is scanning (or the last one), from 1")
+    max_sweeps: int = Field(1, description="the most sweeps the teach takes before it refuses")
+    pinned_deg: list[float] | None = Field(None, description="the standard errors of alpha and beta (degrees) from "
+                                                             "the sweeps so far, pooled")
     error: str | None = None
     code: str | None = Field(None, description="failed: sweep_failed, or no_tilt_reference (the sweep cannot tell "
                                                "the tilts at these settings)")

@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import errno
 import importlib
+import math
 import os
 import signal
 import sys
@@ -310,11 +311,12 @@ def command_teach(args: argparse.Namespace) -> int:
 
 
 def _wait_for_tilt_teach(estimator, reference_id: str, timeout_s: float = 180.0) -> int:
-    """Follow the taught pose's focus sweep (it runs in the background) to its end."""
+    """Follow the taught pose's focus sweeps (they run in the background) to their end:
+    ``timeout_s`` for each sweep."""
     from semservo.protocol import estimator as estimator_protocol
 
-    deadline, said = time.monotonic() + timeout_s, None
-    while time.monotonic() < deadline:
+    started, said = time.monotonic(), None
+    while True:
         reference = estimator.call(estimator_protocol.REPORT).reference
         teach = reference.tilt_teach if reference is not None and reference.id == reference_id else None
         if teach is None:
@@ -322,20 +324,29 @@ def _wait_for_tilt_teach(estimator, reference_id: str, timeout_s: float = 180.0)
             return 1
         if teach.state == "done":
             tilt = reference.tilt or {}
-            print(f"focus sweep of {teach.frames} frames: the taught pose's plane tilts alpha "
-                  f"{tilt.get('alpha_deg', 0):+.2f}, beta {tilt.get('beta_deg', 0):+.2f} deg "
-                  f"({tilt.get('kernels_used')} kernels in focus somewhere)")
+            sweeps = tilt.get("sweeps", 1)
+            swept = f"{sweeps} focus sweeps of {teach.frames} frames pooled" if sweeps > 1 else \
+                f"focus sweep of {teach.frames} frames"
+            print(f"{swept}: the taught pose's plane tilts alpha {tilt.get('alpha_deg', 0):+.2f}, beta "
+                  f"{tilt.get('beta_deg', 0):+.2f} deg, pinned to +-{tilt.get('alpha_uncertainty_deg', math.nan):.3f} "
+                  f"and +-{tilt.get('beta_uncertainty_deg', math.nan):.3f} ({tilt.get('kernels_used')} kernels in "
+                  "focus somewhere)")
             return 0
         if teach.state == "failed":
             print(f"semservo teach: the image is taught, not its tilts: {teach.error}", file=sys.stderr)
             return 1
-        progress = f"focus sweep: {teach.scanned} of {teach.frames} frames"
+        progress = (f"focus sweep {teach.sweep} (of at most {teach.max_sweeps}): {teach.scanned} of {teach.frames} "
+                    "frames")
+        if teach.pinned_deg:
+            progress += (f"; the sweeps so far pin the tilts to +-{teach.pinned_deg[0]:.3f} and "
+                         f"+-{teach.pinned_deg[1]:.3f} deg")
         if progress != said:
             print(progress, flush=True)
             said = progress
+        if time.monotonic() > started + timeout_s * teach.sweep:
+            print(f"semservo teach: focus sweep {teach.sweep} did not end within {timeout_s:g} s", file=sys.stderr)
+            return 1
         time.sleep(0.25)
-    print(f"semservo teach: the focus sweep did not end within {timeout_s:g} s", file=sys.stderr)
-    return 1
 
 
 def command_motion(args: argparse.Namespace) -> int:

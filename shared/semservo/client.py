@@ -63,7 +63,8 @@ class WaitTimeout(SemservoError):
     """:meth:`Client.wait` gave up: the run had not ended within its timeout."""
 
 
-#: How long :meth:`Client.teach` waits for the taught pose's focus sweep (teach with tilts).
+#: How long :meth:`Client.teach` waits for each of the taught pose's focus sweeps (teach with
+#: tilts: one, or up to the estimator's ``tilt_teach_sweeps`` where one pins the tilts loosely).
 SWEEP_WAIT_S = 180.0
 
 
@@ -301,11 +302,11 @@ class Client(_Endpoints):
         seconds and this waits for it unless ``wait=False`` (then :meth:`reference`
         says how far it is)."""
         reference = self._run(self._teach_call(frames, image, mask, polygon, label, dwell_ns, tilts))
-        deadline = time.monotonic() + SWEEP_WAIT_S
+        started = time.monotonic()
         while tilts and wait and reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping":
-            if time.monotonic() > deadline:
-                raise WaitTimeout(0, "timeout", f"the focus sweep of reference {reference.id} did not end within "
-                                                f"{SWEEP_WAIT_S:g} s")
+            if time.monotonic() > started + SWEEP_WAIT_S * reference.tilt_teach.sweep:
+                raise WaitTimeout(0, "timeout", f"focus sweep {reference.tilt_teach.sweep} of reference "
+                                                f"{reference.id} did not end within {SWEEP_WAIT_S:g} s")
             time.sleep(0.25)
             reference = self.reference()
         return _tilt_teach_done(reference) if tilts and wait else reference
@@ -366,11 +367,11 @@ class AsyncClient(_Endpoints):
                     wait: bool = True) -> TeachResult:
         """As :meth:`Client.teach`."""
         reference = await self._run(self._teach_call(frames, image, mask, polygon, label, dwell_ns, tilts))
-        deadline = time.monotonic() + SWEEP_WAIT_S
+        started = time.monotonic()
         while tilts and wait and reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping":
-            if time.monotonic() > deadline:
-                raise WaitTimeout(0, "timeout", f"the focus sweep of reference {reference.id} did not end within "
-                                                f"{SWEEP_WAIT_S:g} s")
+            if time.monotonic() > started + SWEEP_WAIT_S * reference.tilt_teach.sweep:
+                raise WaitTimeout(0, "timeout", f"focus sweep {reference.tilt_teach.sweep} of reference "
+                                                f"{reference.id} did not end within {SWEEP_WAIT_S:g} s")
             await asyncio.sleep(0.25)
             reference = await self.reference()
         return _tilt_teach_done(reference) if tilts and wait else reference

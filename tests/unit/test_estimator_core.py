@@ -178,3 +178,93 @@ def test_a_mask_upload_keeps_every_row_even_where_it_looks_like_a_data_bar():
 
     reply = teach(Estimator(core), TeachRequest(mask_b64=encoded))
     assert core.describe_reference()["kind"] == "mask" and reply is not None
+
+
+def test_a_teach_whose_sweep_pins_the_tilts_loosely_sweeps_again_and_pools_them():
+    from services.estimator.core import NoTiltReference, TiltSettings
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", tilt=TiltSettings(teach_sweeps=4))
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    # A faint texture: one sweep pins the tilts to +-0.11-0.14 degree only (refused alone).
+    faint = 100 + 3 * (texture() - 100) / 60
+    distances = list(WORKING_DISTANCES_UM)
+    answers = []
+    for seed in range(10):
+        answers.append(core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, seed), distances,
+                                       PIXEL_UM * 1000))
+        if answers[-1] is not None:
+            break
+        pool = core.teach_pool
+        assert pool.estimate.sweeps == len(answers) and core.tilt_reference is None  # not taught yet
+    taught = answers[-1]
+    assert answers[0] is None and 1 < len(answers) <= 4
+    tilt = taught["tilt"]
+    assert tilt["sweeps"] == len(answers) and max(tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"]) < 0.1
+    assert tilt["alpha_deg"] == pytest.approx(2.0, abs=0.3) and tilt["beta_deg"] == pytest.approx(-1.0, abs=0.3)
+    assert core.tilt_reference is not None and core.teach_pool is None
+    # Runs measure against the pooled reference.
+    assert core.measure(None, tilts=True)["tilts"] is True
+
+    # A texture too faint to pin them in four sweeps: refused, with how well after how many; bounded.
+    core.measure(None, tilts=False)
+    core.teach_latest()
+    fainter = 100 + 1.5 * (texture() - 100) / 60
+    calls = 0
+    refused = r"cannot tell the tilts: .*(pin the tilts to \+-|clear focus peak)"
+    with pytest.raises(NoTiltReference, match=refused) as refusal:
+        for seed in range(10):
+            calls += 1
+            core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), fainter, seed), distances, PIXEL_UM * 1000)
+    assert calls <= 4 and core.tilt_reference is None and core.teach_pool is None
+    assert calls == 1 or f"{calls} focus sweeps" in str(refusal.value)
+
+
+def test_a_new_reference_does_not_pool_the_sweeps_of_the_one_before():
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    faint = 100 + 3 * (texture() - 100) / 60
+    assert core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, 0), list(WORKING_DISTANCES_UM),
+                           PIXEL_UM * 1000) is None
+    core.teach_latest()  # a new reference: its tilts need sweeps of their own
+    assert core.teach_pool is None
+    core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, 1), list(WORKING_DISTANCES_UM), PIXEL_UM * 1000)
+    assert core.teach_pool is None or core.teach_pool.estimate.sweeps == 1
+
+
+def test_a_run_pools_sweeps_that_cannot_pin_the_tilts_or_pin_them_loosely_near_the_goal():
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    distances, pixel_nm = list(WORKING_DISTANCES_UM), PIXEL_UM * 1000
+    assert core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0)), distances, pixel_nm) is not None  # one sweep
+
+    def depths(alpha: float, contrast: float, seed: int) -> np.ndarray:
+        scene = 100 + contrast * (texture() - 100) / 60
+        return core.sweep_depths(sweep_of_depths(plane_depths(alpha, -1.0), scene, seed), distances, pixel_nm)
+
+    loose_near = depths(2.0, 4.0, 0)  # accepted alone (+-0.08 degree), at the taught tilts
+    assert core.pooled_estimate([loose_near], distances, pixel_nm).confidence > 0
+    assert core.sweep_again([loose_near], distances, pixel_nm)
+    # Far from the goal, a loose sweep is acted on as it is: the next move is larger than its noise.
+    assert not core.sweep_again([depths(4.0, 4.0, 0)], distances, pixel_nm)
+    # Refused alone for its uncertainty: swept again wherever it is.
+    refused = depths(4.0, 3.0, 1)
+    assert core.pooled_estimate([refused], distances, pixel_nm).confidence == 0
+    assert core.sweep_again([refused], distances, pixel_nm)
+    # Never beyond the bound.
+    assert not core.sweep_again([depths(2.0, 4.0, seed) for seed in range(4)], distances, pixel_nm)
+    # The reported measurement pools them: fewer degrees of noise, and says how many sweeps.
+    single = core.tilt_from_sweep(sweep_of_depths(plane_depths(2.0, -1.0), 100 + 4 * (texture() - 100) / 60, 3),
+                                  distances, pixel_nm)
+    pooled = core.tilt_from_sweep(sweep_of_depths(plane_depths(2.0, -1.0), 100 + 4 * (texture() - 100) / 60, 3),
+                                  distances, pixel_nm, earlier=[loose_near, depths(2.0, 4.0, 1)])
+    assert single["sweeps"] == 1 and pooled["sweeps"] == 3 and pooled["confidence"] > 0
+    assert pooled["alpha_uncertainty_deg"] < 0.8 * single["alpha_uncertainty_deg"]
+    assert abs(pooled["alpha_deg"]) < 0.3 and abs(pooled["beta_deg"]) < 0.3

@@ -336,3 +336,128 @@ def test_the_same_plane_without_the_roughness_is_measured():
     estimate = estimate_tilt(sweep, WORKING_DISTANCES_UM, 0.25, kernel=KERNEL)
     assert estimate.reason == "" and estimate.confidence > 0.5
     assert estimate.alpha_deg == pytest.approx(2.0, abs=0.1) and estimate.beta_deg == pytest.approx(-1.0, abs=0.1)
+
+
+# -- the taught pose swept more than once, the depths pooled ------------------------------
+
+def noisy_depth_maps(count: int, noise_um: float, seed: int = 11, alpha_deg: float = 2.0,
+                     beta_deg: float = -1.0) -> list[np.ndarray]:
+    """``count`` depth maps of the same plane, each kernel's depth off by independent
+    Gaussian noise (``noise_um``): what sweeps of one view give where pixel noise decides."""
+    rng = np.random.default_rng(seed)
+    truth = plane_depths(alpha_deg, beta_deg)
+    return [truth + rng.normal(0.0, noise_um, truth.shape) for _ in range(count)]
+
+
+def test_pooled_depths_are_each_kernels_mean_where_half_the_sweeps_see_it():
+    from semservo.estimation.tilt import pool_depths
+
+    first = np.array([[1.0, np.nan], [3.0, np.nan]])
+    second = np.array([[3.0, 2.0], [np.nan, np.nan]])
+    third = np.array([[2.0, np.nan], [np.nan, 5.0]])
+    pooled = pool_depths([first, second])
+    assert pooled[0, 0] == 2.0 and pooled[0, 1] == 2.0 and pooled[1, 0] == 3.0 and np.isnan(pooled[1, 1])
+    # Of three sweeps, a kernel seen in one only is left out (a marginal peak).
+    pooled = pool_depths([first, second, third])
+    assert pooled[0, 0] == 2.0 and np.isnan(pooled[0, 1]) and np.isnan(pooled[1, 0]) and np.isnan(pooled[1, 1])
+    np.testing.assert_array_equal(pool_depths([first]), first)
+    with pytest.raises(ValueError, match="same shape"):
+        pool_depths([first, np.zeros((3, 3))])
+    with pytest.raises(ValueError, match="one or more"):
+        pool_depths([])
+
+
+def test_pooling_sweeps_narrows_the_tilts_about_as_one_over_the_root_of_their_number():
+    from semservo.estimation.tilt import MAX_TILT_UNCERTAINTY_DEG, pooled_tilt, tilt_from_depths
+
+    step = float(WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0])
+    singles, pooled = [], []
+    for seed in range(8):
+        maps = noisy_depth_maps(4, noise_um=0.08, seed=seed)
+        singles.append(tilt_from_depths(maps[0], KERNEL, PIXEL_UM, step))
+        pooled.append(pooled_tilt(maps, KERNEL, PIXEL_UM, step))
+    single_uncertainty = np.mean([each.alpha_uncertainty_deg for each in singles])
+    pooled_uncertainty = np.mean([each.alpha_uncertainty_deg for each in pooled])
+    # One sweep alone cannot pin these tilts: refused, with how well it pinned them.
+    assert single_uncertainty > MAX_TILT_UNCERTAINTY_DEG
+    assert all(each.confidence == 0 and "pin the tilts" in each.reason for each in singles)
+    # Four pooled: about half the uncertainty (1 / sqrt(4), the floor of the sampling bias aside).
+    assert 0.4 < pooled_uncertainty / single_uncertainty < 0.65
+    assert all(each.sweeps == 4 and each.confidence > 0 for each in pooled)
+    # ... and the estimates' scatter about the truth shrinks with it.
+    errors = np.array([[each.alpha_deg - 2.0, each.beta_deg + 1.0] for each in pooled])
+    assert np.abs(errors).max() < 3 * pooled_uncertainty
+
+
+def test_a_teach_sweeps_again_while_the_tilts_are_pinned_loosely_and_stops_at_the_bound():
+    from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TEACH_UNCERTAINTY_DEG, pooled_tilt,
+                                          wants_another_sweep)
+
+    step = float(WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0])
+
+    def teach(maps: list[np.ndarray], max_sweeps: int = MAX_TEACH_SWEEPS):
+        """The teach's loop: sweep, pool, again while asked (as the estimator service's)."""
+        taken = []
+        for depths in maps:
+            taken.append(depths)
+            estimate = pooled_tilt(taken, KERNEL, PIXEL_UM, step)
+            if not wants_another_sweep(estimate, max_sweeps):
+                return estimate
+        raise AssertionError("asked for more sweeps than the bound")
+
+    # Pinned well by one sweep: one sweep.
+    assert teach(noisy_depth_maps(8, noise_um=0.005)).sweeps == 1
+    # Pinned loosely (refused alone): sweeps again, accepted once pooled, within the bound.
+    loose = teach(noisy_depth_maps(8, noise_um=0.08))
+    assert 1 < loose.sweeps <= MAX_TEACH_SWEEPS and loose.confidence > 0
+    # Accepted alone but over the teach's aim: pooled to under it.
+    aimed = teach(noisy_depth_maps(8, noise_um=0.03))
+    assert aimed.sweeps > 1 and max(aimed.alpha_uncertainty_deg, aimed.beta_uncertainty_deg) <= TEACH_UNCERTAINTY_DEG
+    # The bound holds whatever the sweeps say: never more than max_sweeps.
+    assert teach(noisy_depth_maps(8, noise_um=0.05), max_sweeps=2).sweeps == 2
+
+
+def test_a_hopeless_texture_is_refused_at_once_with_how_well_it_pinned_the_tilts():
+    from semservo.estimation.tilt import MAX_TILT_UNCERTAINTY_DEG, pooled_tilt, wants_another_sweep
+
+    step = float(WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0])
+    # So noisy that even four sweeps at 1 / sqrt(n) could not pin the tilts: not swept again.
+    estimate = pooled_tilt(noisy_depth_maps(1, noise_um=0.3), KERNEL, PIXEL_UM, step)
+    assert estimate.confidence == 0 and np.isnan(estimate.alpha_deg)
+    assert estimate.alpha_uncertainty_deg > 2 * MAX_TILT_UNCERTAINTY_DEG
+    assert "pin the tilts to +-" in estimate.reason
+    assert not wants_another_sweep(estimate)
+    # Refused after the bound, the reason says after how many sweeps and how well.
+    pooled = pooled_tilt(noisy_depth_maps(4, noise_um=0.3), KERNEL, PIXEL_UM, step)
+    assert pooled.confidence == 0 and pooled.sweeps == 4 and not wants_another_sweep(pooled)
+    assert pooled.reason.startswith("after 4 sweeps pooled, ") and "pin the tilts to +-" in pooled.reason
+    # Refused for another reason than its uncertainty (too few kernels): not swept again.
+    few = np.full((SIZE // KERNEL, SIZE // KERNEL), np.nan)
+    few[0, :3] = 0.1
+    refused = pooled_tilt([few], KERNEL, PIXEL_UM, step)
+    assert refused.confidence == 0 and "clear focus peak" in refused.reason and not wants_another_sweep(refused)
+
+
+def test_the_benchmarks_teach_pools_its_reference_as_the_service_does():
+    from semservo.reproduce.tilts import teach_reference
+
+    faint = 100 + 3 * (texture() - 100) / 60
+
+    class FaintLab:
+        """A flat view of a faint texture: one sweep pins its tilts to +-0.11-0.14 degree."""
+
+        pixel_um = PIXEL_UM
+
+        def __init__(self):
+            self.sweeps = 0
+
+        def sweep(self, pose, working_distances):
+            self.sweeps += 1
+            return sweep_of_depths(plane_depths(*pose[:2]), faint, seed=self.sweeps)
+
+    lab = FaintLab()
+    pooled, depths = teach_reference(lab, WORKING_DISTANCES_UM, max_sweeps=4)
+    assert 1 < pooled.sweeps == lab.sweeps <= 4 and pooled.confidence > 0 and depths.shape == (SIZE // KERNEL,) * 2
+    assert pooled.alpha_deg == pytest.approx(0.0, abs=0.3) and pooled.beta_deg == pytest.approx(0.0, abs=0.3)
+    single, _ = teach_reference(FaintLab(), WORKING_DISTANCES_UM, max_sweeps=1)
+    assert single.sweeps == 1

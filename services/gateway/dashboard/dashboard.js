@@ -391,7 +391,11 @@ function showTiltTeach(tiltTeach, tilt) {
     if (tiltTeach.frames > 0) {
       progress.max = tiltTeach.frames;
       progress.value = tiltTeach.scanned;
-      $("tilt-teach-text").textContent = `focus sweep: ${tiltTeach.scanned} of ${tiltTeach.frames} frames scanned`;
+      const which = (tiltTeach.max_sweeps || 1) > 1 ? ` ${tiltTeach.sweep || 1} (of at most ${tiltTeach.max_sweeps})` : "";
+      const pinned = tiltTeach.pinned_deg
+        ? `; so far the tilts are pinned to ±${fmt(tiltTeach.pinned_deg[0], 3)}° and ±${fmt(tiltTeach.pinned_deg[1], 3)}°`
+        : "";
+      $("tilt-teach-text").textContent = `focus sweep${which}: ${tiltTeach.scanned} of ${tiltTeach.frames} frames scanned${pinned}`;
     } else {
       progress.removeAttribute("value");
       $("tilt-teach-text").textContent = "focus sweep: starting";
@@ -399,7 +403,8 @@ function showTiltTeach(tiltTeach, tilt) {
   } else if (tiltTeach.state === "done") {
     progress.hidden = true;
     const plane = tilt ? `: α ${fmt(tilt.alpha_deg, 2)}° β ${fmt(tilt.beta_deg, 2)}°` : "";
-    $("tilt-teach-text").textContent = `focus sweep done (${tiltTeach.frames} frames)${plane}; tilts can be servoed`;
+    const sweeps = tilt && tilt.sweeps > 1 ? `${tilt.sweeps} sweeps of ${tiltTeach.frames} frames, pooled` : `${tiltTeach.frames} frames`;
+    $("tilt-teach-text").textContent = `focus sweep done (${sweeps})${plane}; tilts can be servoed`;
   } else {
     progress.hidden = true;
     $("tilt-teach-text").textContent = `focus sweep ${tiltTeach.state}: ${tiltTeach.error || "no reason given"}`;

@@ -29,8 +29,8 @@ exact inverse used here (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx)).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import NamedTuple
+from dataclasses import dataclass, replace
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -78,6 +78,15 @@ SYMMETRY_HALF_WINDOW = 3
 #: Candidate centres per sweep step, within a step of the highest sample (then refined
 #: by a parabola through the mismatch).
 SYMMETRY_CANDIDATES_PER_STEP = 20
+#: The most focus sweeps a teach takes of the taught pose (:func:`pooled_tilt`,
+#: :func:`wants_another_sweep`): each is 15-25 frames, and pooling n of them narrows the
+#: tilts' uncertainty by about 1 / sqrt(n) only while the kernels' depth noise dominates.
+MAX_TEACH_SWEEPS = 4
+#: The taught pose's tilts are swept again while either is pinned less tightly than this
+#: (degrees, its standard error): every later measurement is taken against the taught
+#: plane and carries its error whole, so it is pinned tighter than one measurement must
+#: be (``MAX_TILT_UNCERTAINTY_DEG``, the line beyond which the teach is refused).
+TEACH_UNCERTAINTY_DEG = 0.05
 
 
 @dataclass(frozen=True)
@@ -101,6 +110,8 @@ class TiltEstimate:
     #: where its kernels lie (NaN when no plane was fitted).
     alpha_uncertainty_deg: float = float("nan")
     beta_uncertainty_deg: float = float("nan")
+    #: How many focus sweeps of the same view the depths were pooled from (:func:`pooled_tilt`).
+    sweeps: int = 1
 
 
 def normalized_variance(patch: np.ndarray) -> float:
@@ -449,6 +460,64 @@ def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: f
         return refused(f"the kernel depths scatter about the plane by {plane.scale / step:.2f} sweep steps (at most "
                        f"{MAX_SCATTER_STEPS:g}): the scene is not one plane in focus")
     return estimate
+
+
+# --------------------------------------------------------------------------------------
+# The taught pose, swept more than once
+
+
+def pool_depths(depth_maps: Sequence[np.ndarray]) -> np.ndarray:
+    """The kernel depths of several focus sweeps of one view pooled (:func:`depth_map`'s
+    maps, NaN where a kernel has no clear peak): each kernel's mean over the sweeps where
+    it has a depth, NaN where it has one in fewer than half of them (a peak seen once in
+    four sweeps is a marginal one).
+
+    Why the depths and not the focus curves: the noise in a kernel's depth is the pixel
+    noise of its sweep, independent from sweep to sweep, so the mean of n depths
+    scatters about the plane 1 / sqrt(n) as much and the plane's standard errors
+    (:func:`tilt_from_depths`, from the residuals) fall with it, down to the floor of
+    ``SAMPLING_BIAS_STEPS`` (sweeps on the same working distances share that bias);
+    averaging the noise-free focus curves instead did as well on real textures
+    (``bench/tilt_real.py``) but needs the same working distances in every sweep."""
+    maps = [np.asarray(depths, dtype=np.float64) for depths in depth_maps]
+    if not maps or maps[0].ndim != 2 or any(depths.shape != maps[0].shape for depths in maps):
+        raise ValueError("pool_depths needs one or more depth maps (kernel rows x cols) of the same shape")
+    maps = np.stack(maps)
+    seen = np.isfinite(maps)
+    count = seen.sum(axis=0)
+    total = np.where(seen, maps, 0.0).sum(axis=0)
+    enough = count >= np.ceil(len(maps) / 2)
+    return np.where(enough & (count > 0), total / np.maximum(count, 1), np.nan)
+
+
+def pooled_tilt(depth_maps: Sequence[np.ndarray], kernel: int, pixel_size: float, step: float) -> TiltEstimate:
+    """The tilts from the pooled depths of one or more sweeps of the same view
+    (:func:`pool_depths`, :func:`tilt_from_depths`), with ``sweeps`` set; a refusal's
+    reason says how many sweeps were pooled."""
+    estimate = replace(tilt_from_depths(pool_depths(depth_maps), kernel, pixel_size, step), sweeps=len(depth_maps))
+    if estimate.reason and len(depth_maps) > 1:
+        estimate = replace(estimate, reason=f"after {len(depth_maps)} sweeps pooled, {estimate.reason}")
+    return estimate
+
+
+def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEEPS) -> bool:
+    """Whether a teach should sweep the same view once more and pool it
+    (:func:`pooled_tilt`): while fewer than ``max_sweeps`` are taken, when either tilt's
+    standard error is above ``TEACH_UNCERTAINTY_DEG`` (or the estimate is refused for
+    its uncertainty, above ``MAX_TILT_UNCERTAINTY_DEG``), and pooling ``max_sweeps``
+    could bring a refused estimate under the line at the best rate, 1 / sqrt(n): a
+    texture hopeless at that rate is refused at once (the estimate's reason stands),
+    not swept again. An estimate refused for another reason (too few kernels with a
+    clear peak, depths that are not one plane) is not swept again either."""
+    if estimate.sweeps >= max_sweeps:
+        return False
+    worst = max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg)
+    if not np.isfinite(worst):
+        return False
+    if estimate.confidence > 0:
+        return worst > TEACH_UNCERTAINTY_DEG
+    best_reachable = worst * np.sqrt(estimate.sweeps / max_sweeps)
+    return worst > MAX_TILT_UNCERTAINTY_DEG and best_reachable <= MAX_TILT_UNCERTAINTY_DEG
 
 
 # --------------------------------------------------------------------------------------

@@ -41,12 +41,17 @@ class TeachRequest(CommandRequest):
 
 
 class TiltTeach(CommandReply):
-    """The taught pose's focus sweep, which runs after a teach with tilts."""
+    """The taught pose's focus sweeps, which run after a teach with tilts: one, or more of
+    the same view pooled while they pin the tilts loosely."""
 
     state: Literal["sweeping", "done", "failed"]
     reference_id: str
     scanned: int = 0
     frames: int = 0
+    sweep: int = Field(1, description="which sweep is scanning (or the last one), from 1")
+    max_sweeps: int = Field(1, description="the most sweeps the teach takes before it refuses")
+    pinned_deg: list[float] | None = Field(None, description="the standard errors of alpha and beta (degrees) from "
+                                                             "the sweeps so far, pooled")
     error: str | None = None
     code: str | None = Field(None, description="failed: sweep_failed, or no_tilt_reference (the sweep cannot tell "
                                                "the tilts)")
@@ -68,8 +73,9 @@ class Reference(CommandReply):
     source_interval_s: list[float] | None = Field(None, description="when it was scanned, on the source's clock")
     label: str | None = None
     polygon: list[list[float]] | None = None
-    tilt: dict[str, Any] | None = Field(None, description="the taught pose's sweep: alpha_deg, beta_deg of its plane, "
-                                                          "centre_um, kernels_used, frames")
+    tilt: dict[str, Any] | None = Field(None, description="the taught pose's sweeps: alpha_deg, beta_deg of its plane, "
+                                                          "centre_um, kernels_used, frames (of each sweep), sweeps "
+                                                          "(pooled), alpha_uncertainty_deg, beta_uncertainty_deg")
     tilt_teach: TiltTeach | None = None
 
 

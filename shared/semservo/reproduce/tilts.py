@@ -34,7 +34,8 @@ import numpy as np
 
 from semservo.config import EstimatorSettings
 from semservo.estimation import MotionEstimator
-from semservo.estimation.tilt import depth_map, egi_tilt_between, estimate_tilt, plan_sweep, undo_foreshortening
+from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
+                                      plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, wants_another_sweep)
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
 
@@ -116,21 +117,39 @@ class TextureLab:
         return self._scene_at(pose).sweep(working_distances, self.rng, self.electrons, self.read_noise)
 
 
+def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
+                    kernel: int = 32) -> tuple[TiltEstimate, np.ndarray]:
+    """The taught pose's tilts as the estimator service teaches them: a focus sweep at
+    (0, 0, 0), and another of the same view, the kernel depths pooled, while
+    :func:`semservo.estimation.tilt.wants_another_sweep` asks for it (at most
+    ``max_sweeps``; 1: a single sweep). Returns the estimate and the pooled depths."""
+    working_distances = np.asarray(working_distances, dtype=np.float64)
+    step = float(working_distances[1] - working_distances[0])
+    maps = []
+    while True:
+        maps.append(depth_map(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel))
+        estimate = pooled_tilt(maps, kernel, lab.pixel_um, step)
+        if not wants_another_sweep(estimate, max_sweeps):
+            return estimate, pool_depths(maps)
+
+
 def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print,
-              lab=None) -> dict:
+              lab=None, reference_sweeps: int = 1, sweeps_when_refused: int = 1) -> dict:
     """Table I on ``poses`` ((alpha, beta, gamma) in degrees), each against a reference
     taught at (0, 0, 0): per pose, the errors (measured - true) of both methods, signs,
     frames, simulated scan time and compute time (see the module's text). ``lab``: the
     simulated SEM's tilts preset (:class:`Lab`) unless given (e.g. :class:`TextureLab`).
     A sweep whose estimate is refused (confidence 0) counts as refused, its reason kept;
-    the rest of the pose is still measured."""
+    the rest of the pose is still measured. ``reference_sweeps``: the most focus sweeps
+    the reference is taught from (:func:`teach_reference`; 1, a single sweep);
+    ``sweeps_when_refused``: the most sweeps of a pose whose first sweep is refused for
+    its uncertainty, pooled as the estimator service pools them in a run (1: none; the
+    paper's EGI and the tracking sweep are measured on the first sweep only)."""
     lab = Lab(seed) if lab is None else lab
     depth_of_field = lab.depth_of_field_um
     reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
     grid = (reference_sweep[0], reference_sweep[1] - reference_sweep[0])
-    taught_sweep = lab.sweep((0.0, 0.0, 0.0), reference_sweep)
-    taught = estimate_tilt(taught_sweep, reference_sweep, lab.pixel_um)
-    taught_depths = depth_map(taught_sweep, reference_sweep)
+    taught, taught_depths = teach_reference(lab, reference_sweep, reference_sweeps)
     reference_frame = lab.frame((0.0, 0.0, 0.0))
     rotation = MotionEstimator(reference_frame, rotation=True)
     frame_time = lab.frame_time_s
@@ -149,6 +168,18 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         clock = time.perf_counter()
         egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep), 32, lab.pixel_um)
         egi_ms = (time.perf_counter() - clock) * 1e3
+        pose_sweeps = 1
+        if plane.confidence <= 0 and wants_another_sweep(plane, sweeps_when_refused):
+            # As the estimator service does in a run: a sweep that cannot pin the tilts
+            # is followed by more of the same plan, their depths pooled.
+            step = float(first_sweep[1] - first_sweep[0])
+            maps = [depth_map(frames, first_sweep)]
+            while True:
+                maps.append(depth_map(lab.sweep(pose, first_sweep), first_sweep))
+                plane = pooled_tilt(maps, 32, lab.pixel_um, step)
+                if not wants_another_sweep(plane, sweeps_when_refused):
+                    break
+            pose_sweeps = len(maps)
         refused = plane.confidence <= 0 or taught.confidence <= 0
         measured_alpha, measured_beta = plane.alpha_deg - taught.alpha_deg, plane.beta_deg - taught.beta_deg
         if refused:
@@ -176,7 +207,7 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
             "signs_egi": [_sign_ok(egi_alpha, alpha), _sign_ok(egi_beta, beta)],
             "frames_first": len(first_sweep), "frames_tracking": len(tracking_sweep),
             "scan_s_first": len(first_sweep) * frame_time, "scan_s_tracking": len(tracking_sweep) * frame_time,
-            "plane_ms": plane_ms, "egi_ms": egi_ms, "kernels_used": plane.kernels_used,
+            "plane_ms": plane_ms, "egi_ms": egi_ms, "kernels_used": plane.kernels_used, "sweeps": pose_sweeps,
         })
         left = (time.monotonic() - started) / index * (len(poses) - index)
         outcome = (f"refused ({plane.reason or taught.reason})" if refused else
@@ -185,23 +216,24 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
             f"{rows[-1]['egi'][0]:+.3f} {rows[-1]['egi'][1]:+.3f}, gamma {rows[-1]['gamma_compensated']:+.4f} "
             f"({left:.0f} s left)")
     return {"taught": [taught.alpha_deg, taught.beta_deg], "taught_reason": taught.reason, "frame_time_s": frame_time,
-            "rows": rows}
+            "taught_sweeps": taught.sweeps,
+            "taught_uncertainty": [taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg], "rows": rows}
 
 
 def depth_of_field_scan(poses: list[tuple[float, float, float]], seed: int, factors=(1.0, 2.0, 4.0, 8.0),
-                        say: Callable[[str], None] = print, lab_for: Callable[[float], object] | None = None
-                        ) -> list[dict]:
+                        say: Callable[[str], None] = print, lab_for: Callable[[float], object] | None = None,
+                        reference_sweeps: int = 1) -> list[dict]:
     """The plane fit's error as the depth of field grows (a smaller aperture or a longer
     working distance): ``lab_for(factor)`` is the lab with its depth of field that many
     times larger (the simulated SEM's beam half-angle divided by it, unless given); the
-    sweeps are scaled to the depth of field."""
+    sweeps are scaled to the depth of field; ``reference_sweeps`` as :func:`table_one`."""
     lab_for = (lambda factor: Lab(seed, depth_of_field_factor=factor)) if lab_for is None else lab_for
     rows = []
     for factor in factors:
         lab = lab_for(factor)
         depth_of_field = lab.depth_of_field_um
         reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
-        taught = estimate_tilt(lab.sweep((0.0, 0.0, 0.0), reference_sweep), reference_sweep, lab.pixel_um)
+        taught, _ = teach_reference(lab, reference_sweep, reference_sweeps)
         errors, signs, refused = [], [], 0
         for alpha, beta, gamma in poses:
             measured = estimate_tilt(lab.sweep((alpha, beta, gamma), reference_sweep), reference_sweep, lab.pixel_um)
@@ -297,6 +329,11 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
             while lab.status()["latest_frame_seq"] is None and time.monotonic() < deadline:
                 time.sleep(0.2)
             reference = lab.teach(frames=4, tilts=True)
+            taught_tilt = reference.tilt or {}
+            say(f"  taught: {taught_tilt.get('sweeps', 1)} focus sweep(s) of {taught_tilt.get('frames')} frames read the "
+                f"plane's tilts {taught_tilt.get('alpha_deg', math.nan):+.3f}, {taught_tilt.get('beta_deg', math.nan):+.3f}"
+                f" deg, pinned to +-{taught_tilt.get('alpha_uncertainty_deg', math.nan):.3f} and "
+                f"+-{taught_tilt.get('beta_uncertainty_deg', math.nan):.3f}")
             # The taught pose: over the scans of the frames the reference was made from.
             scanned = reference.get("source_interval_s") or (reference.get("detail") or {}).get("source_interval_s")
             taught_pose = _pose(fakelab.request("pose", interval_s=scanned)) if scanned else None
