@@ -4,6 +4,7 @@ average frames, the map gave another default precision than the README)."""
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -27,9 +28,11 @@ def test_up_names_every_preset_and_its_glob_reaches_a_watched_folder(monkeypatch
     for name in PRESETS:
         assert name in text, name
     assert "replay only" not in text and "watched one" in text
-    for name in ("SEMSERVO_IMAGESERVER__WATCH_GLOB", "SEMSERVO_IMAGESERVER__REPLAY_GLOB", "SEMSERVO_IMAGESERVER__SOURCE",
-                 "SEMSERVO_IMAGESERVER__WATCH_DIR"):
-        monkeypatch.delenv(name, raising=False)
+    # _source_environment writes the process's environment for the children `up` starts:
+    # give it a copy, so that nothing it sets outlives this test (a watched source left
+    # set made a later whole-stack test start without frames).
+    monkeypatch.setattr(os, "environ", {key: value for key, value in os.environ.items()
+                                        if not key.startswith("SEMSERVO_IMAGESERVER__")})
     args = cli.build_parser().parse_args(["up", "--watch-dir", str(tmp_path), "--glob", "*.tif"])
     cli._source_environment(args)
     assert Settings().imageserver.watch_glob == "*.tif" and Settings().imageserver.source == "watch"
