@@ -40,6 +40,22 @@ from semservo.protocol.controller import RunSettings
 from semservo.wire import Frame
 from services.gateway.records import FINISHED, RunStore
 
+
+def view_error_px(pose: dict, taught: dict, pixel_um: float) -> tuple[float, float] | None:
+    """On simulated hardware with a tilted stage: how far (px) the content at the taught
+    view's centre is from the centre now, the error the image shows. It differs from the
+    stage's x, y error by the tilt cradle's pivot lever under the residual tilt, which x
+    and y make up for. None when neither pose has tilts (then the two are one)."""
+    keys = ("rotation_deg", "tilt_x_deg", "tilt_y_deg")
+    if not any(pose.get(key) or taught.get(key) for key in keys[1:]):
+        return None
+    from semservo.simulation import sem  # the simulator's geometry: only where it runs
+
+    def as_pose(values: dict) -> sem.Pose:
+        return sem.Pose(x_um=values["x_um"], y_um=values["y_um"], z_um=values.get("z_um") or 0.0,
+                        **{key: values.get(key) or 0.0 for key in keys})
+    return sem.view_error_px(as_pose(pose), as_pose(taught), pixel_um)
+
 log = logging.getLogger("gateway")
 
 #: How long one round of health answers serves /status (seconds).
@@ -355,9 +371,13 @@ class GatewayCore:
         # The rotation-and-tilt stage's true angles against the taught ones (degrees).
         angles = {key: pose[key] - taught[key] for key in ("rotation_deg", "tilt_x_deg", "tilt_y_deg")
                   if pose.get(key) is not None and taught.get(key) is not None}
-        return ({"error_um": error_um, "error_px": [value / pixel_um for value in error_um],
+        truth = {"error_um": error_um, "error_px": [value / pixel_um for value in error_um],
                  "error_norm_px": float(np.hypot(*error_um) / pixel_um), "pixel_size_um": pixel_um,
-                 "error_deg": angles}, None, False)
+                 "error_deg": angles}
+        view = view_error_px(pose, taught, pixel_um)
+        if view is not None:
+            truth.update(view_error_px=list(view), view_error_norm_px=float(np.hypot(*view)))
+        return truth, None, False
 
     # -- the reference: the estimator's ------------------------------------------------
     def follow_reference(self, described: dict | None) -> None:

@@ -27,7 +27,7 @@ def test_the_demo_starts_the_system_positions_and_reports(ports, monkeypatch, tm
     assert true_px < 0.5
     # What convergence was judged on, said beside the truth (a truth above the tolerance
     # once read as a contradiction); and why, when it is above.
-    assert "the mean of the last fresh frames: what the run judges convergence on" in out
+    assert "the position law's estimate: what the run judges convergence on" in out  # the default law
     if true_px > 0.15:
         assert "the run stops when its *estimate* is within it" in out
     report = Path(re.search(r"report \(error, cost, voltages per iteration\): (\S+)", out).group(1))

@@ -4,6 +4,7 @@ are checked one by one."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from semservo.errors import CommandError, ServiceUnavailable, http_status
@@ -129,3 +130,21 @@ def test_click_to_move_on_frames_without_a_pixel_size_is_refused_not_guessed():
         core.center(10.0, 20.0)
     assert http_status(refused.value.code) == 409 and refused.value.code == "pixel_size_unknown"
     assert stage.asked == []
+
+
+def test_a_tilted_runs_truth_is_the_error_the_image_shows_not_the_stages_alone():
+    """With the tilt cradle tilted, x, y make up for the pivot's lever: the stage's own x, y
+    end away from the taught ones while the view is on target. The truth a run reports is
+    then the view's (the content at the taught centre), beside the stage's."""
+    from services.gateway.core import view_error_px
+
+    taught = {"x_um": 0.0, "y_um": 0.0, "rotation_deg": 0.0, "tilt_x_deg": 0.0, "tilt_y_deg": 0.0}
+    assert view_error_px({"x_um": 0.5, "y_um": 0.0}, {"x_um": 0.0, "y_um": 0.0}, 0.1) is None  # no tilts: one error
+    # Equal tilts: the view's error is the stage's.
+    tilted = {**taught, "tilt_x_deg": 2.0}
+    view = view_error_px({**tilted, "x_um": 0.5}, tilted, 0.1)
+    assert np.hypot(*view) == pytest.approx(5.0, rel=0.02)
+    # A residual tilt moves the view by the pivot's lever: the stage at the taught x, y is
+    # not on target, and the view error says by how much.
+    lever = view_error_px({**taught, "tilt_x_deg": 0.2}, taught, 0.1)
+    assert np.hypot(*lever) > 0.5

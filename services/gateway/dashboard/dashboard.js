@@ -738,7 +738,8 @@ async function loadRuns() {
     const row = document.createElement("tr");
     row.dataset.runId = run.id;
     const started = new Date(run.started_at_ns / 1e6).toLocaleTimeString();
-    const truth = run.truth && run.truth.error_norm_px !== undefined ? fmt(run.truth.error_norm_px, 3) : "–";
+    const truth = run.truth && run.truth.error_norm_px !== undefined
+      ? fmt(run.truth.view_error_norm_px ?? run.truth.error_norm_px, 3) : "–";
     const cells = [run.id, started, dofText(run.dofs), run.state, run.iterations, fmtDuration(run.duration_s),
       fmt(run.final_error_px, 3), truth];
     row.replaceChildren(...cells.map((value, index) => {
@@ -761,7 +762,7 @@ async function showRun(runId) {
   $("detail-id").textContent = run.id;
   $("detail-state").textContent = run.state;
   const truth = run.truth && run.truth.error_norm_px !== undefined
-    ? `; true final error ${fmt(run.truth.error_norm_px, 3)} px` : "";
+    ? `; true final error ${fmt(run.truth.view_error_norm_px ?? run.truth.error_norm_px, 3)} px` : "";
   const toTarget = run.time_to_target_s ? `, at the target after ${fmtDuration(run.time_to_target_s)}` : "";
   $("detail-summary").textContent = `DOFs ${dofText(run.dofs)}; ${run.iterations} iterations in ` +
     `${fmtDuration(run.duration_s)}${toTarget} (${run.fresh_frames ?? "–"} fresh frames); ` +
