@@ -247,15 +247,14 @@ class EstimatorCore:
             raise TeachError("teach an image before its tilt sweep")
         if reference_id is not None and reference_id != self.reference.id:
             raise TeachError(f"reference {reference_id} was replaced by {self.reference.id} during its focus sweep")
-        _, depths = self._tilt_of(sweep, working_distances, pixel_size_nm)
+        depths = self.sweep_depths(sweep, working_distances, pixel_size_nm)
         pool = self.teach_pool
         if pool is None or pool.reference_id != self.reference.id:
             pool = TeachPool(self.reference.id)
         pool.depth_maps.append(depths)
-        steps = pool.steps + [(working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)]
-        pool.steps = steps
+        pool.steps.append((working_distances[-1] - working_distances[0]) / (len(working_distances) - 1))
         pool.estimate = pooled_tilt(pool.depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000,
-                                    float(np.mean(steps)))
+                                    float(np.mean(pool.steps)))
         estimate = pool.estimate
         if wants_another_sweep(estimate, self.tilt_settings.teach_sweeps):
             self.teach_pool = pool

@@ -32,6 +32,15 @@ from semservo.estimation.translation import (
 MOVED_WINDOWS_KEPT = 64
 
 
+def weighted_spectrum(plans, image: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """FFT of ``image`` under ``weights``, less its weighted mean (so the weights' own
+    spectrum does not leak into the band), through ``plans`` (its buffer: copy to keep)."""
+    total = float(weights.sum())
+    mean = float(np.vdot(image, weights)) / total if total > 0 else 0.0
+    _kernels.apodize_into(image, mean, weights, 0, 0, plans.forward.input_array)
+    return plans.forward()
+
+
 class Search(NamedTuple):
     """The whole-pixel search's answer (eq. 18-24): the shift in full-resolution pixels
     (sub-pixel by Foroosh's ratio), the correlation peak's height and its
@@ -180,12 +189,8 @@ class FullResolution:
         return kept_near(shift, fitted, band, self.filtered_fit_band)
 
     def weighted_spectrum(self, image: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """FFT of a full-resolution image under ``weights``, less its weighted mean (so the
-        weights' own spectrum does not leak into the band). The plan's buffer."""
-        total = float(weights.sum())
-        mean = float(np.vdot(image, weights)) / total if total > 0 else 0.0
-        _kernels.apodize_into(image, mean, weights, 0, 0, self.plans.forward.input_array)
-        return self.plans.forward()
+        """FFT of a full-resolution image under ``weights`` (:func:`weighted_spectrum`)."""
+        return weighted_spectrum(self.plans, image, weights)
 
     def frame_buffer(self) -> np.ndarray:
         """A frame-sized buffer (for the frame turned back by its rotation), made once."""
@@ -362,12 +367,8 @@ class HalfResolution:
         return max(0.0, 1.0 - noise / power) if power > 0 else 0.0
 
     def weighted_spectrum(self, halved: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """FFT of an image of this resolution under ``weights``, less its weighted mean
-        (so the weights' own spectrum does not leak into the band). The plan's buffer."""
-        total = float(weights.sum())
-        mean = float(np.vdot(halved, weights)) / total if total > 0 else 0.0
-        _kernels.apodize_into(halved, mean, weights, 0, 0, self.plans.forward.input_array)
-        return self.plans.forward()
+        """FFT of an image of this resolution under ``weights`` (:func:`weighted_spectrum`)."""
+        return weighted_spectrum(self.plans, halved, weights)
 
     def windowed_spectrum(self, halved: np.ndarray, mean: float, shift: Shift) -> np.ndarray:
         """FFT of a halved frame (mean-free) under the full-resolution window moved by the
