@@ -276,18 +276,21 @@ class EstimatorCore:
 
     def tilt_from_sweep(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None, *,
                         scan_started_at_ns: int | None = None, source_interval_s=None, took_s: float | None = None,
-                        earlier: list[np.ndarray] | None = None) -> dict:
+                        earlier: list[np.ndarray] | None = None, sweep_depth_map: np.ndarray | None = None) -> dict:
         """The tilts of a sweep against the taught one's: alpha and beta (degrees, the
         convention of :mod:`semservo.estimation.tilt`) with a confidence (0: not measured, the
         reason given). With ``method="egi"`` the rotation between the two EGIs.
         ``earlier``: the kernel depths of earlier sweeps of the same view on the same
         working distances (:meth:`sweep_depths`), pooled with this one's
-        (:func:`semservo.estimation.tilt.pooled_tilt`)."""
+        (:func:`semservo.estimation.tilt.pooled_tilt`); ``sweep_depth_map``: this sweep's, when
+        made already (the tracker made it to decide whether to sweep again)."""
         reference = self.tilt_reference
         if reference is None or self.reference is None or reference.reference_id != self.reference.id:
             raise NoTiltReference("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
         started = time.perf_counter()
-        maps = [*(earlier or []), self.sweep_depths(sweep, working_distances, pixel_size_nm)]
+        this = sweep_depth_map if sweep_depth_map is not None else self.sweep_depths(sweep, working_distances,
+                                                                                     pixel_size_nm)
+        maps = [*(earlier or []), this]
         estimate, depths = self.pooled_estimate(maps, working_distances, pixel_size_nm), pool_depths(maps)
         if self.tilt_settings.method == "egi":
             alpha, beta, peak = egi_tilt_between(reference.depths, depths, self.tilt_settings.kernel_px,

@@ -191,7 +191,7 @@ class TiltTracker:
             result = core.tilt_from_sweep(
                 sweep, distances, pixel_nm, scan_started_at_ns=first.get("scan_started_at_ns"),
                 source_interval_s=_spanning(first.get("source_interval_s"), reply.get("source_interval_s")),
-                took_s=took_s or None, earlier=earlier)
+                took_s=took_s or None, earlier=earlier, sweep_depth_map=depths)
             core.tilt_error = None if result["confidence"] > 0 else f"tilts not measured: {result['reason']}"
         except Exception as error:  # noqa: BLE001 - say why, wait, try again; never die
             if core.measure_tilts:
