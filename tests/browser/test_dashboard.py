@@ -60,7 +60,8 @@ def test_teach_start_converge_and_the_plots_fill(page):
     page.click("#jog-y-minus")
     page.wait_for_timeout(500)
     page.click("#start")
-    expect(page.locator("#state")).to_have_text("servoing", timeout=10_000)
+    # The position law can arrive between two polls of the page: servoing may not be seen.
+    expect(page.locator("#state")).to_have_text(re.compile("servoing|converged"), timeout=10_000)
     expect(page.locator("#state")).to_have_text("converged", timeout=CONVERGED_S)
     points = int(page.inner_text("#error-points").split()[0])
     assert points >= 2
