@@ -196,7 +196,9 @@ class ControllerCore:
             if required:
                 what = "tilts" if tilts else "rotation"
                 if isinstance(error, CommandError):
-                    raise BadRequest(f"{what} cannot be servoed: {error.message}") from None
+                    # The estimator's code kept: "no_tilt_reference" is the system's state
+                    # (teach with tilts first, HTTP 409), not a malformed request.
+                    raise CommandError(error.code, f"{what} cannot be servoed: {error.message}") from None
                 raise BadRequest(f"{what} cannot be servoed: the estimator, which measures it, did not take the "
                                  f"request ({error})") from None
             log.warning("could not set the estimator's measurements: %s", error)
@@ -348,8 +350,7 @@ class ControllerCore:
                 # Frames scanned before the turn or tilt has arrived show a pose in between.
                 record.command_settled_at_ns = max(record.command_settled_at_ns or 0, turned.settled_at_ns)
                 if tilting:
-                    run.tilts.settled_ns = record.command_settled_at_ns
-                    run.tilts.moves += 1
+                    run.tilts.moved(record.command_settled_at_ns)
                     # A tilt about the pivot below the surface shifts the view: the planar
                     # cost jumps by design, so divergence is judged afresh from here.
                     run.min_cost, run.rising = math.inf, 0

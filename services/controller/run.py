@@ -18,7 +18,8 @@ the run (and the estimate) that returns what it decided, so each is tested alone
    which tells the law what was carried out (``applied``); then the iteration is recorded.
 
 The tilts (alpha, beta) are measured once per focus sweep: :func:`tilt_step` acts on
-each fresh sweep once.
+each fresh sweep once, on the mean of the sweeps since the last tilt move, and only on
+an error its sweeps can tell from zero (:data:`TILT_SIGNIFICANCE`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,12 @@ PROGRESS_FACTOR = 0.9
 
 #: A tilt run makes no progress only after this many focus sweeps without it too.
 STALL_SWEEPS = 4
+
+#: A tilt error within this many standard errors of zero (the mean of the sweeps since
+#: the last tilt move) is not acted on: the sweeps cannot tell it from zero, and a move on
+#: their noise only adds it to the pose (runs on hole_low_mag, measured to about +-0.1
+#: degree, chased it until they stalled). The run sweeps again and pools instead.
+TILT_SIGNIFICANCE = 2.0
 
 Ending = Literal["converged", "failed", "stopped"]
 
@@ -94,6 +101,10 @@ class IterationRecord:
     tilt_gain: float | None = None
     tilt_velocity: tuple[float, ...] | None = None
     tilt_sampling_time_s: float | None = None
+    tilt_uncertainty_deg: tuple[float, ...] | None = None  # this sweep's standard errors (alpha, beta)
+    tilt_pooled: int | None = None  # sweeps since the last tilt move the errors were averaged over
+    tilt_mean_deg: dict[str, float] | None = None  # their mean: what the tilts were judged and moved on
+    tilt_spread_deg: dict[str, float] | None = None  # its standard error
 
     @classmethod
     def of(cls, estimate: MotionEstimate) -> "IterationRecord":
@@ -122,6 +133,30 @@ class Tilts:
     last_end_s: float | None = None  # that sweep's end on the source's clock (its sampling time)
     moves: int = 0
     sweeps: int = 0  # fresh sweeps measured
+    #: The fresh sweeps' errors since the last tilt move, with their standard errors
+    #: (None where the estimator did not give them): what :meth:`pooled` averages.
+    since_move: list[tuple[dict[str, float], dict[str, float] | None]] = field(default_factory=list)
+
+    def moved(self, settled_ns: int) -> None:
+        """A tilt move was commanded, arriving at ``settled_ns``: sweeps before it are stale."""
+        self.settled_ns = settled_ns
+        self.moves += 1
+        self.since_move.clear()
+
+    def pooled(self) -> tuple[dict[str, float], dict[str, float]]:
+        """The errors of the sweeps since the last move, averaged with weights 1 / sigma^2,
+        and the mean's standard error per DOF. Without standard errors for every sweep,
+        the latest sweep alone with a standard error of 0 (it is taken as it is)."""
+        latest, spreads = self.since_move[-1]
+        if any(sigmas is None for _, sigmas in self.since_move):
+            return dict(latest), {dof: 0.0 for dof in latest}
+        mean, spread = {}, {}
+        for dof in latest:
+            weights = np.array([1.0 / max(sigmas[dof], 1e-6) ** 2 for _, sigmas in self.since_move])
+            values = np.array([errors[dof] for errors, _ in self.since_move])
+            mean[dof] = float(np.sum(weights * values) / np.sum(weights))
+            spread[dof] = float(1.0 / np.sqrt(np.sum(weights)))
+        return mean, spread
 
 
 @dataclass
@@ -431,8 +466,11 @@ def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:
 
 def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> LawStep | None:
     """The tilts' part of an iteration: acted on once per focus sweep, and only for a
-    sweep scanned after the last tilt move had arrived; held within tolerance (the run
-    converges on that measurement) or when the sweep could not tell the tilts."""
+    sweep scanned after the last tilt move had arrived, on the mean of the sweeps since
+    that move (:meth:`Tilts.pooled`). Held within half the tolerance, or within
+    :data:`TILT_SIGNIFICANCE` standard errors of that mean (the sweeps cannot tell the
+    error from zero: the next sweep is pooled), or when the sweep could not tell the
+    tilts; the run may converge on a mean within tolerance."""
     tilts, settings = run.tilts, run.settings
     record.alpha_deg, record.beta_deg = estimate.alpha_deg, estimate.beta_deg
     record.tilt_confidence, record.tilt_seq = estimate.tilt_confidence, estimate.tilt_seq
@@ -449,14 +487,24 @@ def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> La
         return None
     tilts.sweeps += 1
     errors = {"alpha": estimate.alpha_deg, "beta": estimate.beta_deg}
-    record.tilt_frames = estimate.tilt_frames
-    tilts.last_error = {dof: errors[dof] for dof in tilts.law.dofs}
-    largest = max(abs(errors[dof]) for dof in tilts.law.dofs)
-    # Within tolerance, the run may converge on this measurement; the tilts are still
-    # corrected down to half the tolerance, or the run would end at its edge.
-    tilts.within = dict(tilts.last_error) if largest <= settings.tolerance_tilt_deg else None
+    record.tilt_frames, record.tilt_uncertainty_deg = estimate.tilt_frames, estimate.tilt_uncertainty_deg
+    sigmas = dict(zip(("alpha", "beta"), estimate.tilt_uncertainty_deg)) if estimate.tilt_uncertainty_deg else None
+    tilts.since_move.append(({dof: errors[dof] for dof in tilts.law.dofs},
+                             {dof: sigmas[dof] for dof in tilts.law.dofs} if sigmas else None))
+    mean, spread = tilts.pooled()
+    record.tilt_pooled, record.tilt_mean_deg, record.tilt_spread_deg = len(tilts.since_move), mean, spread
+    tilts.last_error = mean
+    largest = max(abs(value) for value in mean.values())
+    # Within tolerance, the run may converge on this mean; the tilts are still corrected
+    # down to half the tolerance, or the run would end at its edge, but never on an
+    # error its sweeps cannot tell from zero.
+    tilts.within = dict(mean) if largest <= settings.tolerance_tilt_deg else None
     if largest <= settings.tolerance_tilt_deg / 2:
         record.tilt_action = "within tolerance"
+        return None
+    if all(abs(mean[dof]) <= TILT_SIGNIFICANCE * spread[dof] for dof in mean):
+        record.tilt_action = (f"held: within {TILT_SIGNIFICANCE:g} standard errors of zero "
+                              f"({len(tilts.since_move)} sweeps pooled)")
         return None
     interval = estimate.tilt_source_interval_s
     end_s = interval[1] if interval else None
@@ -467,7 +515,7 @@ def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> La
     else:
         elapsed = max(estimate.tilt_sweep_s or 1.0, 1e-3)
     tilts.last_end_s = end_s
-    step = tilts.law.step(estimate.alpha_deg, estimate.beta_deg, elapsed)
+    step = tilts.law.step(mean.get("alpha", estimate.alpha_deg), mean.get("beta", estimate.beta_deg), elapsed)
     record.tilt_error, record.tilt_cost, record.tilt_gain = step.error, step.cost, step.gain
     record.tilt_velocity, record.tilt_sampling_time_s, record.tilt_action = step.velocity, elapsed, "moved"
     return step

@@ -66,6 +66,11 @@ def acquisition_of(frame: Frame | None) -> dict[str, Any]:
     return {key: getattr(frame.header, key) for key in ACQUISITION_FIELDS if getattr(frame.header, key) is not None}
 
 
+def _finite_pair(first: float, second: float) -> tuple[float, float] | None:
+    """Two numbers for the wire, or None when either is not finite (JSON has no NaN)."""
+    return (float(first), float(second)) if np.isfinite(first) and np.isfinite(second) else None
+
+
 def decode_upload(encoded: str, *, with_metadata: bool = False, data_bar="auto"):
     """Pixels of a base64-encoded PNG or TIFF upload (and, ``with_metadata``, what the
     file says of its acquisition); a data bar cropped as ``data_bar`` says
@@ -508,7 +513,8 @@ class EstimatorCore:
         return {"alpha_deg": tilt["alpha_deg"], "beta_deg": tilt["beta_deg"], "tilt_confidence": tilt["confidence"],
                 "tilt_seq": tilt["tilt_seq"], "tilt_scan_started_at_ns": tilt["scan_started_at_ns"],
                 "tilt_frames": tilt["frames"], "tilt_sweep_s": tilt["sweep_s"],
-                "tilt_source_interval_s": tilt["source_interval_s"]}
+                "tilt_source_interval_s": tilt["source_interval_s"],
+                "tilt_uncertainty_deg": _finite_pair(tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"])}
 
     def describe_reference(self) -> dict | None:
         """The reference as the protocol reports it, with its tilt sweep's progress."""

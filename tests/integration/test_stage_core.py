@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from semservo import nv40
-from semservo.errors import BadRequest, CommandError
+from semservo.errors import CommandError
 from semservo.messages import MotionEstimate
 from semservo.protocol import LocalPort
 from semservo.protocol import estimator as estimator_protocol
@@ -556,8 +556,9 @@ def test_a_tilt_run_without_a_taught_sweep_is_refused(turning_stage, tmp_path):
             return super().call(command, request, **fields)
 
     core = ControllerCore(LocalStage(stage), estimator=NoSweep(), runs_dir=tmp_path)
-    with pytest.raises(BadRequest, match="teach with tilts=true"):
+    with pytest.raises(CommandError, match="teach with tilts=true") as refusal:
         core.start(RunSettings(dofs=["x", "y", "alpha"]), "ref")
+    assert refusal.value.code == "no_tilt_reference", "the state's conflict (409), not a malformed request"
     assert core.state == "idle" and stage.watchdog.owner is None
 
 

@@ -35,7 +35,9 @@ def test_a_tilt_run_needs_a_taught_sweep_and_says_so(system):
     lab.teach(frames=2)
     with pytest.raises(SemservoError) as refusal:
         lab.start(dofs=["x", "y", "alpha", "beta"])
-    assert refusal.value.status == 422 and "teach with tilts=true" in refusal.value.message
+    # 409: the request is well formed, the system lacks a taught sweep (schemathesis
+    # counts a 422 for a schema-valid body as a wrong answer).
+    assert refusal.value.status == 409 and "teach with tilts=true" in refusal.value.message
     with pytest.raises(SemservoError) as refusal:
         lab.start(dofs=["x", "y", "pitch"])
     assert refusal.value.status == 422
@@ -64,7 +66,8 @@ def test_a_teach_with_tilts_answers_at_once_and_reports_its_sweeps_progress(syst
     assert reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping"
     with pytest.raises(SemservoError) as refused:
         lab.start(dofs=["alpha", "beta"])
-    assert refused.value.status == 422 and "still scanning" in refused.value.message
+    assert refused.value.status == 409 and "still scanning" in refused.value.message
+    assert refused.value.code == "no_tilt_reference"
     seen = set()
     done = wait_for(lambda: (now := lab.reference()).tilt_teach.state != "sweeping" and now or
                     seen.add(now.tilt_teach.scanned), 120, "the taught pose's sweep")

@@ -12,7 +12,7 @@ from semservo.control import ControlLaw, LawStep, TiltLaw
 from semservo.messages import MotionEstimate
 from semservo.protocol.controller import RunSettings
 from services.controller.run import (
-    FOREIGN_ESTIMATES_TO_FAIL, STALL_SWEEPS, IterationRecord, Run, Tilts, admit, decide, gate, judge, measure, tilt_step,
+    FOREIGN_ESTIMATES_TO_FAIL, STALL_SWEEPS, TILT_SIGNIFICANCE, IterationRecord, Run, Tilts, admit, decide, gate, judge, measure, tilt_step,
 )
 
 
@@ -115,6 +115,48 @@ def test_a_tilt_run_is_not_stalled_before_its_sweeps_have_had_their_say():
         if verdict is not None:
             break
     assert verdict is not None and verdict.ending == "failed" and "tilts alpha +2.000 deg" in verdict.reason
+
+
+def sweep(run: Run, seq: int, alpha: float, beta: float, sigma: float | None) -> IterationRecord:
+    """One fresh focus sweep's measurement through tilt_step; its record (whether a step
+    was made: ``tilt_action == "moved"``)."""
+    record = IterationRecord.of(estimate())
+    tilted = estimate(0.0, seq=seq, alpha_deg=alpha, beta_deg=beta, tilt_confidence=0.9, tilt_seq=seq,
+                      tilt_scan_started_at_ns=10_000 * seq,
+                      tilt_uncertainty_deg=None if sigma is None else (sigma, sigma))
+    step = tilt_step(run, tilted, record)
+    assert (step is not None) == (record.tilt_action == "moved")
+    return record
+
+
+def test_tilts_are_not_moved_on_an_error_their_sweeps_cannot_tell_from_zero_but_pooled_until_they_can():
+    """Runs on a real texture measured to +-0.1 degree chased that noise and stalled."""
+    run = make_run(dofs=["alpha", "beta"], tolerance_tilt_deg=0.1)
+    noisy = sweep(run, 1, 0.15, -0.02, sigma=0.1)
+    assert noisy.tilt_action.startswith(f"held: within {TILT_SIGNIFICANCE:g} standard")
+    assert run.tilts.within is None, "0.15 degree is not within the 0.1 tolerance: the run does not converge on it"
+    # Sweeps of the same pose pool: the mean's standard error falls as 1 / sqrt(n).
+    second = sweep(run, 2, 0.05, 0.02, sigma=0.1)
+    assert second.tilt_pooled == 2 and second.tilt_mean_deg["alpha"] == pytest.approx(0.10)
+    assert second.tilt_spread_deg["alpha"] == pytest.approx(0.1 / math.sqrt(2))
+    assert second.tilt_action.startswith("held") and run.tilts.within is not None, "a mean within tolerance: may converge"
+    # A clear error is acted on, on the mean, and a move starts a new pool.
+    run = make_run(dofs=["alpha", "beta"], tolerance_tilt_deg=0.1)
+    for seq, alpha in enumerate((0.9, 1.1), 1):
+        clear = sweep(run, seq, alpha, 0.0, sigma=0.1)
+        if clear.tilt_action == "moved":
+            break
+    assert clear.tilt_action == "moved" and clear.tilt_pooled == 1, "0.9 degree is 9 standard errors: moved at once"
+    run.tilts.moved(settled_ns=15_000)
+    assert run.tilts.since_move == [] and run.tilts.moves == 1
+    after = sweep(run, 2, 0.3, 0.0, sigma=0.1)
+    assert after.tilt_pooled == 1 and after.tilt_action == "moved", "3 standard errors, from a fresh pool"
+
+
+def test_tilts_without_standard_errors_are_judged_on_the_latest_sweep_alone():
+    run = make_run(dofs=["alpha", "beta"], tolerance_tilt_deg=0.1)
+    assert sweep(run, 1, 0.3, 0.0, sigma=None).tilt_action == "moved"
+    assert sweep(run, 2, 0.04, 0.0, sigma=None).tilt_mean_deg == {"alpha": 0.04, "beta": 0.0}
 
 
 def test_decide_saturates_moves_and_turns_and_judges_divergence_above_its_floor():

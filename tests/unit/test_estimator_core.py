@@ -108,6 +108,9 @@ def test_tilts_are_measured_against_the_taught_sweep_and_refused_without_one():
     assert measured["confidence"] > 0.5 and len(measured["depth_map_um"]) == SIZE // KERNEL
     estimate = core.process(frame(texture().astype(np.float32), 1, pixel_size_nm=PIXEL_UM * 1000))
     assert estimate.tilt_seq == measured["tilt_seq"] and estimate.alpha_deg == measured["alpha_deg"]
+    # The sweep's own standard errors go with it: the controller weighs sweeps by them.
+    assert estimate.tilt_uncertainty_deg == (measured["alpha_uncertainty_deg"], measured["beta_uncertainty_deg"])
+    assert 0 < estimate.tilt_uncertainty_deg[0] < 0.3
     core.teach_latest()  # a new reference needs its own sweep
     assert core.tilt_reference is None
 
