@@ -142,7 +142,11 @@ def sample_image_runs(args, rng: np.random.Generator) -> int:
         say(f"\n{name}: {len(starts)} 5-DOF runs through the whole stack (fake lab x{args.speedup:g}, tilts preset's "
             f"optics, tolerance {tolerance:g} px)")
         try:
-            runs = five_dof_runs(starts, speedup=args.speedup, say=say, environment=environment,
+            folder = None
+            if args.records:  # the system's folder kept: each run's record and journal in runs/
+                folder = args.records / name
+                folder.mkdir(parents=True, exist_ok=True)
+            runs = five_dof_runs(starts, folder, speedup=args.speedup, say=say, environment=environment,
                                  run_settings={"tolerance_px": tolerance, "converge_on": args.converge_on,
                                                "law": args.law})
         except SemservoError as error:  # e.g. a picture whose focus sweep cannot tell the tilts
@@ -191,6 +195,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--law", choices=["paper", "position"], default="paper",
                         help="the planar law of the 5-DOF runs (default: the paper's, as the README's tables; "
                              "position: the controller's default)")
+    parser.add_argument("--records", type=Path, default=None, metavar="DIR",
+                        help="with --sample-images: keep each scene's system folder (its runs' records and journals, "
+                             "runs/<id>.json and .jsonl) in DIR/<scene> instead of a temporary folder")
     parser.add_argument("--converge-on", choices=["mean", "each"], default="mean",
                         help="with --sample-images: converged when the mean of the last frames' errors is within "
                              "tolerance (default), or each one")
