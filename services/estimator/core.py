@@ -235,7 +235,7 @@ class EstimatorCore:
             estimate = estimate_tilt(sweep, working_distances, pixel_size_nm / 1000, kernel=kernel)
         except ValueError as error:
             raise TeachError(f"focus sweep: {error}") from None
-        return estimate, depth_map(sweep, working_distances, kernel)
+        return estimate, depth_map(sweep, working_distances, kernel, pixel_size_nm / 1000)
 
     def teach_tilt(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None,
                    reference_id: str | None = None) -> dict | None:

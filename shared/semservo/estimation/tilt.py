@@ -393,8 +393,73 @@ def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32)
         raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}")
     if kernel < 4 or min(sweep.shape[1:]) < 2 * kernel:
         raise ValueError(f"{kernel} px kernels do not fit a {sweep.shape[2]} x {sweep.shape[1]} image twice")
-    depths = clear_focus_peaks(noise_free_focus_curves(sweep, kernel), working_distances)
+    depths = depth_map(sweep, working_distances, kernel, pixel_size)
     return tilt_from_depths(depths, kernel, pixel_size, float(steps.mean()))
+
+
+def texture_offsets(sweep: np.ndarray, curves: FocusCurves, kernel: int,
+                    half_window: int = SYMMETRY_HALF_WINDOW) -> np.ndarray:
+    """Where in each kernel its focus peak comes from: the offset (rows, cols: kernel
+    rows x kernel cols x 2, pixels from the kernel's centre) of the centroid of each
+    pixel's share of the peak, (I - mu)^2 in the kernel's sharpest frame less its mean
+    over the frames ``half_window`` steps either side (the span over which the peak's
+    centre is read, :func:`symmetry_centres`; the pixel noise's share is alike in all
+    and cancels), kept where positive. 0 where no pixel stands out.
+
+    Why: a kernel's focus curve is the sum of its pixels' curves, each symmetric about
+    its own point's depth, so its centre is the depth where its texture lies, not at the
+    kernel's centre. Over a texture of sparse particles or bands, the texture at the
+    edge of a textured region lies towards its inside: with the depths placed at the
+    kernel centres, the plane is squeezed and the tilts read small (on the drift pair
+    under a Gaussian probe, 32 px kernels, (3, 3) degrees read 0.3 degree small with
+    standard errors of 0.08 after 8 sweeps pooled: a bias of the texture, not the noise,
+    that pooling does not narrow)."""
+    sweep = np.asarray(sweep)
+    signal = curves.signal
+    frames, kernel_rows, kernel_cols = signal.shape
+    best = np.argmax(signal, axis=0)
+    floor = curves.noise[0]  # the noise's share (a variance over the mean), alike in every frame
+    offsets = np.zeros((kernel_rows, kernel_cols, 2))
+    position = np.arange(kernel) - (kernel - 1) / 2
+
+    def blocks(index: int) -> np.ndarray:  # kernel rows x kernel cols x k x k squared deviations from the mean
+        frame = np.asarray(sweep[index, :kernel_rows * kernel, :kernel_cols * kernel], dtype=np.float64)
+        frame = frame.reshape(kernel_rows, kernel, kernel_cols, kernel).transpose(0, 2, 1, 3)
+        return np.square(frame - frame.mean(axis=(2, 3), keepdims=True)), frame
+
+    for index in np.unique(best):
+        sharp, frame = blocks(int(index))
+        far = [blocks(other)[0] for other in (index - half_window, index + half_window) if 0 <= other < frames]
+        # Without a frame on either side (a sweep of under half_window + 1 frames), the
+        # noise's share is taken out as its expected value, floor x mean, per pixel.
+        share = np.maximum(sharp - (np.mean(far, axis=0) if far else floor[:, :, None, None] * np.maximum(frame, 0.0)),
+                           0.0)
+        total = share.sum(axis=(2, 3))
+        safe = np.where(total > 0, total, 1.0)
+        chosen = best == index
+        offsets[..., 0] = np.where(chosen & (total > 0), (share.sum(axis=3) @ position) / safe, offsets[..., 0])
+        offsets[..., 1] = np.where(chosen & (total > 0), (share.sum(axis=2) @ position) / safe, offsets[..., 1])
+    return offsets
+
+
+def depths_at_kernel_centres(depths: np.ndarray, offsets: np.ndarray, kernel: int, pixel_size: float,
+                             iterations: int = 2) -> np.ndarray:
+    """The kernel depths (read where each kernel's texture lies, ``offsets`` from
+    :func:`texture_offsets`) moved to the kernels' centres along the plane through them
+    (:func:`robust_plane`, refitted on the moved depths ``iterations`` times): depth -
+    (gx dx + gy dy). Unchanged where fewer than ``MIN_KERNELS`` have a depth (no plane to
+    move them along). The plane's slopes are known far better than the move needs (a
+    degree off moves a depth by 1.7 % of an offset of at most half a kernel)."""
+    depths = np.asarray(depths, dtype=np.float64)
+    if np.isfinite(depths).sum() < MIN_KERNELS:
+        return depths
+    moved = depths
+    for _ in range(iterations):
+        _, slope_x, slope_y = robust_plane(moved, kernel, pixel_size).coefficients
+        if not np.isfinite([slope_x, slope_y]).all():
+            return depths
+        moved = depths - (slope_x * offsets[..., 1] + slope_y * offsets[..., 0]) * pixel_size
+    return moved
 
 
 def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: float) -> TiltEstimate:
@@ -533,12 +598,19 @@ EGI_CAP_DEG = 35.0
 EGI_GRID = 141
 
 
-def depth_map(sweep, working_distances, kernel: int = 32) -> np.ndarray:
-    """Each kernel's depth (NaN where it has no clear focus peak): eq. 13 without the
-    noise's share and the peak fit (:func:`noise_free_focus_curves`,
-    :func:`clear_focus_peaks`), the first step of both methods."""
-    return clear_focus_peaks(noise_free_focus_curves(np.asarray(sweep), kernel),
-                             np.asarray(working_distances, dtype=np.float64))
+def depth_map(sweep, working_distances, kernel: int = 32, pixel_size: float | None = None) -> np.ndarray:
+    """Each kernel's depth at its centre (NaN where it has no clear focus peak): eq. 13
+    without the noise's share and the peak fit (:func:`noise_free_focus_curves`,
+    :func:`clear_focus_peaks`), the first step of both methods; with ``pixel_size`` (the
+    sweep's unit per pixel), each depth is moved from where the kernel's texture lies to
+    the kernel's centre (:func:`texture_offsets`, :func:`depths_at_kernel_centres`)."""
+    sweep = np.asarray(sweep)
+    working_distances = np.asarray(working_distances, dtype=np.float64)
+    curves = noise_free_focus_curves(sweep, kernel)
+    depths = clear_focus_peaks(curves, working_distances)
+    if pixel_size is None:
+        return depths
+    return depths_at_kernel_centres(depths, texture_offsets(sweep, curves, kernel), kernel, pixel_size)
 
 
 def kernel_normals(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.ndarray, np.ndarray]:

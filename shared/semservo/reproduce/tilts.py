@@ -127,7 +127,8 @@ def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
     step = float(working_distances[1] - working_distances[0])
     maps = []
     while True:
-        maps.append(depth_map(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel))
+        maps.append(depth_map(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel,
+                              lab.pixel_um))
         estimate = pooled_tilt(maps, kernel, lab.pixel_um, step)
         if not wants_another_sweep(estimate, max_sweeps):
             return estimate, pool_depths(maps)
@@ -166,16 +167,17 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         plane = estimate_tilt(frames, first_sweep, lab.pixel_um)
         plane_ms = (time.perf_counter() - clock) * 1e3
         clock = time.perf_counter()
-        egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep), 32, lab.pixel_um)
+        egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep, 32, lab.pixel_um), 32,
+                                                    lab.pixel_um)
         egi_ms = (time.perf_counter() - clock) * 1e3
         pose_sweeps = 1
         if plane.confidence <= 0 and wants_another_sweep(plane, sweeps_when_refused):
             # As the estimator service does in a run: a sweep that cannot pin the tilts
             # is followed by more of the same plan, their depths pooled.
             step = float(first_sweep[1] - first_sweep[0])
-            maps = [depth_map(frames, first_sweep)]
+            maps = [depth_map(frames, first_sweep, 32, lab.pixel_um)]
             while True:
-                maps.append(depth_map(lab.sweep(pose, first_sweep), first_sweep))
+                maps.append(depth_map(lab.sweep(pose, first_sweep), first_sweep, 32, lab.pixel_um))
                 plane = pooled_tilt(maps, 32, lab.pixel_um, step)
                 if not wants_another_sweep(plane, sweeps_when_refused):
                     break
