@@ -422,23 +422,30 @@ def texture_offsets(sweep: np.ndarray, curves: FocusCurves, kernel: int,
     offsets = np.zeros((kernel_rows, kernel_cols, 2))
     position = np.arange(kernel) - (kernel - 1) / 2
 
-    def blocks(index: int) -> np.ndarray:  # kernel rows x kernel cols x k x k squared deviations from the mean
-        frame = np.asarray(sweep[index, :kernel_rows * kernel, :kernel_cols * kernel], dtype=np.float64)
-        frame = frame.reshape(kernel_rows, kernel, kernel_cols, kernel).transpose(0, 2, 1, 3)
-        return np.square(frame - frame.mean(axis=(2, 3), keepdims=True)), frame
+    frame_blocks = np.asarray(sweep[:, :kernel_rows * kernel, :kernel_cols * kernel], dtype=np.float64) \
+        .reshape(frames, kernel_rows, kernel, kernel_cols, kernel)
+
+    def blocks(index: int, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The chosen kernels' pixels in one frame (n x k x k) and their squared deviations
+        from each kernel's mean: only the kernels whose peak that frame is, so each
+        kernel is read in three frames, not every frame in full."""
+        frame = frame_blocks[index, rows, :, cols, :]
+        return np.square(frame - frame.mean(axis=(1, 2), keepdims=True)), frame
 
     for index in np.unique(best):
-        sharp, frame = blocks(int(index))
-        far = [blocks(other)[0] for other in (index - half_window, index + half_window) if 0 <= other < frames]
+        rows, cols = np.nonzero(best == index)
+        sharp, frame = blocks(int(index), rows, cols)
+        far = [blocks(other, rows, cols)[0] for other in (index - half_window, index + half_window)
+               if 0 <= other < frames]
         # Without a frame on either side (a sweep of under half_window + 1 frames), the
         # noise's share is taken out as its expected value, floor x mean, per pixel.
-        share = np.maximum(sharp - (np.mean(far, axis=0) if far else floor[:, :, None, None] * np.maximum(frame, 0.0)),
-                           0.0)
-        total = share.sum(axis=(2, 3))
-        safe = np.where(total > 0, total, 1.0)
-        chosen = best == index
-        offsets[..., 0] = np.where(chosen & (total > 0), (share.sum(axis=3) @ position) / safe, offsets[..., 0])
-        offsets[..., 1] = np.where(chosen & (total > 0), (share.sum(axis=2) @ position) / safe, offsets[..., 1])
+        share = np.maximum(sharp - (np.mean(far, axis=0) if far
+                                    else floor[rows, cols, None, None] * np.maximum(frame, 0.0)), 0.0)
+        total = share.sum(axis=(1, 2))
+        stands_out = total > 0
+        safe = np.where(stands_out, total, 1.0)
+        offsets[rows, cols, 0] = np.where(stands_out, (share.sum(axis=2) @ position) / safe, 0.0)
+        offsets[rows, cols, 1] = np.where(stands_out, (share.sum(axis=1) @ position) / safe, 0.0)
     return offsets
 
 
