@@ -147,7 +147,7 @@ class Tilts:
         """The errors of the sweeps since the last move, averaged with weights 1 / sigma^2,
         and the mean's standard error per DOF. Without standard errors for every sweep,
         the latest sweep alone with a standard error of 0 (it is taken as it is)."""
-        latest, spreads = self.since_move[-1]
+        latest = self.since_move[-1][0]
         if any(sigmas is None for _, sigmas in self.since_move):
             return dict(latest), {dof: 0.0 for dof in latest}
         mean, spread = {}, {}
