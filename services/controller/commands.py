@@ -40,10 +40,6 @@ def start(controller: Controller, settings: protocol.RunSettings) -> protocol.Co
         raise CommandError("no_reference", "teach a reference first: the estimator has none")
     try:
         return protocol.ControllerStatus.model_validate(core.start(settings, report.reference.model_dump()))
-    except CommandError as error:
-        if error.code in ("bad_request", "busy", "no_tilt_reference"):
-            raise  # the request's or the reference's, not the stage's
-        raise CommandError(f"stage_{error.code}", f"the stage refused to start a run: {error.message}") from None
     except ServiceUnavailable as error:
         raise CommandError("stage_unavailable", f"the stage service is unreachable: {error}") from None
 

@@ -120,7 +120,13 @@ class ControllerCore:
                                  required="rotation" in dofs or bool(tilt_dofs))
         try:
             stage_state = self.stage.call(stage_protocol.ARM, hold_after_s=self.watchdog_s, owner=self.owner)
-        except (CommandError, ServiceUnavailable):
+        except CommandError as refusal:
+            self._estimator_measures(rotation=None, tilts=None)
+            # Named as the stage's here, where it is the stage that said no; every other
+            # refusal of a start (the request, the reference, the instrument) keeps its code.
+            raise CommandError(f"stage_{refusal.code}", f"the stage refused to start a run: {refusal.message}") \
+                from None
+        except ServiceUnavailable:
             self._estimator_measures(rotation=None, tilts=None)
             raise
         gain = (ExponentialGain(settings.gain_max, settings.gain_min) if settings.gain == "exponential"

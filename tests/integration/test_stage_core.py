@@ -225,6 +225,19 @@ def test_controller_converges_and_stop_stops_the_stage(stage, tmp_path):
     assert core.state == "stopped" and stage.state == "stopped"
 
 
+def test_a_start_the_stage_refuses_is_named_the_stages_and_the_controllers_own_refusals_keep_their_codes(
+        stage, tmp_path):
+    core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    stage.stop("operator pressed stop")
+    with pytest.raises(CommandError) as refused:
+        core.start(RunSettings(), "ref")
+    assert refused.value.code.startswith("stage_") and "the stage refused to start a run" in refused.value.message
+    assert core.state == "idle"
+    with pytest.raises(CommandError) as refused:  # the instrument's, said before the stage is asked to arm
+        core.start(RunSettings(beam_shift_within_um=1.0), "ref")
+    assert refused.value.code == "no_beam_shift"
+
+
 def test_converging_on_each_frame_asks_every_one_to_be_within(stage, tmp_path):
     import time
 
