@@ -422,14 +422,15 @@ def texture_offsets(sweep: np.ndarray, curves: FocusCurves, kernel: int,
     offsets = np.zeros((kernel_rows, kernel_cols, 2))
     position = np.arange(kernel) - (kernel - 1) / 2
 
-    frame_blocks = np.asarray(sweep[:, :kernel_rows * kernel, :kernel_cols * kernel], dtype=np.float64) \
+    # The sweep in kernels, in its own type: only the kernels read below become float64.
+    frame_blocks = sweep[:, :kernel_rows * kernel, :kernel_cols * kernel] \
         .reshape(frames, kernel_rows, kernel, kernel_cols, kernel)
 
     def blocks(index: int, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The chosen kernels' pixels in one frame (n x k x k) and their squared deviations
         from each kernel's mean: only the kernels whose peak that frame is, so each
         kernel is read in three frames, not every frame in full."""
-        frame = frame_blocks[index, rows, :, cols, :]
+        frame = frame_blocks[index, rows, :, cols, :].astype(np.float64)
         return np.square(frame - frame.mean(axis=(1, 2), keepdims=True)), frame
 
     for index in np.unique(best):
