@@ -141,8 +141,10 @@ class TeachPool:
 
 class EstimatorCore:
     def __init__(self, *, rotation: bool = True, precision: str = "full", fft_effort: str = "FFTW_MEASURE",
-                 counters: Counter | None = None, tilt: TiltSettings | None = None):
+                 counters: Counter | None = None, tilt: TiltSettings | None = None, scan_averaged: bool = False):
         self.rotation = rotation
+        #: Shifts averaged over the scan's bands of rows (:mod:`semservo.estimation.raster`).
+        self.scan_averaged = scan_averaged
         # Whether each frame's rotation is measured (a run that cannot turn the sample
         # switches it off: translation alone takes a third of the time).
         self.measure_rotation = rotation
@@ -331,7 +333,7 @@ class EstimatorCore:
                  acquisition: dict | None = None, shown: np.ndarray | None = None, **detail) -> dict:
         try:
             estimator = MotionEstimator(pixels, rotation=self.rotation, mask=mask, precision=self.precision,
-                                        fft_effort=self.fft_effort)
+                                        fft_effort=self.fft_effort, scan_averaged=self.scan_averaged)
         except ValueError as error:
             raise TeachError(str(error)) from None
         # Only now, with the new estimator built, is the old reference replaced.

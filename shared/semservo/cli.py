@@ -240,7 +240,8 @@ def command_estimate(args: argparse.Namespace) -> int:
             mask = reference > 0
         reference = levels
     try:
-        estimator = MotionEstimator(reference, rotation=not args.no_rotation, mask=mask, precision=args.precision)
+        estimator = MotionEstimator(reference, rotation=not args.no_rotation, mask=mask, precision=args.precision,
+                                    scan_averaged=args.scan_averaged)
     except ValueError as error:
         fail(f"{args.reference}: {error}")
         return 2
@@ -788,6 +789,10 @@ def build_parser() -> argparse.ArgumentParser:
                           help="REFERENCE is a binary mask of the object (paper case 6)")
     estimate.add_argument("--polygon", metavar="'X,Y X,Y ...'",
                           help="use the polygon of these corner points on REFERENCE as a mask reference")
+    estimate.add_argument("--scan-averaged", action="store_true",
+                          help="average the shift over the scan's bands of rows, as the estimator service does for "
+                               "live frames: each band is a snapshot at its own time, so stage vibration faster than "
+                               "a frame is not weighted by where the texture lies (semservo.estimation.raster)")
     estimate.add_argument("--precision", choices=["fast", "full"], default="full",
                           help="sub-pixel fit at full resolution (full, default) or on the 2x search pair (fast)")
     estimate.add_argument("--json", action="store_true", help="one JSON object per line")

@@ -271,3 +271,16 @@ def test_a_run_pools_sweeps_that_cannot_pin_the_tilts_or_pin_them_loosely_near_t
     assert single["sweeps"] == 1 and pooled["sweeps"] == 3 and pooled["confidence"] > 0
     assert pooled["alpha_uncertainty_deg"] < 0.8 * single["alpha_uncertainty_deg"]
     assert abs(pooled["alpha_deg"]) < 0.3 and abs(pooled["beta_deg"]) < 0.3
+
+
+def test_the_scan_averaged_setting_reaches_every_reference_the_core_installs():
+    from semservo.config import EstimatorSettings
+
+    assert EstimatorSettings().scan_averaged is False  # off unless the lab asks (semservo.estimation.raster)
+    for averaged in (False, True):
+        core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", scan_averaged=averaged)
+        core.process(frame(scene(0.0, 3), 0))
+        core.teach_latest(frames=1)
+        assert core.estimator.scan_averaged is averaged
+        motion = core.process(frame(scene(0.5, 4), 1))
+        assert abs(motion.dx_px - 0.5) < 0.1 and abs(motion.dy_px) < 0.1

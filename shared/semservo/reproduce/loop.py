@@ -298,6 +298,10 @@ class TimedSettings:
     reference_frames: int = 4
     #: From a frame's end to the move's write: transfer, estimate, decision, serial line.
     latency_s: float = 0.05
+    #: semservo's shifts averaged over the scan's bands of rows
+    #: (:mod:`semservo.estimation.raster`, off by default as in the estimator service);
+    #: both laws see the same estimates.
+    scan_averaged: bool = False
     #: After the start jog, before the run starts (the jog's settling and early creep).
     start_after_s: float = 1.0
     #: Keep servoing this long after converging (0: stop there), counting the corrections.
@@ -342,10 +346,10 @@ class Taught:
         if self.noise_state is not None:
             lab.world.rng.bit_generator.state = self.noise_state
 
-    def measure(self, method: str):
+    def measure(self, method: str, scan_averaged: bool = False):
         desired = self.reference if method == "semservo" or self.mask is None \
             else self.mask.astype(np.float32) * 255  # what a baseline sees: the mask itself
-        return methods.make(method, desired, mask=self.mask)
+        return methods.make(method, desired, mask=self.mask, scan_averaged=scan_averaged)
 
 
 def teach(lab: Lab, settings) -> Taught:
@@ -356,7 +360,7 @@ def teach(lab: Lab, settings) -> Taught:
     reference = np.mean(frames, axis=0, dtype=np.float32)
     taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
     mask = mask_of(reference) if lab.preset.mask_reference else None
-    measure = methods.make("semservo", reference, mask=mask)
+    measure = methods.make("semservo", reference, mask=mask, scan_averaged=settings.scan_averaged)
     at_rest = [measure(lab.scan()[0]) for _ in range(settings.reference_frames)]
     at_rest = np.array([(m.dx, m.dy) for m in at_rest if m.ok])
     noise_px = float(np.sqrt(np.mean(np.var(at_rest, axis=0, ddof=1)))) if len(at_rest) > 2 else 0.03
@@ -379,7 +383,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         taught = teach(lab, settings)
     else:  # taught in another lab of the same seed: this one starts where teaching ended
         taught.start(lab)
-    measure = taught.measure(method)
+    measure = taught.measure(method, settings.scan_averaged)
     controller = _law_for(law, stage_model, settings, taught.noise_px)
     taught_um = np.array(taught.taught_um)
     converge_frames = settings.converge_frames

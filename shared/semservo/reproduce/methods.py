@@ -65,8 +65,8 @@ def _normalised(image: np.ndarray, halvings: int) -> np.ndarray:
     return (out - out.mean()) / max(float(out.std()), 1e-6)
 
 
-def semservo_method(reference: np.ndarray, rotation: bool = False, mask=None) -> Callable:
-    estimator = MotionEstimator(reference, rotation=rotation, mask=mask)
+def semservo_method(reference: np.ndarray, rotation: bool = False, mask=None, scan_averaged: bool = False) -> Callable:
+    estimator = MotionEstimator(reference, rotation=rotation, mask=mask, scan_averaged=scan_averaged)
 
     def measure(current: np.ndarray) -> Measured:
         motion = estimator.estimate(current)
@@ -190,10 +190,13 @@ def keypoint_method(reference: np.ndarray, kind: str) -> Callable:
     return measure
 
 
-def make(name: str, reference: np.ndarray, *, rotation: bool = False, mask=None) -> Callable[[np.ndarray], Measured]:
-    """The method ``name`` taught ``reference``; its measure() is timed."""
+def make(name: str, reference: np.ndarray, *, rotation: bool = False, mask=None,
+         scan_averaged: bool = False) -> Callable[[np.ndarray], Measured]:
+    """The method ``name`` taught ``reference``; its measure() is timed. ``scan_averaged``:
+    semservo's shift averaged over the scan's bands of rows, as its estimator service
+    measures live frames (the paper's tables use the whole-frame estimate, eq. 18-24)."""
     if name == "semservo":
-        inner = semservo_method(reference, rotation, mask)
+        inner = semservo_method(reference, rotation, mask, scan_averaged)
     elif name == "photometric":
         inner = photometric_method(reference)
     elif name == "photometric_single":

@@ -1,0 +1,131 @@
+"""The shift averaged over a scan's time (semservo.estimation.raster).
+
+The frames here are not the simulated SEM's: a band-limited random texture is sampled
+row by row at a position that oscillates in time (each row a snapshot, as a raster scan
+under vibration draws it), by cubic interpolation, so the test checks the method on
+distortions made another way than the simulator makes them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from semservo.estimation import MotionEstimator, rotate_about_centre
+from semservo.estimation.raster import (
+    BAND_UNCERTAINTY_PX, ScanReference, band_shifts, predicted_frame, scan_averaged_shift, smoothed,
+)
+
+SIZE = 256
+MARGIN = 24
+
+
+def texture(seed: int, envelope: bool) -> np.ndarray:
+    """A band-limited texture larger than a frame; with ``envelope`` its contrast lies in
+    the upper third of the rows (so a whole-frame correlation weights those rows most)."""
+    rng = np.random.default_rng(seed)
+    big = ndimage.gaussian_filter(rng.standard_normal((SIZE + 2 * MARGIN, SIZE + 2 * MARGIN)), 2.0)
+    if envelope:
+        rows = np.arange(big.shape[0])[:, None]
+        big *= 0.15 + np.exp(-0.5 * ((rows - (MARGIN + SIZE / 5)) / (SIZE / 8)) ** 2)
+    return 100 + 400 * big
+
+
+def scanned(scene: np.ndarray, shift_x: np.ndarray, shift_y: np.ndarray) -> np.ndarray:
+    """The frame whose row r shows the content moved by (shift_x[r], shift_y[r])."""
+    rows, cols = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    coordinates = [rows + MARGIN - shift_y[:, None], cols + MARGIN - shift_x[:, None]]
+    return ndimage.map_coordinates(scene, coordinates, order=3, mode="reflect")
+
+
+def vibrating(scene, mean_x, mean_y, amplitude, cycles, phase):
+    """A frame moved by (mean_x, mean_y) plus a vibration of ``cycles`` periods over the
+    scan; returns it and the shift averaged over the scan's rows (the truth)."""
+    time = np.arange(SIZE) / SIZE
+    shift_x = mean_x + amplitude * np.sin(2 * np.pi * cycles * time + phase)
+    shift_y = mean_y + amplitude * np.cos(2 * np.pi * cycles * time + 2 * phase)
+    return scanned(scene, shift_x, shift_y), (shift_x.mean(), shift_y.mean())
+
+
+def reference_of(scene):
+    return scanned(scene, np.zeros(SIZE), np.zeros(SIZE))
+
+
+def test_a_vibrating_scan_is_measured_where_the_sample_was_on_average_not_where_its_texture_was():
+    whole_errors, averaged_errors = [], []
+    for seed in range(6):
+        scene = texture(seed, envelope=True)
+        rng = np.random.default_rng(100 + seed)
+        frame, truth = vibrating(scene, rng.uniform(-3, 3), rng.uniform(-3, 3), amplitude=0.4,
+                                 cycles=rng.uniform(1.5, 3.0), phase=rng.uniform(0, 2 * np.pi))
+        whole = MotionEstimator(reference_of(scene), rotation=False, snr_threshold_db=None).estimate(frame)
+        averaged = MotionEstimator(reference_of(scene), rotation=False, snr_threshold_db=None,
+                                   scan_averaged=True).estimate(frame)
+        whole_errors.append(np.hypot(whole.dx - truth[0], whole.dy - truth[1]))
+        averaged_errors.append(np.hypot(averaged.dx - truth[0], averaged.dy - truth[1]))
+    # The whole frame sees the upper rows' moment; the bands' mean sees the scan's.
+    assert np.mean(whole_errors) > 0.08
+    assert np.mean(averaged_errors) < 0.3 * np.mean(whole_errors)
+    assert max(averaged_errors) < 0.05
+
+
+def test_a_still_frame_keeps_its_whole_frame_estimate_to_a_hundredth_of_a_pixel():
+    scene = texture(7, envelope=False)
+    for shift in ((0.25, -0.4), (5.5, 3.3), (-12.2, 0.0)):
+        frame = scanned(scene, np.full(SIZE, shift[0]), np.full(SIZE, shift[1]))
+        whole = MotionEstimator(reference_of(scene), rotation=False).estimate(frame)
+        averaged = MotionEstimator(reference_of(scene), rotation=False, scan_averaged=True).estimate(frame)
+        assert averaged.dx == pytest.approx(shift[0], abs=0.01) and averaged.dy == pytest.approx(shift[1], abs=0.01)
+        assert abs(averaged.dx - whole.dx) < 0.02 and abs(averaged.dy - whole.dy) < 0.02
+        assert averaged.confidence == whole.confidence
+
+
+def test_a_turned_and_moved_frame_is_predicted_and_refined_in_the_estimators_convention():
+    scene = texture(3, envelope=False)
+    reference = reference_of(scene)
+    frame = scanned(np.pad(rotate_about_centre(reference.astype(np.float32), 2.0), MARGIN, mode="reflect"),
+                    np.full(SIZE, 1.5), np.full(SIZE, -2.25))
+    motion = MotionEstimator(reference, rotation=True, scan_averaged=True).estimate(frame)
+    assert motion.rotation_deg == pytest.approx(2.0, abs=0.05)
+    assert motion.dx == pytest.approx(1.5, abs=0.05) and motion.dy == pytest.approx(-2.25, abs=0.05)
+    # The prediction at the true motion matches the frame where it is known.
+    ready = ScanReference.of(reference)
+    predicted, known = predicted_frame(ready, 1.5, -2.25, 2.0)
+    smooth_frame = ndimage.gaussian_filter(frame.astype(np.float32), 1.5)
+    residue = np.abs(smooth_frame - predicted)[known]
+    assert known.mean() > 0.8 and np.median(residue) < 0.05 * np.std(smooth_frame)
+
+
+def test_bands_without_edges_are_left_out_and_a_frame_mostly_without_is_left_whole():
+    scene = texture(5, envelope=False)
+    reference = reference_of(scene)
+    flat_below = reference.copy()
+    flat_below[SIZE // 4:] = 100.0  # three quarters of the rows show nothing to register
+    ready = ScanReference.of(flat_below)
+    assert scan_averaged_shift(ready, flat_below, 0.0, 0.0) is None
+    flat_band = reference.astype(np.float32).copy()
+    flat_band[56:104] = 100.0  # band 2 (rows 64-95) and its smoothing's reach
+    predicted, known = predicted_frame(ScanReference.of(flat_band), 0.0, 0.0)
+    shifts, spreads, first_rows = band_shifts(smoothed(flat_band), predicted, known)
+    assert list(first_rows[:4]) == [0, 32, 64, 96]
+    assert not np.all(spreads[2] <= BAND_UNCERTAINTY_PX)  # the flat band pins nothing
+    assert np.all(spreads[[0, 4, 5]] < 0.05)
+    refined = scan_averaged_shift(ScanReference.of(flat_band), flat_band, 0.0, 0.0)
+    assert refined.bands_used == len(first_rows) - 1 and np.isnan(refined.band_shifts[2]).all()
+
+
+def test_a_correction_beyond_a_pixel_is_not_trusted():
+    scene = texture(9, envelope=False)
+    reference = reference_of(scene)
+    frame = scanned(scene, np.full(SIZE, 4.0), np.zeros(SIZE))
+    ready = ScanReference.of(reference)
+    assert scan_averaged_shift(ready, frame, 4.0, 0.0).dx == pytest.approx(4.0, abs=0.01)
+    assert scan_averaged_shift(ready, frame, 1.0, 0.0) is None  # three pixels off: not one linear step
+
+
+def test_a_mask_reference_is_never_scan_averaged():
+    scene = texture(2, envelope=False)
+    reference = reference_of(scene)
+    estimator = MotionEstimator(reference, rotation=False, mask=reference > np.median(reference), scan_averaged=True)
+    assert estimator.scan_averaged is False
