@@ -52,7 +52,6 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-import scipy.fft
 
 #: Rows per band: 32 rows are 10-30 ms of scan at the paper's dwell times, shorter than a
 #: period of the vibration a frame cannot average (a few to tens of Hz), and enough
@@ -103,7 +102,7 @@ class ScanReference(NamedTuple):
     @classmethod
     def of(cls, reference: np.ndarray) -> "ScanReference":
         image = smoothed(reference)
-        return cls(image, scipy.fft.rfft2(image))
+        return cls(image, np.fft.rfft2(image))
 
 
 def _moved(spectrum: np.ndarray, shape: tuple[int, int], dx: float, dy: float) -> np.ndarray:
@@ -113,7 +112,7 @@ def _moved(spectrum: np.ndarray, shape: tuple[int, int], dx: float, dy: float) -
     rows, cols = shape
     ramp_y = np.exp(-2j * np.pi * np.fft.fftfreq(rows) * dy)
     ramp_x = np.exp(-2j * np.pi * np.fft.rfftfreq(cols) * dx)
-    return scipy.fft.irfft2(spectrum * ramp_y[:, None] * ramp_x[None, :], s=shape).astype(np.float32)
+    return np.fft.irfft2(spectrum * ramp_y[:, None] * ramp_x[None, :], s=shape).astype(np.float32)
 
 
 def predicted_frame(reference: ScanReference, dx: float, dy: float, rotation_deg: float = 0.0
@@ -126,7 +125,7 @@ def predicted_frame(reference: ScanReference, dx: float, dy: float, rotation_deg
     spectrum = reference.spectrum
     turn = cv2.getRotationMatrix2D(((cols - 1) / 2, (rows - 1) / 2), rotation_deg, 1.0)
     if rotation_deg != 0.0:
-        spectrum = scipy.fft.rfft2(cv2.warpAffine(reference.smoothed, turn, (cols, rows), flags=cv2.INTER_CUBIC,
+        spectrum = np.fft.rfft2(cv2.warpAffine(reference.smoothed, turn, (cols, rows), flags=cv2.INTER_CUBIC,
                                                   borderMode=cv2.BORDER_REFLECT))
     predicted = _moved(spectrum, shape, dx, dy)
     inside = np.zeros(shape, np.uint8)
