@@ -4,9 +4,10 @@ scan's bands of rows (``MotionEstimator(scan_averaged=True)``, :mod:`semservo.es
 1. At rest: per preset, ``--seeds`` labs of the simulated lab, each teaching a reference
    of 4 frames and measuring ``--frames`` more; the error of each estimate against the
    simulator's pose averaged over that frame's scan (RMS over both axes, px), per seed.
-2. With ``--closed-loop``: the position law's time to target at x5000 (the timed trials of
-   ``./dev bench time_to_target``, calibrated stage, 10 starts per offset), once with each
-   estimate: fresh frames median and worst, true final error worst, converged of N.
+2. With ``--closed-loop``: the position law's time to target (the timed trials of
+   ``./dev bench time_to_target``, calibrated stage, 10 starts per offset) at x5000, or
+   at every preset of ``--closed-loop-presets``, once with each estimate: fresh frames
+   median and worst, true final error worst, converged of N.
 3. The real drift pair (no truth): how well A -> B -> A closes with each.
 
     ./dev bench scan_averaged                      # at rest, x5000 and x1200: ~2 min
@@ -94,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=10, help="frames at rest per lab (default 10)")
     parser.add_argument("--closed-loop", action="store_true", help="also the position law's timed trials at x5000")
     parser.add_argument("--trials", type=int, default=10, help="closed loop: starts per offset (default 10)")
+    parser.add_argument("--closed-loop-presets", nargs="+", default=["high-magnification"],
+                        choices=list(reproduce.FIGURE_CASES), help="closed loop: the presets (default x5000)")
     parser.add_argument("--sem-images", type=Path, default=None,
                         help="the real images' folder (default: the shared data, or SEMSERVO_SEM_IMAGES)")
     args = parser.parse_args(argv)
@@ -109,10 +112,11 @@ def main(argv: list[str] | None = None) -> int:
         print("Real drift pair, A -> B -> A closes to (px): "
               + ", ".join(f"{name} {value:.3f}" for name, value in closure.items()))
     if args.closed_loop:
-        print("Closed loop at x5000 (position law, calibrated):")
-        for name, row in closed_loop("high-magnification", args.trials).items():
-            print(f"  {name:14s} fresh frames median {row['median']:g}, worst {row['worst']}; true final error worst "
-                  f"{row['true_error_worst_px']:.3f} px; converged {row['converged']}/{row['trials']}")
+        for case in args.closed_loop_presets:
+            print(f"Closed loop, {case} (position law, calibrated):")
+            for name, row in closed_loop(case, args.trials).items():
+                print(f"  {name:14s} fresh frames median {row['median']:g}, worst {row['worst']}; true final error "
+                      f"worst {row['true_error_worst_px']:.3f} px; converged {row['converged']}/{row['trials']}")
     return 0
 
 
