@@ -104,9 +104,8 @@ class ControllerCore:
         if self.state == "servoing":
             raise CommandError("busy", f"run {self.run.id} is active; stop it first")
         reference = {"id": reference} if isinstance(reference, str) else reference
+        # RunSettings lets each name once; gamma and rotation together name one DOF.
         dofs = list(dict.fromkeys("rotation" if dof == "gamma" else dof for dof in settings.dofs))
-        if len(dofs) != len(settings.dofs):
-            raise BadRequest(f"dofs: each degree of freedom once (gamma is rotation), got {settings.dofs}")
         settings = settings.model_copy(update={"dofs": dofs})
         self._check_measurable(dofs, reference)
         self._check_movable(dofs)

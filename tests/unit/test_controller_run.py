@@ -188,3 +188,12 @@ def test_recovery_reads_run_journals_only_and_says_nothing_of_the_stages_log(tmp
         assert ControllerCore(stage=None, runs_dir=tmp_path).recover() == []
     messages = [record.getMessage() for record in caplog.records]
     assert len(messages) == 1 and "20260101-000000-abcdef" in messages[0] and "delete it" in messages[0]
+
+
+def test_each_degree_of_freedom_is_named_once_and_the_schema_says_so():
+    # A repeated name is a malformed body (the schema's uniqueItems), refused where the
+    # request is read; gamma and rotation are two names of one degree of freedom.
+    assert RunSettings.model_json_schema()["properties"]["dofs"]["uniqueItems"] is True
+    with pytest.raises(ValueError, match="each degree of freedom once"):
+        RunSettings(dofs=["x", "x", "x", "x", "x"])
+    assert RunSettings(dofs=["x", "rotation", "gamma"]).dofs == ["x", "rotation", "gamma"]

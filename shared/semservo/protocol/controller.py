@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, PositiveInt
+from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, PositiveInt, field_validator
 
 from semservo.protocol import CommandReply, CommandRequest, CommandSet, NoArguments
 
@@ -37,9 +37,19 @@ class RunSettings(BaseModel):
     model_config = {"extra": "forbid", "allow_inf_nan": False, "strict": True}
 
     dofs: list[Dof] = Field(
-        ["x", "y"], min_length=1, max_length=5,
-        description="degrees of freedom: x, y, rotation (about the beam; also called gamma), alpha and beta (the "
-                    "tilts about the image's x and y axes, measured from focus sweeps)")
+        ["x", "y"], min_length=1, max_length=5, json_schema_extra={"uniqueItems": True},
+        description="degrees of freedom, each once: x, y, rotation (about the beam; also called gamma: both names "
+                    "together are one degree of freedom), alpha and beta (the tilts about the image's x and y axes, "
+                    "measured from focus sweeps)")
+
+    @field_validator("dofs")
+    @classmethod
+    def _each_once(cls, dofs: list[str]) -> list[str]:
+        # The schema says uniqueItems, so a repeated name is a malformed body (422) at the
+        # gateway, not a request the controller refuses after it was accepted.
+        if len(set(dofs)) != len(dofs):
+            raise ValueError(f"each degree of freedom once, got {dofs}")
+        return dofs
     tolerance_px: PositiveFloat = Field(0.1, le=50, description="converged when the translation error is below")
     tolerance_deg: PositiveFloat = Field(0.05, le=10, description="and the rotation error below (rotation DOF)")
     tolerance_tilt_deg: PositiveFloat = Field(0.1, le=10, description="and each tilt error below (alpha, beta DOFs)")
