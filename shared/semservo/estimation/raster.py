@@ -29,8 +29,11 @@ error's worst from 0.188 to 0.154 px, 40/40 converged either way. Frames distort
 another way (a band-limited texture sampled row by row at a sinusoidally moving
 position, ``tests/unit/test_raster.py``): 0.05-0.25 px to 0.006-0.025 px. The real drift
 pair (no truth) closes A -> B -> A to 0.000 px either way; the 2013 run's 54 frames
-differ between the two by 0.017 px (median), 0.08 at most. Not yet the default: the
-other presets' closed loop and the whole-stack benchmarks have not been measured with it.
+differ between the two by 0.017 px (median), 0.08 at most. The other presets' closed
+loops (``--closed-loop-presets``) tie: a median of 4-4.5 fresh frames and a worst of 7
+either way, the worst true final error 0.064-0.072 px against 0.063-0.082 (the mask
+reference is never scan-averaged). Not yet the default: the whole-stack benchmarks and
+the paper's law have not been measured with it.
 
 A band that cannot pin its shift (no edges across it, or outside the scene both images
 share) is left out; a frame where fewer than half the bands can is left with its
