@@ -51,6 +51,11 @@ STALL_SWEEPS = 4
 #: degree, chased it until they stalled). The run sweeps again and pools instead.
 TILT_SIGNIFICANCE = 2.0
 
+#: While the tilts are held to pool sweeps (above), the run is deciding, not stalled: the
+#: pool's standard error falls as 1 / sqrt(sweeps). Up to this many sweeps pooled (a
+#: quarter of one sweep's error) before the stall rule may end the run.
+DECIDING_SWEEPS = 16
+
 Ending = Literal["converged", "failed", "stopped"]
 
 
@@ -136,6 +141,13 @@ class Tilts:
     #: The fresh sweeps' errors since the last tilt move, with their standard errors
     #: (None where the estimator did not give them): what :meth:`pooled` averages.
     since_move: list[tuple[dict[str, float], dict[str, float] | None]] = field(default_factory=list)
+    #: Whether the last sweep's error was held as not yet told from zero (pooling).
+    holding: bool = False
+
+    def deciding(self) -> bool:
+        """Pooling sweeps to tell an error from zero, and not for too long yet
+        (:data:`DECIDING_SWEEPS`): the stall rule waits."""
+        return self.holding and len(self.since_move) < DECIDING_SWEEPS
 
     def moved(self, settled_ns: int) -> None:
         """A tilt move was commanded, arriving at ``settled_ns``: sweeps before it are stale."""
@@ -377,7 +389,8 @@ def judge(run: Run, measurement: Measurement) -> Verdict | None:
     if run.iterations >= settings.max_iterations:
         return Verdict(None, "failed", f"iteration limit ({settings.max_iterations}) reached")
     progress = run.progress
-    if progress.since_best >= settings.stall_after and (run.tilts is None or progress.sweeps_since_best >= STALL_SWEEPS):
+    if progress.since_best >= settings.stall_after and (
+            run.tilts is None or (progress.sweeps_since_best >= STALL_SWEEPS and not run.tilts.deciding())):
         return Verdict("held: no progress", "failed", stall_reason(run, measurement))
     return None
 
@@ -499,12 +512,14 @@ def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> La
     # down to half the tolerance, or the run would end at its edge, but never on an
     # error its sweeps cannot tell from zero.
     tilts.within = dict(mean) if largest <= settings.tolerance_tilt_deg else None
+    tilts.holding = False
     if largest <= settings.tolerance_tilt_deg / 2:
         record.tilt_action = "within tolerance"
         return None
     if all(abs(mean[dof]) <= TILT_SIGNIFICANCE * spread[dof] for dof in mean):
         record.tilt_action = (f"held: within {TILT_SIGNIFICANCE:g} standard errors of zero "
                               f"({len(tilts.since_move)} sweeps pooled)")
+        tilts.holding = largest > settings.tolerance_tilt_deg  # beyond tolerance: still to be decided
         return None
     interval = estimate.tilt_source_interval_s
     end_s = interval[1] if interval else None

@@ -12,7 +12,7 @@ from semservo.control import ControlLaw, LawStep, TiltLaw
 from semservo.messages import MotionEstimate
 from semservo.protocol.controller import RunSettings
 from services.controller.run import (
-    FOREIGN_ESTIMATES_TO_FAIL, STALL_SWEEPS, TILT_SIGNIFICANCE, IterationRecord, Run, Tilts, admit, decide, gate, judge, measure, tilt_step,
+    DECIDING_SWEEPS, FOREIGN_ESTIMATES_TO_FAIL, STALL_SWEEPS, TILT_SIGNIFICANCE, IterationRecord, Run, Tilts, admit, decide, gate, judge, measure, tilt_step,
 )
 
 
@@ -151,6 +151,30 @@ def test_tilts_are_not_moved_on_an_error_their_sweeps_cannot_tell_from_zero_but_
     assert run.tilts.since_move == [] and run.tilts.moves == 1
     after = sweep(run, 2, 0.3, 0.0, sigma=0.1)
     assert after.tilt_pooled == 1 and after.tilt_action == "moved", "3 standard errors, from a fresh pool"
+
+
+def test_a_tilt_run_pooling_to_tell_an_error_from_zero_is_deciding_not_stalled_for_a_while():
+    """A 5-DOF demo on tescan_aperture failed as 'no progress' after 6 sweeps held at
+    beta +0.205 +- ~0.1 degree (tolerance 0.1): the stall rule ended the run while its
+    sweeps were still being pooled to tell that error from zero."""
+    run = make_run(dofs=["alpha", "beta"], tolerance_tilt_deg=0.1, stall_after=5, max_iterations=10_000)
+    verdict = None
+    for seq in range(1, DECIDING_SWEEPS + 2):
+        # Alternating 0.5 and -0.1: a mean of 0.2 beyond tolerance, each sweep +-0.6.
+        record = sweep(run, seq, 0.5 if seq % 2 else -0.1, 0.0, sigma=0.6)
+        assert record.tilt_action.startswith("held: within"), record.tilt_action
+        tilted = estimate(0.0, seq=seq, alpha_deg=run.tilts.last_error["alpha"], beta_deg=0.0, tilt_confidence=0.9,
+                          tilt_seq=seq, tilt_scan_started_at_ns=10_000 * seq)
+        for _ in range(6):  # the frames between sweeps
+            verdict = judge(run, measure(run, tilted, new_sweep=False))
+            assert verdict is None or seq >= DECIDING_SWEEPS, f"stalled while deciding, after {seq} sweeps"
+        verdict = judge(run, measure(run, tilted, new_sweep=True))
+        if verdict is not None:
+            assert seq >= DECIDING_SWEEPS, f"stalled while deciding, after {seq} sweeps"
+            break
+        assert run.tilts.deciding() == (seq < DECIDING_SWEEPS)
+    assert verdict is not None and verdict.ending == "failed" and "no progress" in verdict.reason, \
+        "pooled this long without telling: the run ends, saying so"
 
 
 def test_tilts_without_standard_errors_are_judged_on_the_latest_sweep_alone():
