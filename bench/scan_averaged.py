@@ -33,15 +33,13 @@ def at_rest(case: str, seeds: range, frames: int) -> dict[str, list[float]]:
     errors = {"whole frame": [], "scan-averaged": []}
     for seed in seeds:
         lab = loop.Lab(case, seed)
-        scans, intervals = zip(*(lab.scan() for _ in range(4)))
-        reference = np.mean(scans, axis=0, dtype=np.float32)
-        taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
-        estimators = {"whole frame": MotionEstimator(reference, rotation=False),
-                      "scan-averaged": MotionEstimator(reference, rotation=False, scan_averaged=True)}
+        taught = loop.teach(lab, loop.TimedSettings())  # the timed trials' reference and pose
+        estimators = {"whole frame": MotionEstimator(taught.reference, rotation=False),
+                      "scan-averaged": MotionEstimator(taught.reference, rotation=False, scan_averaged=True)}
         seen = {name: [] for name in estimators}
         for _ in range(frames):
             frame, interval = lab.scan()
-            truth = (lab.true_pose(interval) - taught) / lab.pixel_um
+            truth = (lab.true_pose(interval) - np.array(taught.taught_um)) / lab.pixel_um
             for name, estimator in estimators.items():
                 motion = estimator.estimate(frame)
                 seen[name].append((motion.dx - truth[0], motion.dy - truth[1]))

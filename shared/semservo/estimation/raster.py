@@ -52,6 +52,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from semservo.estimation.rotation import rotate_about_centre
+
 #: Rows per band: 32 rows are 10-30 ms of scan at the paper's dwell times, shorter than a
 #: period of the vibration a frame cannot average (a few to tens of Hz), and enough
 #: edge for a band's shift to be known to a few hundredths of a pixel.
@@ -79,7 +81,8 @@ MAX_CORRECTION_PX = 1.0
 
 
 class ScanAveragedShift(NamedTuple):
-    """The shift averaged uniformly over the scan's bands of rows, and what it came from."""
+    """The shift averaged over the scan's bands of rows (:func:`random_effects_mean`), and
+    what it came from."""
 
     dx: float
     dy: float
@@ -126,10 +129,8 @@ def predicted_frame(reference: ScanReference, dx: float, dy: float, rotation_deg
     source lies inside the reference, both :data:`EDGE_PX` from a border)."""
     shape = rows, cols = reference.smoothed.shape
     spectrum = reference.spectrum
-    turn = cv2.getRotationMatrix2D(((cols - 1) / 2, (rows - 1) / 2), rotation_deg, 1.0)
     if rotation_deg != 0.0:
-        spectrum = np.fft.rfft2(cv2.warpAffine(reference.smoothed, turn, (cols, rows), flags=cv2.INTER_CUBIC,
-                                                  borderMode=cv2.BORDER_REFLECT))
+        spectrum = np.fft.rfft2(rotate_about_centre(reference.smoothed, rotation_deg, interpolation=cv2.INTER_CUBIC))
     predicted = _moved(spectrum, shape, dx, dy)
     # Within the smoothing's reach of either image's border, the smoothing saw the border's
     # reflection in one image and the scene in the other: a residue that reads as a shift
@@ -137,6 +138,8 @@ def predicted_frame(reference: ScanReference, dx: float, dy: float, rotation_deg
     edge = EDGE_PX
     inside = np.zeros(shape, np.uint8)
     inside[edge:-edge, edge:-edge] = 1
+    # The same turn as rotate_about_centre, then the move.
+    turn = cv2.getRotationMatrix2D(((cols - 1) / 2, (rows - 1) / 2), rotation_deg, 1.0)
     turn[:, 2] += (dx, dy)
     known = cv2.warpAffine(inside, turn, (cols, rows), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                            borderValue=0)
@@ -204,8 +207,8 @@ def random_effects_mean(estimates: np.ndarray, variances: np.ndarray) -> float:
 
 def scan_averaged_shift(reference: ScanReference, frame: np.ndarray, dx: float, dy: float,
                         rotation_deg: float = 0.0, band_rows: int = BAND_ROWS) -> ScanAveragedShift | None:
-    """The shift of ``frame`` against the reference averaged uniformly over the scan's
-    bands of rows (module docstring), refining the whole-frame estimate (``dx``, ``dy``,
+    """The shift of ``frame`` against the reference averaged over the scan's bands of rows
+    per axis by :func:`random_effects_mean` (module docstring), refining the whole-frame estimate (``dx``, ``dy``,
     ``rotation_deg``); None where it cannot (fewer than half the bands pin their shift,
     or the bands' mean moves the estimate by more than :data:`MAX_CORRECTION_PX`).
 
