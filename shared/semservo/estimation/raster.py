@@ -19,10 +19,10 @@ variances where it does not.
 
 Measured (``./dev bench scan_averaged``; the simulated lab, 10 seeds x 10 frames at rest,
 against the simulator's pose averaged over each scan): at x5000 the error's RMS falls
-from 0.095 to 0.054 px (0.07-0.12 to 0.025-0.075 px per seed, but for one seed at 0.105
+from 0.090 to 0.051 px (0.07-0.11 to 0.024-0.068 px per seed, but for one seed at 0.10
 either way: its scene is two long parallel edges, so each band pins only the shift
 across them and, along them, only the bands with the hole and the dots do: there the
-average is the texture's again), at x1200 from 0.007 to 0.005 px. In the closed loop at
+average is the texture's again), at x1200 from 0.007 to 0.006 px. In the closed loop at
 x5000 (the position law, the 40 timed starts of ``./dev bench time_to_target``) the
 fresh frames fall from a median of 11.5 to 5.5 and a worst of 33 to 31, the true final
 error's worst from 0.188 to 0.154 px, 40/40 converged either way. Frames distorted
