@@ -141,7 +141,7 @@ class TeachPool:
 
 class EstimatorCore:
     def __init__(self, *, rotation: bool = True, precision: str = "full", fft_effort: str = "FFTW_MEASURE",
-                 counters: Counter | None = None, tilt: TiltSettings | None = None, scan_averaged: bool = False):
+                 counters: Counter | None = None, tilt: TiltSettings | None = None, scan_averaged: bool = True):
         self.rotation = rotation
         #: Shifts averaged over the scan's bands of rows (:mod:`semservo.estimation.raster`).
         self.scan_averaged = scan_averaged

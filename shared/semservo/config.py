@@ -170,9 +170,9 @@ class EstimatorSettings(BaseModel):
     control_port: int = Field(5561, ge=1, le=65535, description="REP socket for commands and health")
     rotation: bool = Field(True, description="estimate rotation about the beam too")
     precision: Literal["fast", "full"] = Field("full", description="sub-pixel fit at full resolution (default) or on the 2x search pair")
-    scan_averaged: bool = Field(False, description="average each shift over the scan's bands of rows (vibration faster "
-                                                   "than a frame draws each band at its own offset; "
-                                                   "semservo.estimation.raster); off: the whole-frame estimate")
+    scan_averaged: bool = Field(True, description="average each shift over the scan's bands of rows (vibration faster "
+                                                  "than a frame draws each band at its own offset; "
+                                                  "semservo.estimation.raster); off: the whole-frame estimate")
     fft_effort: Literal["FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"] = "FFTW_MEASURE"
     tilt_method: Literal["plane", "egi"] = Field(
         "plane", description="tilts from the focus sweep: a robust plane fit (default) or the paper's EGI correlation")

@@ -276,7 +276,8 @@ def test_a_run_pools_sweeps_that_cannot_pin_the_tilts_or_pin_them_loosely_near_t
 def test_the_scan_averaged_setting_reaches_every_reference_the_core_installs():
     from semservo.config import EstimatorSettings
 
-    assert EstimatorSettings().scan_averaged is False  # off unless the lab asks (semservo.estimation.raster)
+    assert EstimatorSettings().scan_averaged is True  # on unless the lab asks otherwise (semservo.estimation.raster)
+    assert EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE").scan_averaged is True
     for averaged in (False, True):
         core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", scan_averaged=averaged)
         core.process(frame(scene(0.0, 3), 0))

@@ -299,9 +299,9 @@ class TimedSettings:
     #: From a frame's end to the move's write: transfer, estimate, decision, serial line.
     latency_s: float = 0.05
     #: semservo's shifts averaged over the scan's bands of rows
-    #: (:mod:`semservo.estimation.raster`, off by default as in the estimator service);
+    #: (:mod:`semservo.estimation.raster`, on by default as in the estimator service);
     #: both laws see the same estimates.
-    scan_averaged: bool = False
+    scan_averaged: bool = True
     #: After the start jog, before the run starts (the jog's settling and early creep).
     start_after_s: float = 1.0
     #: Keep servoing this long after converging (0: stop there), counting the corrections.
