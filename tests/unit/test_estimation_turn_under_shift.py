@@ -99,3 +99,32 @@ def test_a_disc_alone_moved_far_is_still_refused():
     disc = np.where(np.hypot(cols - 395.5, rows - 401.5) < 150, 30.0, 170.0).astype(np.float32)
     for turn, error, confidence, _ in turns_measured(disc, 225.0, seed=3)[::2]:
         assert confidence < MotionEstimator.min_confidence or error <= 1.0, (turn, error, confidence)
+
+
+def test_a_frame_at_rest_alike_after_a_half_turn_is_decided_without_the_scan_over_all_turns(monkeypatch):
+    """The x5000 micropart (two long parallel edges) leaves theta and theta + 180 undecided
+    on every frame at rest; its right turn matches unmistakably among the log-polar
+    candidates, so the costly scan over all turns (0.3 s a frame) is not run, and the
+    estimate is the same."""
+    from semservo.estimation import estimator as estimator_module
+    from semservo.reproduce import loop
+
+    lab = loop.Lab("high-magnification", 600)
+    taught = loop.teach(lab, loop.TimedSettings(reference_frames=2))
+    scans = []
+    original = estimator_module.MotionEstimator._shared_scene_angles
+    monkeypatch.setattr(estimator_module.MotionEstimator, "_shared_scene_angles",
+                        lambda self, *args, **kwargs: scans.append(1) or original(self, *args, **kwargs))
+    halves = []
+    original_turn = estimator_module.MotionEstimator._turn_from
+    monkeypatch.setattr(estimator_module.MotionEstimator, "_turn_from",
+                        lambda self, *args, **kwargs: halves.append(original_turn(self, *args, **kwargs)) or halves[-1])
+    estimator = MotionEstimator(taught.reference, rotation=True)
+    for _ in range(3):
+        frame, interval = lab.scan()
+        truth = (lab.true_pose(interval) - np.array(taught.taught_um)) / lab.pixel_um
+        motion = estimator.estimate(frame)
+        assert motion.confidence > 0 and abs(motion.rotation_deg) < 0.2
+        assert abs(motion.dx - truth[0]) < 0.4 and abs(motion.dy - truth[1]) < 0.4
+    assert halves and halves[0].heights.decisive < estimator_module.UNDECIDED_BELOW  # undecided: the case at hand
+    assert not scans

@@ -41,6 +41,14 @@ DEROTATE_ABOVE_DEG = 0.05
 #: the right angle it was 3.4-40 on real scenes turned by up to 20 degrees and moved by
 #: up to a quarter of the field (once 1.2, on a hole's disc), for a wrong one 1.0-1.9.
 UNDECIDED_BELOW = 3.5
+#: Of the candidates an undecided turn tries first (the log-polar peaks, each as it is and
+#: turned by 180 degrees), one whose refined angle correlates with the reference at least
+#: this well is taken without the scan over all turns (0.3 s a frame at 512 x 512, the
+#: costly part), where the view moved by less than ``OVERLAP_ABOVE`` of the field (moved
+#: a quarter of the field, a disc in a rim matched that well at a wrong turn).
+#: The x5000 micropart (two long parallel edges, alike after a half turn) was undecided
+#: on every frame at rest (ratio 1.5-2.9) with its right turn at 0.998-0.999.
+MATCHED_ABOVE = 0.99
 #: Then the correlation on the scene both images share is scanned over all turns, this
 #: far apart (degrees; ``MotionEstimator._shared_scene_angles``), and each top narrowed
 #: by halving the step twice. At the right turn that correlation fell by about 0.01
@@ -99,6 +107,18 @@ def _distinct(search: Search) -> bool:
     """Whether the search's peak stands out of the noise (a confidence above zero), so
     the sub-pixel fit is kept near it (:func:`.kept_near`)."""
     return confidence_from_psr(search.psr) > 0.0
+
+
+def _best_of(turns: list[Turn]) -> Turn:
+    """Of refined candidate turns, the one whose angle correlates best with the
+    reference; its ``distinct``: how much more the runner-up (another angle, more than a
+    degree away) misses of a perfect correlation than it does."""
+    best = max(turns, key=lambda turn: turn.correlation)
+    others = [turn.correlation for turn in turns
+              if turn.sharpness > 0.0 and abs((turn.angle - best.angle + 180) % 360 - 180) > 1.0]
+    if others and best.correlation < 1.0:
+        return best._replace(distinct=(1.0 - max(others)) / (1.0 - best.correlation))
+    return best
 
 
 def _motion(shift: Shift, angle: float, derotated: bool, search: Search, snr_db: float, filtered: bool,
@@ -233,8 +253,9 @@ class MotionEstimator:
         the image itself (:meth:`_refine_rotation`), and the shift is fitted on the frame
         turned back by the refined angle (at full resolution with ``precision="full"``;
         on the scene both images share when the view moved far, :meth:`_fit_on_overlap`).
-        An undecided angle is sought among more candidates, judged on the image
-        (:meth:`_shared_scene_angles`, :meth:`_best_of`).
+        An undecided angle is sought among more candidates, judged on the image: the
+        log-polar peaks, and, unless one of them matches unmistakably (``MATCHED_ABOVE``),
+        a scan over all turns (:meth:`_shared_scene_angles`, :func:`_best_of`).
 
         With ``scan_averaged``, last, the shift of an estimate confident enough to act on
         is averaged over the scan's bands of rows (:func:`.raster.scan_averaged_shift`).
@@ -320,13 +341,18 @@ class MotionEstimator:
             # turns of a scan over all turns of the correlation on the shared scene;
             # each judged by how well the image correlates at its refined angle. The
             # scan (the costly part) only when the search's peak stands out of the
-            # noise: a frame without one is refused whatever its turn (a flat grey
-            # would pay for it on every frame of a lost scene).
-            candidates = [(candidate, flip) for candidate in [angle] + self._log_polar.candidates(ANGLE_CANDIDATES)[1:]
-                          for flip in (False, True)]
-            if _distinct(turn.search):
-                candidates += [(candidate, False) for candidate in self._shared_scene_angles(mean, filtered)]
-            turn = self._best_of(mean, spectrum, candidates, filtered)
+            # noise (a frame without one is refused whatever its turn: a flat grey
+            # would pay for it on every frame of a lost scene), and unless the view
+            # moved little and a log-polar candidate matches unmistakably
+            # (MATCHED_ABOVE; moved far, a disc in a rim matched at a wrong turn too).
+            turns = self._turns(mean, spectrum, [(candidate, flip) for candidate in
+                                                 [angle] + self._log_polar.candidates(ANGLE_CANDIDATES)[1:]
+                                                 for flip in (False, True)], filtered)
+            matched = not self._moved_far(turn) and max(candidate.correlation for candidate in turns) >= MATCHED_ABOVE
+            if _distinct(turn.search) and not matched:
+                turns += self._turns(mean, spectrum, [(candidate, False) for candidate in
+                                                      self._shared_scene_angles(mean, filtered)], filtered)
+            turn = _best_of(turns)
         return self._fit_turned(image, mean, spectrum, turn, snr_db, filtered)
 
     def _refined_far(self, mean: float, turn: Turn, filtered: bool) -> Turn:
@@ -407,21 +433,12 @@ class MotionEstimator:
         reference = np.conj(half.weighted_spectrum(probes.halved[0], windows.reference))
         return half.fit(frame_spectrum, reference, search.shift, filtered, with_correlation=True).correlation
 
-    def _best_of(self, mean: float, spectrum: np.ndarray, candidates: list[tuple[float, bool]], filtered: bool) -> Turn:
-        """Of the candidate angles (each with whether to turn it by 180 degrees), the one
-        whose refined angle correlates best with the reference (on the scene both show,
-        when the view moved far); its ``distinct``: how much more the runner-up (another
-        angle, more than a degree away) misses of a perfect correlation than it does."""
-        turns = []
-        for candidate, flip in candidates:
-            turns.append(self._refined_far(mean, self._turn_from(mean, spectrum, candidate, filtered, flip=flip),
-                                           filtered))
-        best = max(turns, key=lambda turn: turn.correlation)
-        others = [turn.correlation for turn in turns
-                  if turn.sharpness > 0.0 and abs((turn.angle - best.angle + 180) % 360 - 180) > 1.0]
-        if others and best.correlation < 1.0:
-            return best._replace(distinct=(1.0 - max(others)) / (1.0 - best.correlation))
-        return best
+    def _turns(self, mean: float, spectrum: np.ndarray, candidates: list[tuple[float, bool]], filtered: bool
+               ) -> list[Turn]:
+        """The candidate angles (each with whether to turn it by 180 degrees), refined
+        (on the scene both show, when the view moved far)."""
+        return [self._refined_far(mean, self._turn_from(mean, spectrum, candidate, filtered, flip=flip), filtered)
+                for candidate, flip in candidates]
 
     def _turn_from(self, mean: float, spectrum: np.ndarray, angle: float, filtered: bool,
                    flip: bool | None = None) -> Turn:
