@@ -268,7 +268,10 @@ def throughput(out: Path, seconds: float = 6.0, rates: tuple[float, ...] = (50.0
     """The loop on a replayed recording at several frame rates: what it keeps up with
     and its latency there. The controller holds (tolerance 0.001 px, tiny moves) so it
     acts on every fresh frame; the run's DOFs are x, y, so the estimator skips rotation."""
+    # The recording's files carry no pixel size: the magnification it was taken at (x1200,
+    # the paper's) gives one, which the controller needs before it servoes.
     env = {"SEMSERVO_IMAGESERVER__SOURCE": "replay", "SEMSERVO_IMAGESERVER__REPLAY_GLOB": "frame5*",
+           "SEMSERVO_IMAGESERVER__MAGNIFICATION": "1200",
            "SEMSERVO_IMAGESERVER__FPS": str(rates[0]), "SEMSERVO_STAGE__MAX_RATE_V_PER_S": "100000",
            "SEMSERVO_CONTROLLER__RUNS_DIR": str(out / "runs"), "SEMSERVO_FAKELAB__SPEEDUP": "1"}
     stack = Stack(env, out / "positioning-services.log")
