@@ -281,11 +281,12 @@ def throughput(out: Path, seconds: float = 6.0, rates: tuple[float, ...] = (50.0
         stack.settle(5)
         stack.estimator.request("teach")
         # Holding (a held run never ends by converging); the replayed frames do not
-        # follow the stage (they loop through a recorded approach), so divergence is
-        # not judged here. The paper's law: it acts on every fresh frame (the position law
+        # follow the stage (they loop through a recorded approach), so neither divergence
+        # nor progress is judged here (both as patient as the controller allows). The paper's law: it acts on every fresh frame (the position law
         # would stop acting on frames that do not follow its moves).
         stack.controller.request("start", law="paper", tolerance_px=0.05, hold=True, max_iterations=100_000,
-                                 max_move_um=0.05, min_confidence=0.0, diverge_iterations=1000)  # the most the controller takes
+                                 max_move_um=0.05, min_confidence=0.0, diverge_iterations=1000,
+                                 stall_after=100_000)
         for fps in rates:
             imageserver.request("set_fps", fps=fps)
             time.sleep(1.0)  # the new rate settles
