@@ -282,8 +282,9 @@ def throughput(out: Path, seconds: float = 6.0, rates: tuple[float, ...] = (50.0
         stack.estimator.request("teach")
         # Holding (a held run never ends by converging); the replayed frames do not
         # follow the stage (they loop through a recorded approach), so neither divergence
-        # nor progress is judged here (both as patient as the controller allows). The paper's law: it acts on every fresh frame (the position law
-        # would stop acting on frames that do not follow its moves).
+        # nor progress is judged here (both as patient as the controller allows). The
+        # paper's law: it acts on every fresh frame (the position law would stop acting on
+        # frames that do not follow its moves).
         stack.controller.request("start", law="paper", tolerance_px=0.05, hold=True, max_iterations=100_000,
                                  max_move_um=0.05, min_confidence=0.0, diverge_iterations=1000,
                                  stall_after=100_000)
