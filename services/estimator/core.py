@@ -13,6 +13,7 @@ import numpy as np
 
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
+from semservo.estimation.raster import SCAN_AVERAGED_FROM_S, scan_lasted_s
 from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
                                       plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, wants_another_sweep)
 from semservo.imagefiles import ImageFileError, read_image
@@ -487,7 +488,9 @@ class EstimatorCore:
             # Seen square on, as the reference was: a tilted view is foreshortened, which
             # the log-polar angle reads as degrees of turn (14 at 15 degrees of tilt).
             pixels = undo_foreshortening(pixels, tilt["alpha_deg"], tilt["beta_deg"])
-        motion = self.estimator.estimate(pixels, rotation=self.measure_rotation and self.estimator.rotation)
+        averaged = self.estimator.scan_averaged and self._scanned_slowly(frame)
+        motion = self.estimator.estimate(pixels, rotation=self.measure_rotation and self.estimator.rotation,
+                                         scan_averaged=averaged)
         elapsed_ms = (time.perf_counter() - started) * 1e3
         now = time.time_ns()
         estimate = MotionEstimate(
@@ -498,13 +501,23 @@ class EstimatorCore:
             frame_acquired_at_ns=frame.header.acquired_at_ns, frame_published_at_ns=frame.header.published_at_ns,
             frame_scan_started_at_ns=frame.header.scan_started_at_ns,
             frame_source_interval_s=frame.header.source_interval_s,
-            published_at_ns=now, estimation_ms=elapsed_ms,
+            published_at_ns=now, estimation_ms=elapsed_ms, scan_averaged=averaged,
             latency_ms=(now - frame.header.published_at_ns) / 1e6,
             **self._tilt_fields(),
         )
         self.counters["estimates"] += 1
         self.last_estimate = estimate
         return estimate
+
+    def _scanned_slowly(self, frame: Frame) -> bool:
+        """Whether ``frame``'s scan lasted long enough for the scan-averaged shift
+        (:data:`semservo.estimation.raster.SCAN_AVERAGED_FROM_S`; unknown: yes)."""
+        header = frame.header
+        previous = self.recent[-2].header.acquired_at_ns if len(self.recent) > 1 else None
+        lasted = scan_lasted_s(header.shape, source_interval_s=header.source_interval_s, dwell_ns=header.dwell_ns,
+                               scan_started_at_ns=header.scan_started_at_ns, acquired_at_ns=header.acquired_at_ns,
+                               previous_acquired_at_ns=previous)
+        return lasted is None or lasted >= SCAN_AVERAGED_FROM_S
 
     def _tilt_fields(self) -> dict:
         """The latest tilt measurement against this reference, carried by every estimate

@@ -150,6 +150,8 @@ class MotionEstimate(_Message):
     frame_source_interval_s: tuple[float, float] | None = Field(None, description="the frame's source_interval_s")
     published_at_ns: int = Field(ge=0, description="Unix time (ns) this estimate was sent")
     estimation_ms: float = Field(ge=0, description="time spent estimating")
+    scan_averaged: bool = Field(False, description="the shift was averaged over the scan's bands of rows "
+                                                   "(semservo.estimation.raster)")
     latency_ms: float = Field(description="frame published -> estimate published")
     # The latest tilt measurement (focus sweep) against the reference, while tilts are
     # measured: alpha about x, beta about y (degrees, :mod:`semservo.estimation.tilt`'s convention).

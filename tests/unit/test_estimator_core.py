@@ -285,3 +285,41 @@ def test_the_scan_averaged_setting_reaches_every_reference_the_core_installs():
         assert core.estimator.scan_averaged is averaged
         motion = core.process(frame(scene(0.5, 4), 1))
         assert abs(motion.dx_px - 0.5) < 0.1 and abs(motion.dy_px) < 0.1
+
+
+def test_the_scan_averaged_shift_only_for_frames_scanned_slowly_enough_for_it_to_matter():
+    """A frame scanned faster than raster.SCAN_AVERAGED_FROM_S keeps its whole-frame shift
+    (no vibration moves so short a scan's rows apart, and the loop's latency at high frame
+    rates stays low); how long the scan lasted comes from the frame's header: its dwell,
+    its scan's start, or else the time since the frame before it. The estimate says which."""
+    from semservo.estimation.raster import scan_lasted_s
+
+    def header_frame(pixels, seq, acquired_at_ns, dwell_ns=None, scan_started_at_ns=None):
+        header = frame_header(pixels, seq=seq, acquired_at_ns=acquired_at_ns, pixel_size_nm=100.0,
+                              magnification=1000.0, dwell_ns=dwell_ns, source="test",
+                              scan_started_at_ns=scan_started_at_ns)
+        return Frame(header, pixels)
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    core.process(header_frame(scene(0.0, 3), 0, 10**9, dwell_ns=720.0))
+    core.teach_latest(frames=1)
+    pixels = scene(0.5, 4)
+    fast = core.process(header_frame(pixels, 1, 2 * 10**9, dwell_ns=720.0))  # 128 x 128 x 720 ns: 12 ms
+    slow = core.process(header_frame(pixels, 2, 3 * 10**9, dwell_ns=5000.0))  # 82 ms
+    assert not fast.scan_averaged and slow.scan_averaged
+    assert abs(fast.dx_px - 0.5) < 0.1 and abs(slow.dx_px - 0.5) < 0.1
+    assert fast.dx_px != slow.dx_px  # the refinement ran on one of them only
+    started = core.process(header_frame(pixels, 3, 4 * 10**9, scan_started_at_ns=4 * 10**9 - 10**8))  # 100 ms
+    assert started.scan_averaged
+    started = core.process(header_frame(pixels, 3, 4 * 10**9, scan_started_at_ns=4 * 10**9 - 10**7))  # 10 ms
+    assert not started.scan_averaged
+    started = core.process(header_frame(pixels, 3, 4 * 10**9, scan_started_at_ns=4 * 10**9 - 10**8))
+    assert started.scan_averaged
+    # Nothing said but when it came: at most the time since the frame before it.
+    assert not core.process(header_frame(pixels, 4, 4 * 10**9 + 5 * 10**6)).scan_averaged  # 5 ms later
+    assert core.process(header_frame(pixels, 5, 5 * 10**9)).scan_averaged
+    assert scan_lasted_s((512, 512), acquired_at_ns=10**9) is None
+    assert scan_lasted_s((512, 512), dwell_ns=100.0) == pytest.approx(0.0262144)
+    # A simulated lab's own clock first, however fast it runs against the wall clock.
+    assert scan_lasted_s((512, 512), source_interval_s=(2.0, 2.19), dwell_ns=100.0, scan_started_at_ns=0,
+                         acquired_at_ns=10**7) == pytest.approx(0.19)

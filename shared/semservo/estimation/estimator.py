@@ -224,11 +224,13 @@ class MotionEstimator:
                                                       self._reference_half_noise, filtered)
             for filtered in (False, True)}
 
-    def estimate(self, image, *, rotation: bool | None = None) -> Motion:
+    def estimate(self, image, *, rotation: bool | None = None, scan_averaged: bool | None = None) -> Motion:
         """Motion of ``image`` against the reference. ValueError for bad input.
 
         ``rotation=False`` skips the rotation measurement of an estimator made with
         rotation (a third of the time, when nothing can turn); None: as made.
+        ``scan_averaged=False`` skips the scan-averaged refinement of an estimator made
+        with it (a frame scanned too fast for it to matter); None: as made.
 
         Translation (``precision="full"``, the default):
 
@@ -262,7 +264,9 @@ class MotionEstimator:
         """
         image, statistics = self._check(image)
         motion = self._estimate(image, statistics, rotation)
-        if self.scan_averaged and motion.confidence >= self.min_confidence:
+        if scan_averaged and not self.scan_averaged:
+            raise ValueError("this estimator was made without scan averaging (scan_averaged=False)")
+        if self.scan_averaged and scan_averaged is not False and motion.confidence >= self.min_confidence:
             refined = scan_averaged_shift(self._scan_reference, image, motion.dx, motion.dy, motion.rotation_deg)
             if refined is not None:
                 return replace(motion, dx=refined.dx, dy=refined.dy)

@@ -89,6 +89,34 @@ SAMPLE_STEP = 2
 #: axis, from the residue's own scatter) is left out of the average.
 BAND_UNCERTAINTY_PX = 0.5
 
+#: Frames scanned faster than this (s) are left with their whole-frame estimate: the
+#: vibrations that move a stage (building and mechanical, 5-100 Hz; mains pick-up at 50
+#: or 60 Hz) hardly move the rows of so short a frame apart, while the refinement (about
+#: 4.5 ms a 512 x 512 frame) would double the loop's latency at the frame rates where it
+#: counts (a replay at 100 frames/s and more, where the loop keeps its p99 under 10 ms).
+#: SEM frames at high magnification take 0.1-10 s.
+SCAN_AVERAGED_FROM_S = 0.025
+
+
+def scan_lasted_s(shape: tuple[int, int], *, source_interval_s: tuple[float, float] | None = None,
+                  dwell_ns: float | None = None, scan_started_at_ns: int | None = None,
+                  acquired_at_ns: int | None = None, previous_acquired_at_ns: int | None = None) -> float | None:
+    """How long a frame's scan lasted (s), from what its header says: its scan's start and
+    end on the source's own clock (a simulated lab's time, however fast it runs), else
+    its dwell time over its pixels, else its scan's start and end in Unix time, else at
+    most the time since the frame before it (a source that scans continuously cannot
+    take longer); None if nothing says."""
+    if source_interval_s is not None and source_interval_s[1] > source_interval_s[0]:
+        return float(source_interval_s[1] - source_interval_s[0])
+    if dwell_ns:
+        return dwell_ns * 1e-9 * shape[0] * shape[1]
+    if scan_started_at_ns is not None and acquired_at_ns is not None and acquired_at_ns > scan_started_at_ns:
+        return (acquired_at_ns - scan_started_at_ns) / 1e9
+    if previous_acquired_at_ns is not None and acquired_at_ns is not None and acquired_at_ns > previous_acquired_at_ns:
+        return (acquired_at_ns - previous_acquired_at_ns) / 1e9
+    return None
+
+
 #: Corrections larger than this (px) mean the whole-frame estimate was not close enough
 #: for one linear step: the whole-frame estimate is kept.
 MAX_CORRECTION_PX = 1.0
