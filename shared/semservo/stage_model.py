@@ -39,18 +39,34 @@ class DisplacementModel(Protocol):
         """The steepest the model gets (V per um)."""
 
 
+#: The stroke (um) the branches are taken as monotonic over, and searched for the loop's ends.
+STROKE_SEARCH_UM = (-10.0, 120.0)
+#: Reversal points kept (the oldest forgotten beyond): a servo's nested corrections need a few.
+MAX_REVERSALS = 32
+
+
 @dataclass
 class BranchModel:
-    """Hysteresis branches V = p(d) for increasing and decreasing displacement, with the
-    direction of the last move remembered (a move in the same direction stays on its
-    branch; a reversal switches).
+    """Hysteresis branches V = p(d) for increasing and decreasing displacement (the major
+    loop, as calibrated), with Masing's rule for what happens after a reversal.
 
     A reversal does not jump to the other branch: the branches are up to 15 % of the
     stroke apart, so a jump would turn a 0.1 um correction into a 10 V step, and a
-    servo loop into a limit cycle. The new branch is followed with an offset that makes
-    the voltage continuous at the reversal point (a minor loop starts where the axis
-    is), and the offset fades over ``merge_um`` of travel as the minor loop joins the
-    major branch.
+    servo loop into a limit cycle. Nor does it take the other branch's slope where the
+    axis is: a piezo that reverses starts a minor loop, whose branch has the shape of the
+    major branch of its direction from that branch's own start (Masing's rule, which
+    Prandtl-Ishlinskii and Preisach models of piezo hysteresis obey): from a reversal at
+    (v_r, d_r), V(d) = v_r + p(s + d - d_r) - p(s), s the major loop's bottom for an
+    increasing branch, its top for a decreasing one. That branch is steep at first (a
+    piezo moves little per volt just after it reverses) and meets the major branch where
+    the loop closes; passing the point where the minor loop began, the axis is back on
+    the branch it left there (wiping out: a stack of reversal points). Where the major
+    branch of the direction needs less (increasing) or more (decreasing) voltage, that
+    branch is taken and the reversals are forgotten.
+
+    The major loop's ends are where the two branches come closest at either end of the
+    stroke (``STROKE_SEARCH_UM``). ``offset_v`` is added to every voltage (0 unless a
+    caller sets it).
     """
 
     increasing: tuple[float, ...]
@@ -58,7 +74,20 @@ class BranchModel:
     position_um: float = 0.0
     direction: int = 1
     offset_v: float = 0.0
-    merge_um: float = 25.0
+    #: (voltage, displacement, direction of the branch that starts there), oldest first; a
+    #: tuple, replaced and never changed in place, so a shallow copy (a move tried out
+    #: before it is made) cannot change the model it was copied from.
+    reversals: tuple = ()
+    #: The voltage the model last gave (without ``offset_v``); None: on the major branch.
+    voltage: float | None = None
+
+    def __post_init__(self):
+        low, high = STROKE_SEARCH_UM
+        stroke = np.linspace(low, high, 1301)
+        gap = np.abs(np.polyval(self.increasing, stroke) - np.polyval(self.decreasing, stroke))
+        third = len(stroke) // 3
+        self.bottom_um = float(stroke[:third][np.argmin(gap[:third])])
+        self.top_um = float(stroke[-third:][np.argmin(gap[-third:])])
 
     @classmethod
     def tritor(cls, axis: str) -> "BranchModel":
@@ -68,20 +97,41 @@ class BranchModel:
     def _branch(self) -> tuple[float, ...]:
         return self.increasing if self.direction > 0 else self.decreasing
 
+    def _major(self, direction: int, displacement_um: float) -> float:
+        return float(np.polyval(self.increasing if direction > 0 else self.decreasing, displacement_um))
+
     def voltage_for(self, target_um: float) -> float:
+        if self.voltage is None:
+            self.voltage = self._major(self.direction, self.position_um)
         if target_um != self.position_um:
             direction = 1 if target_um > self.position_um else -1
             if direction != self.direction:
-                here = float(np.polyval(self._branch(), self.position_um)) + self.offset_v
+                self.reversals = (*self.reversals, (self.voltage, self.position_um, direction))[-MAX_REVERSALS:]
                 self.direction = direction
-                self.offset_v = here - float(np.polyval(self._branch(), self.position_um))
-            self.offset_v *= float(np.exp(-abs(target_um - self.position_um) / self.merge_um))
+            # Wiping out: past the point where the branch it reversed from began, the
+            # axis is back on the branch before that.
+            while len(self.reversals) >= 2 and (target_um - self.reversals[-2][1]) * direction >= 0:
+                self.reversals = self.reversals[:-2]
+            major = self._major(direction, target_um)
+            if self.reversals:
+                start_v, start_um, _ = self.reversals[-1]
+                end = self.bottom_um if direction > 0 else self.top_um
+                voltage = start_v + self._major(direction, end + target_um - start_um) - self._major(direction, end)
+                if (voltage - major) * direction >= 0:  # met the major branch: the loop closed
+                    voltage = major
+                    self.reversals = ()
+            else:
+                voltage = major
+            self.voltage = voltage
         self.position_um = target_um
-        return float(np.polyval(self._branch(), target_um)) + self.offset_v
+        return self.voltage + self.offset_v
 
     def reset(self, position_um: float) -> None:
+        """The axis stands at ``position_um`` on the major branch of its direction."""
         self.position_um = position_um
         self.offset_v = 0.0
+        self.reversals = ()
+        self.voltage = None
 
     def position_for(self, voltage: float) -> float:
         """Inverse of the current branch by bisection over the stroke (-10..120 um; the
@@ -97,8 +147,8 @@ class BranchModel:
         return (low + high) / 2
 
     def follow_voltage(self, voltage: float, previous_voltage: float) -> None:
-        """The axis now stands at ``voltage``: on its direction's branch, the minor loop's
-        offset gone (the position is the branch's inverse *without* the old offset, so
+        """The axis now stands at ``voltage``: on its direction's major branch, the
+        reversals forgotten (the position is the branch's inverse *without* the old offset, so
         that the next small move asks for a small change of voltage: inverting with the
         offset and then dropping it turned a 0.03 um correction after a reconnect into
         an 11 V jump)."""
@@ -106,6 +156,7 @@ class BranchModel:
             self.direction = 1 if voltage > previous_voltage else -1
         self.offset_v = 0.0
         self.reset(self.position_for(voltage))
+        self.voltage = voltage
 
     def max_slope_v_per_um(self) -> float:
         """The steepest either branch gets over the stroke (V per um): bounds how much a

@@ -1,6 +1,8 @@
-"""Displacement -> voltage models: the lab's branches with direction memory, linear, files."""
+"""Displacement -> voltage models: the lab's branches with Masing's rule after reversals, linear, files."""
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 import pytest
@@ -14,16 +16,43 @@ def test_tritor_model_uses_the_branch_of_the_direction_of_motion():
     model.reset(20.0)
     assert model.voltage_for(50.0) == pytest.approx(voltage_for("x", "increasing", 50.0))
     assert model.voltage_for(60.0) == pytest.approx(voltage_for("x", "increasing", 60.0))
-    # Reversal: the decreasing branch's slope, continuous at the reversal point (no
-    # jump between branches), merging onto the decreasing branch over a long move.
+    # Reversal: a minor loop by Masing's rule, continuous at the reversal point (no jump
+    # between branches): the decreasing branch's shape from the loop's top.
     top = voltage_for("x", "increasing", 60.0)
     down = model.voltage_for(55.0)
-    offset = top - voltage_for("x", "decreasing", 60.0)
-    assert down == pytest.approx(voltage_for("x", "decreasing", 55.0) + offset * np.exp(-5.0 / model.merge_um))
-    assert down < top
+    start = model.top_um
+    assert down == pytest.approx(top + voltage_for("x", "decreasing", start - 5.0)
+                                 - voltage_for("x", "decreasing", start))
+    assert voltage_for("x", "decreasing", 55.0) < down < top  # inside the major loop
     assert model.voltage_for(55.0) == pytest.approx(down)  # no motion keeps the branch
-    far = model.voltage_for(5.0)
-    assert far == pytest.approx(voltage_for("x", "decreasing", 5.0), abs=0.15 * offset)
+    # Down to the loop's bottom: never outside the major loop, and on the decreasing
+    # branch once the minor loop has met it.
+    for target in np.linspace(54.0, 0.0, 28):
+        voltage = model.voltage_for(target)
+        assert voltage_for("x", "decreasing", target) - 1e-9 <= voltage <= voltage_for("x", "increasing", target)
+    assert model.voltage_for(0.0) == pytest.approx(voltage_for("x", "decreasing", 0.0), abs=1.0)
+
+
+def test_a_piezo_just_reversed_needs_more_volts_per_micrometre_and_a_closed_minor_loop_is_wiped_out():
+    """Masing's rule: just after a reversal the branch is the major branch's start, steep
+    (a piezo moves little per volt there); the other branch's local slope would ask for
+    half the voltage, and the move would fall short. Coming back past where the minor
+    loop began puts the axis back on the branch it left."""
+    model = BranchModel.tritor("x")
+    model.reset(30.0)
+    model.voltage_for(50.0)
+    here = model.voltage_for(50.0)
+    back = here - model.voltage_for(49.9)  # volts for the first 0.1 um down
+    local = voltage_for("x", "decreasing", 50.0) - voltage_for("x", "decreasing", 49.9)
+    assert back > 1.5 * local
+    model.voltage_for(48.0)
+    model.voltage_for(49.0)  # up again: a minor loop inside the first one
+    assert len(model.reversals) == 2
+    tried = copy.copy(model)  # as the stage service tries a move before making it
+    tried.voltage_for(47.0)
+    assert len(model.reversals) == 2 and model.position_um == 49.0
+    assert model.voltage_for(51.0) == pytest.approx(voltage_for("x", "increasing", 51.0))  # wiped out
+    assert model.reversals == ()
 
 
 def test_linear_model_and_round_trip_through_a_file(tmp_path):
@@ -51,8 +80,8 @@ def test_a_followed_voltage_leaves_the_model_in_step_with_the_axis():
     for axis in ("x", "y"):
         model = BranchModel.tritor(axis)
         model.voltage_for(40.0)
-        here = model.voltage_for(30.0)  # a reversal: the decreasing branch, offset by the gap
-        assert abs(model.offset_v) > 5
+        here = model.voltage_for(30.0)  # a reversal: a minor loop, well off both major branches
+        assert model.reversals and abs(here - voltage_for(axis, "decreasing", 30.0)) > 5
         model.follow_voltage(here, here)  # the link came back and reads the same voltage
         assert model.voltage_for(model.position_um) == pytest.approx(here, abs=1e-6)
         assert abs(model.voltage_for(model.position_um - 0.027) - here) < 0.1
