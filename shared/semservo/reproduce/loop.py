@@ -25,6 +25,7 @@ method does with the frames, not how fast the wires are.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import asdict, dataclass, replace
 
@@ -167,16 +168,26 @@ class Lab:
         return voltages
 
     def jog(self, dx_um: float, dy_um: float) -> dict[str, float]:
-        """The trial's starting offset, made through this stage's own (calibrated) model,
-        so every stage model starts the same true distance from the target (through an
-        uncalibrated model a jog of 30 % of the field went 1.5 x as far: out of the field
-        at x5000); the lab's model then reads its position from the voltages, as a stage
-        service does after the operator's jog."""
+        """The trial's starting offset, exact on the simulated stage: the voltage that
+        moves the axis's static displacement by (``dx_um``, ``dy_um``) from where it
+        rests, found on the simulator's own hysteresis (bisection on a copy), so every
+        stage model and every version of the models starts the same true distance from
+        the target (through a model, the offset depended on the model: a start of 30 %
+        of the field went 24 % of it through the branch model with an offset after a
+        reversal, 35 % through Masing's rule). The lab's model then reads its position
+        from the voltages, as a stage service does after the operator's jog."""
         voltages = {}
         for channel, delta in ((0, dx_um), (1, dy_um)):
-            true_model = displacement_model("calibrated", "xy"[channel])
-            true_model.reset(true_model.position_for(HOME_VOLTAGE))
-            voltage = float(np.clip(true_model.voltage_for(true_model.position_um + delta), -20.0, 120.0))
+            hysteresis = self.world.axes[channel].hysteresis
+            goal = hysteresis.displacement + delta
+            low, high = -20.0, 120.0
+            for _ in range(50):
+                middle = (low + high) / 2
+                if copy.deepcopy(hysteresis).apply(middle) < goal:
+                    low = middle
+                else:
+                    high = middle
+            voltage = (low + high) / 2
             self.world.set_voltage(channel, voltage, self.clock.t)
             self.models[channel].follow_voltage(voltage, HOME_VOLTAGE)
             voltages["xy"[channel]] = voltage
