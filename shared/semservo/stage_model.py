@@ -41,8 +41,6 @@ class DisplacementModel(Protocol):
 
 #: The stroke (um) the branches are taken as monotonic over, and searched for the loop's ends.
 STROKE_SEARCH_UM = (-10.0, 120.0)
-#: Reversal points kept (the oldest forgotten beyond): a servo's nested corrections need a few.
-MAX_REVERSALS = 32
 
 
 @dataclass
@@ -59,10 +57,12 @@ class BranchModel:
     (v_r, d_r), V(d) = v_r + p(s + d - d_r) - p(s), s the major loop's bottom for an
     increasing branch, its top for a decreasing one. That branch is steep at first (a
     piezo moves little per volt just after it reverses) and meets the major branch where
-    the loop closes; passing the point where the minor loop began, the axis is back on
-    the branch it left there (wiping out: a stack of reversal points). Where the major
-    branch of the direction needs less (increasing) or more (decreasing) voltage, that
-    branch is taken and the reversals are forgotten.
+    the loop closes: where the major branch of the direction needs less (increasing) or
+    more (decreasing) voltage, that branch is taken and the reversal is forgotten. Only
+    the last reversal is kept: the wiping-out of nested loops (back on the outer branch
+    past the point an inner loop began) made the voltage jump there, because the lab's
+    two fitted branches are not each other's mirror image; a held position's hundreds of
+    small corrections found it (0.23 px off once in 10 simulated minutes).
 
     The major loop's ends are where the two branches come closest at either end of the
     stroke (``STROKE_SEARCH_UM``). ``offset_v`` is added to every voltage (0 unless a
@@ -74,10 +74,10 @@ class BranchModel:
     position_um: float = 0.0
     direction: int = 1
     offset_v: float = 0.0
-    #: (voltage, displacement, direction of the branch that starts there), oldest first; a
-    #: tuple, replaced and never changed in place, so a shallow copy (a move tried out
-    #: before it is made) cannot change the model it was copied from.
-    reversals: tuple = ()
+    #: The last reversal: (voltage, displacement, direction of the branch that starts
+    #: there), or None on a major branch; a tuple, replaced and never changed in place,
+    #: so a shallow copy (a move tried out before it is made) cannot change the model.
+    reversal: tuple | None = None
     #: The voltage the model last gave (without ``offset_v``); None: on the major branch.
     voltage: float | None = None
 
@@ -106,20 +106,16 @@ class BranchModel:
         if target_um != self.position_um:
             direction = 1 if target_um > self.position_um else -1
             if direction != self.direction:
-                self.reversals = (*self.reversals, (self.voltage, self.position_um, direction))[-MAX_REVERSALS:]
+                self.reversal = (self.voltage, self.position_um, direction)
                 self.direction = direction
-            # Wiping out: past the point where the branch it reversed from began, the
-            # axis is back on the branch before that.
-            while len(self.reversals) >= 2 and (target_um - self.reversals[-2][1]) * direction >= 0:
-                self.reversals = self.reversals[:-2]
             major = self._major(direction, target_um)
-            if self.reversals:
-                start_v, start_um, _ = self.reversals[-1]
+            if self.reversal is not None:
+                start_v, start_um, _ = self.reversal
                 end = self.bottom_um if direction > 0 else self.top_um
                 voltage = start_v + self._major(direction, end + target_um - start_um) - self._major(direction, end)
                 if (voltage - major) * direction >= 0:  # met the major branch: the loop closed
                     voltage = major
-                    self.reversals = ()
+                    self.reversal = None
             else:
                 voltage = major
             self.voltage = voltage
@@ -130,7 +126,7 @@ class BranchModel:
         """The axis stands at ``position_um`` on the major branch of its direction."""
         self.position_um = position_um
         self.offset_v = 0.0
-        self.reversals = ()
+        self.reversal = None
         self.voltage = None
 
     def position_for(self, voltage: float) -> float:
@@ -148,7 +144,7 @@ class BranchModel:
 
     def follow_voltage(self, voltage: float, previous_voltage: float) -> None:
         """The axis now stands at ``voltage``: on its direction's major branch, the
-        reversals forgotten (the position is the branch's inverse *without* the old offset, so
+        reversal forgotten (the position is the branch's inverse *without* the old offset, so
         that the next small move asks for a small change of voltage: inverting with the
         offset and then dropping it turned a 0.03 um correction after a reconnect into
         an 11 V jump)."""
