@@ -292,6 +292,7 @@ def test_the_scan_averaged_shift_only_for_frames_scanned_slowly_enough_for_it_to
     (no vibration moves so short a scan's rows apart, and the loop's latency at high frame
     rates stays low); how long the scan lasted comes from the frame's header: its dwell,
     its scan's start, or else the time since the frame before it. The estimate says which."""
+    from semservo.estimation import MotionEstimator
     from semservo.estimation.raster import scan_lasted_s
 
     def header_frame(pixels, seq, acquired_at_ns, dwell_ns=None, scan_started_at_ns=None):
@@ -318,6 +319,9 @@ def test_the_scan_averaged_shift_only_for_frames_scanned_slowly_enough_for_it_to
     # Nothing said but when it came: at most the time since the frame before it.
     assert not core.process(header_frame(pixels, 4, 4 * 10**9 + 5 * 10**6)).scan_averaged  # 5 ms later
     assert core.process(header_frame(pixels, 5, 5 * 10**9)).scan_averaged
+    plain = MotionEstimator(scene(0.0, 3), rotation=False)  # made without it: asking for it is an error
+    with pytest.raises(ValueError, match="without scan averaging"):
+        plain.estimate(pixels, scan_averaged=True)
     assert scan_lasted_s((512, 512), acquired_at_ns=10**9) is None
     assert scan_lasted_s((512, 512), dwell_ns=100.0) == pytest.approx(0.0262144)
     # A simulated lab's own clock first, however fast it runs against the wall clock.

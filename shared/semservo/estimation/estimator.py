@@ -262,10 +262,10 @@ class MotionEstimator:
         With ``scan_averaged``, last, the shift of an estimate confident enough to act on
         is averaged over the scan's bands of rows (:func:`.raster.scan_averaged_shift`).
         """
-        image, statistics = self._check(image)
-        motion = self._estimate(image, statistics, rotation)
         if scan_averaged and not self.scan_averaged:
             raise ValueError("this estimator was made without scan averaging (scan_averaged=False)")
+        image, statistics = self._check(image)
+        motion = self._estimate(image, statistics, rotation)
         if self.scan_averaged and scan_averaged is not False and motion.confidence >= self.min_confidence:
             refined = scan_averaged_shift(self._scan_reference, image, motion.dx, motion.dy, motion.rotation_deg)
             if refined is not None:
