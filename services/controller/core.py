@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 
 from semservo.control import (
-    MODEL_UNCERTAINTY, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, TiltLaw, make_law,
+    MODEL_UNCERTAINTY, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, TiltLaw, make_law, move_pieces,
 )
 from semservo.errors import BadRequest, CommandError, ServiceUnavailable
 from semservo.messages import MotionEstimate
@@ -72,6 +72,18 @@ TURN_AXES = {"rotation": "rotation_deg", "alpha": "tilt_x_deg", "beta": "tilt_y_
 
 _RUN_ID = re.compile(r"[0-9]{8}-[0-9]{6}-[0-9a-f]{6}")
 
+
+
+#: The longest a chained move's next command waits for the stage (its settling and rate
+#: limit are milliseconds; a reply that asks for more is not waited on for longer).
+CHAIN_WAIT_MAX_S = 1.0
+
+
+def _sleep_until_ns(when_ns: int) -> None:
+    """Wait until Unix time ``when_ns`` (at most :data:`CHAIN_WAIT_MAX_S`)."""
+    delay_s = (when_ns - time.time_ns()) / 1e9
+    if delay_s > 0:
+        time.sleep(min(delay_s, CHAIN_WAIT_MAX_S))
 
 class ControllerCore:
     def __init__(self, stage: Port, *, estimator: Port | None = None, camera: CameraToStage | None = None,
@@ -139,7 +151,8 @@ class ControllerCore:
                          integral_time_s=settings.integral_time_s,
                          model_uncertainty=model_uncertainty(stage_state, planar),
                          tolerance_px=settings.tolerance_px, tolerance_deg=settings.tolerance_deg,
-                         max_move_um=settings.max_move_um, max_turn_deg=settings.max_turn_deg),
+                         max_move_um=settings.max_move_um, max_moves=settings.moves_per_frame,
+                         max_turn_deg=settings.max_turn_deg),
             tilts=Tilts(TiltLaw(tilt_dofs, gain, self.camera), settled_ns=now_ns) if tilt_dofs else None,
             last_command_ns=now_ns, recent=deque(),
             beam=BeamAxes.of(stage_state) if settings.beam_shift_within_um > 0 else None)
@@ -318,7 +331,9 @@ class ControllerCore:
         # from it (the paper's law needs nothing).
         carried = {f"{axis}_um": value for axis, value in decision.targets.items()}
         carried.update({axis: value for axis, value in decision.turns.items() if axis == "rotation_deg"})
-        run.law.applied(carried, record.command_written_at_ns / 1e9 if record.command_written_at_ns else None)
+        # A chained move has landed by its last command.
+        last_written_ns = record.pieces_written_at_ns[-1] if record.pieces_written_at_ns else record.command_written_at_ns
+        run.law.applied(carried, last_written_ns / 1e9 if last_written_ns else None)
         if decision.turns.keys() & {TURN_AXES["alpha"], TURN_AXES["beta"]}:
             run.law.view_moved()  # the pivot's lever moves the view by design: the law starts afresh
         run.iterations += 1
@@ -338,12 +353,25 @@ class ControllerCore:
             if decision.targets:
                 # The stage's axes, or the beam's for the last micrometres (services.controller.split).
                 error_um = record.error_px * record.pixel_size_nm / 1000 if record.pixel_size_nm else None
-                record.targets = split(decision.targets, run.beam, run.settings.beam_shift_within_um, error_um)
-                written = self.stage.call(stage_protocol.MOVE, targets=record.targets, relative=True,
-                                          owner=self.owner)
-                if run.beam is not None:
-                    run.beam.follow(written.positions_um)
-                record.command_written_at_ns = written.written_at_ns
+                pieces = move_pieces({f"{axis}_um": value for axis, value in decision.targets.items()},
+                                     run.settings.max_move_um)
+                record.targets, record.pieces, record.pieces_written_at_ns = {}, len(pieces), []
+                written = None
+                for piece in pieces:
+                    if written is not None:
+                        # A chained move: the next command once the last has settled and
+                        # its voltage step is within the stage's rate limit.
+                        _sleep_until_ns(max(written.settled_at_ns or 0, written.ready_at_ns or 0))
+                    targets = split({axis[:-3]: value for axis, value in piece.items()}, run.beam,
+                                    run.settings.beam_shift_within_um, error_um)
+                    written = self.stage.call(stage_protocol.MOVE, targets=targets, relative=True, owner=self.owner)
+                    if run.beam is not None:
+                        run.beam.follow(written.positions_um)
+                    for axis, value in targets.items():
+                        record.targets[axis] = record.targets.get(axis, 0.0) + value
+                    record.pieces_written_at_ns.append(written.written_at_ns)
+                    if record.command_written_at_ns is None:
+                        record.command_written_at_ns = written.written_at_ns
                 record.command_settled_at_ns = written.settled_at_ns
                 record.voltages, record.positions_um = written.voltages, written.positions_um
             if decision.turns:

@@ -89,6 +89,8 @@ class IterationRecord:
     saturated: bool | None = None
     turn_deg: dict[str, float] | None = None
     targets: dict[str, float] | None = None  # the axes that made the move (the stage's, or the beam's)
+    pieces: int | None = None  # commands the planar move was made in (moves_per_frame)
+    pieces_written_at_ns: list[int] | None = None  # when each was written
     command_written_at_ns: int | None = None
     command_settled_at_ns: int | None = None
     voltages: dict[str, float] | None = None
@@ -445,7 +447,8 @@ def law_step(run: Run, estimate: MotionEstimate, sampling_time_s: float, now_ns:
 
 def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:
     """The move to command from the law's step (and the tilts'), saturated at
-    ``max_move_um`` and ``max_turn_deg``; ``diverging`` says why not to make it: the cost
+    ``max_move_um`` (the position law: ``moves_per_frame`` x ``max_move_um``, made in
+    pieces of at most ``max_move_um``) and ``max_turn_deg``; ``diverging`` says why not to make it: the cost
     has stayed above ``diverge_factor`` x its minimum for ``diverge_iterations`` moves.
     Divergence is never judged against less than the square of ``diverge_floor_px`` (or
     of 5 x tolerance): near the target the cost is estimation noise and vibration,
@@ -453,9 +456,12 @@ def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:
     settings = run.settings
     move = dict(step.move)
     planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
-    saturated = planar > settings.max_move_um
+    # The position law may chain moves (it asks for more than one command's worth only
+    # once the stage has responded as commanded); the paper's law makes one per frame.
+    limit = settings.max_move_um * (settings.moves_per_frame if isinstance(run.law, PositionLaw) else 1)
+    saturated = planar > limit
     if saturated:
-        scale = settings.max_move_um / planar
+        scale = limit / planar
         for key in ("x_um", "y_um"):
             if key in move:
                 move[key] *= scale

@@ -473,7 +473,12 @@ class PositionLaw:
     ``caution`` spreads above the estimate does not overshoot; else held for another frame.
 
     Safety: every move within ``max_move_um`` (planar, the direction kept) and
-    ``max_turn_deg``; noise is not chased; a response implausible (the content moved less
+    ``max_turn_deg``; once a move of this run has moved the content as commanded (a
+    response judged plausible, below), a planar move may reach ``max_moves`` x
+    ``max_move_um``, which the caller makes as that many moves of at most ``max_move_um``
+    each (:func:`move_pieces`), each written after the last has settled: a 30 % offset is
+    then one frame's work, not three, while a first move, on a stage not yet seen to
+    respond, stays within one ``max_move_um``; noise is not chased; a response implausible (the content moved less
     than 0.2 or more than 5 times the commanded move, or the wrong way) on the first fresh
     frame after a move is asked again on the next one without moving (a move that landed
     late reads as none); implausible there too, it counts, and two such moves in a row on
@@ -521,6 +526,9 @@ class PositionLaw:
     tolerance_deg: float = 0.05
     deadband: float = 0.7
     max_move_um: float = 10.0
+    #: Moves of at most ``max_move_um`` a planar step may take once the stage has responded
+    #: as commanded in this run (1: one per frame).
+    max_moves: int = 1
     max_turn_deg: float = 5.0
     caution: float = 1.0
     significance: float = 2.0
@@ -553,6 +561,7 @@ class PositionLaw:
     _directions: dict = field(default_factory=dict, repr=False)
     _implausible: dict = field(default_factory=dict, repr=False)
     _kept_gains: tuple | None = field(default=None, repr=False)
+    _responded: bool = field(default=False, repr=False)  # a planar move of this run judged plausible
 
     def __post_init__(self):
         unknown = set(self.dofs) - set(_AXIS_OF)
@@ -570,7 +579,7 @@ class PositionLaw:
             kept = self.state[2 * n:].copy(), self.covariance[2 * n:, 2 * n:].copy()
         self.state = self.covariance = None
         self._time = self._pending = self._last_error = None
-        self._implausible, self.converged = {}, False
+        self._implausible, self.converged, self._responded = {}, False, False
         self._kept_gains = kept
 
     def view_moved(self) -> None:
@@ -691,6 +700,7 @@ class PositionLaw:
             ratio = float(achieved[chosen] @ expected[chosen]) / size**2
             if 0.2 <= ratio <= 5.0:
                 self._implausible[group] = 0
+                self._responded = self._responded or group == "x/y"
                 continue
             if not self._pending.get("asked_again"):
                 self._pending["asked_again"] = True
@@ -788,14 +798,15 @@ class PositionLaw:
         commanded = nominal / np.maximum(gains + self.caution * spreads, 0.2)
         move = {axis: float(value) for axis, value, acting in zip(self.axes, commanded, act) if acting}
         planar_move = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
-        if planar_move > self.max_move_um:
+        limit = self.max_move_um * (max(int(self.max_moves), 1) if self._responded else 1)
+        if planar_move > limit:
             # Saturated: even the cautious move is beyond the limit, so the target lies
             # beyond the limit's move too; go the limit's length towards it.
             direction = {axis: float(value) for axis, value in zip(self.axes, nominal / np.maximum(gains, 0.2))
                          if axis in ("x_um", "y_um") and axis in move}
             length = math.hypot(*direction.values())
             for axis, value in direction.items():
-                move[axis] = value * self.max_move_um / length
+                move[axis] = value * limit / length
         if "rotation_deg" in move and abs(move["rotation_deg"]) > self.max_turn_deg:
             move["rotation_deg"] = math.copysign(self.max_turn_deg, move["rotation_deg"])
         fraction = float(np.mean([move[axis] / nominal[i] for i, axis in enumerate(self.axes)
@@ -825,6 +836,19 @@ class PositionLaw:
         return float(np.hypot(*chosen)) if chosen.size == 2 else float(np.abs(chosen).sum())
 
 
+def move_pieces(move: dict[str, float], max_move_um: float) -> list[dict[str, float]]:
+    """A move as the stage makes it: the planar part (``x_um``, ``y_um``) in the fewest
+    equal pieces of at most ``max_move_um`` each (the direction kept), any other axis
+    (a turn) with the first piece. A move within the limit is one piece; the caller
+    writes each piece after the one before has settled and within the stage's rate."""
+    planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
+    count = max(math.ceil(planar / max_move_um - 1e-9), 1) if planar > 0 else 1
+    pieces = [{axis: value / count for axis, value in move.items() if axis in ("x_um", "y_um")}
+              for _ in range(count)]
+    pieces[0].update({axis: value for axis, value in move.items() if axis not in ("x_um", "y_um")})
+    return [piece for piece in pieces if piece]
+
+
 def error_in_units(error: np.ndarray, dofs: Sequence[str]) -> np.ndarray:
     """The error in the tolerances' units: px for translation, degrees for rotation."""
     return np.array([math.degrees(value) if dof == "rotation" else value for dof, value in zip(dofs, error)])
@@ -834,7 +858,7 @@ def make_law(name: str, dofs: Sequence[str] = ("x", "y"), *, camera_to_stage: Ca
              gain: AdaptiveGain | ExponentialGain | None = None, integral_time_s: float | None = None,
              model_uncertainty: float = 0.15, noise_px: float = 0.03, tolerance_px: float = 0.1,
              tolerance_deg: float = 0.05,
-             max_move_um: float = 10.0, max_turn_deg: float = 5.0) -> ControlLaw | PositionLaw:
+             max_move_um: float = 10.0, max_moves: int = 1, max_turn_deg: float = 5.0) -> ControlLaw | PositionLaw:
     """The planar law a run's settings name (``law``: one of :data:`LAWS`). Both take
     ``step(dx_px, dy_px, rotation_deg, pixel_size_nm, sampling_time_s)`` on the frames the
     caller acts on and ``applied(move)`` after the stage's reply; each ignores what it
@@ -846,5 +870,5 @@ def make_law(name: str, dofs: Sequence[str] = ("x", "y"), *, camera_to_stage: Ca
     if name == "position":
         return PositionLaw(tuple(dofs), camera_to_stage, model_uncertainty=model_uncertainty, noise_px=noise_px,
                            tolerance_px=tolerance_px, tolerance_deg=tolerance_deg, max_move_um=max_move_um,
-                           max_turn_deg=max_turn_deg)
+                           max_moves=max_moves, max_turn_deg=max_turn_deg)
     raise ValueError(f"unknown law {name!r}; laws: {', '.join(LAWS)}")

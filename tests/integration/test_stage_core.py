@@ -329,6 +329,39 @@ def test_a_killed_controllers_run_is_finished_from_its_journal(stage, tmp_path):
     assert second.recover() == [], "recovered once"
 
 
+def test_a_far_target_is_reached_in_chained_moves_within_the_stages_step_and_rate_limits(link, tmp_path):
+    """Once the stage has moved the content as commanded, the position law asks for up to
+    ``moves_per_frame`` x ``max_move_um`` on one frame; the controller writes it as that
+    many commands, each within the step limit and waiting for the stage's settling and
+    rate limit (the stage's real clock and default limits: nothing is refused)."""
+    import math
+    import time
+
+    from semservo.control import CameraToStage
+
+    _, pty = link
+    real = StageCore(pty.path, settle_s={"x": 0.01, "y": 0.01})  # default limits, the real clock
+    assert real.connect()
+    try:
+        core = ControllerCore(LocalStage(real), runs_dir=tmp_path)
+        core.start(RunSettings(max_move_um=10.0, moves_per_frame=3), "ref")
+        content = (250.0, -40.0)  # 45 um away at 177 nm/px
+        first = core.on_estimate(estimate(1, *content, scan_started_at_ns=time.time_ns()))
+        assert first["action"] == "moved" and first["pieces"] == 1
+        assert math.hypot(*first["targets"].values()) == pytest.approx(10.0)
+        time.sleep(0.2)  # the next frame: the first move's voltage step is within the rate limit by then
+        moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
+        content = (content[0] + moved[0], content[1] + moved[1])  # the stage did as commanded
+        chained = core.on_estimate(estimate(2, *content, scan_started_at_ns=time.time_ns()))
+        assert chained["action"] == "moved", chained["action"]
+        assert chained["pieces"] >= 3 and math.hypot(*chained["targets"].values()) > 20.0
+        written = chained["pieces_written_at_ns"]
+        assert written == sorted(written) and len(written) == chained["pieces"]
+        assert real.counters["refused"] == 0 and real.counters["moves"] == 1 + chained["pieces"]
+    finally:
+        real.close()
+
+
 def test_the_position_law_ends_a_run_whose_content_does_not_follow_its_moves(stage, tmp_path):
     """A wrong camera-to-stage sign, a blocked axis or wrong estimates: the content does
     not move as commanded, twice in a row, and the run fails with the reason instead of

@@ -134,7 +134,7 @@ def test_the_tilt_law_takes_its_signs_from_the_camera_to_stage_transform():
 # The position law (not the paper's)
 
 from semservo.control import (  # noqa: E402
-    LAWS, PositionLaw, StageSettling, UnexpectedResponse, make_law, settling_time_s,
+    LAWS, PositionLaw, StageSettling, UnexpectedResponse, make_law, move_pieces, settling_time_s,
 )
 
 
@@ -192,6 +192,43 @@ def test_the_position_law_respects_the_saturation_and_keeps_the_direction():
     assert step.move["x_um"] / step.move["y_um"] == pytest.approx(300.0 / -400.0)
     turning = PositionLaw(("rotation",), max_turn_deg=2.0)
     assert turning.step(0.0, 0.0, 30.0, 100.0).move["rotation_deg"] == pytest.approx(-2.0)
+
+
+def test_the_position_law_chains_moves_only_once_the_stage_has_responded_as_commanded():
+    """A first move, on a stage not yet seen to respond, stays within one command's
+    limit; once a move has moved the content as commanded, a far target is one frame's
+    work (``max_moves`` x ``max_move_um``); a stage moving the wrong way never unlocks it."""
+    pixel_nm, camera = 177.0, CameraToStage()
+    law = PositionLaw(("x", "y"), max_move_um=10.0, max_moves=3, noise_px=0.01)
+    content = np.array([300.0, -20.0])  # 53 um away
+    first = law.step(*content, 0.0, pixel_nm)
+    assert math.hypot(first.move["x_um"], first.move["y_um"]) == pytest.approx(10.0)
+    law.applied(first.move)
+    content = content + np.array(camera.content_move_px(first.move["x_um"], first.move["y_um"], pixel_nm))
+    chained = law.step(*content, 0.0, pixel_nm)
+    assert math.hypot(chained.move["x_um"], chained.move["y_um"]) == pytest.approx(30.0)
+
+    wrong = PositionLaw(("x", "y"), max_move_um=10.0, max_moves=3, noise_px=0.01)
+    content = np.array([300.0, -20.0])
+    first = wrong.step(*content, 0.0, pixel_nm)
+    wrong.applied(first.move)
+    content = content - np.array(camera.content_move_px(first.move["x_um"], first.move["y_um"], pixel_nm))
+    held = wrong.step(*content, 0.0, pixel_nm)  # implausible: asked again, not moved
+    assert not held.move
+    again = wrong.step(*content, 0.0, pixel_nm)  # implausible again: it counts, and nothing is unlocked
+    assert math.hypot(again.move["x_um"], again.move["y_um"]) <= 10.0 + 1e-9
+    assert not wrong._responded
+
+
+def test_a_move_is_made_in_equal_pieces_within_the_limit():
+    pieces = move_pieces({"x_um": 18.0, "y_um": -24.0, "rotation_deg": 1.5}, 10.0)
+    assert len(pieces) == 3
+    assert all(math.hypot(piece["x_um"], piece["y_um"]) == pytest.approx(10.0) for piece in pieces)
+    assert sum(piece["x_um"] for piece in pieces) == pytest.approx(18.0)
+    assert sum(piece["y_um"] for piece in pieces) == pytest.approx(-24.0)
+    assert pieces[0]["rotation_deg"] == 1.5 and all("rotation_deg" not in piece for piece in pieces[1:])
+    assert move_pieces({"x_um": 10.0}, 10.0) == [{"x_um": 10.0}]  # at the limit: one piece
+    assert move_pieces({"rotation_deg": 2.0}, 10.0) == [{"rotation_deg": 2.0}]
 
 
 def test_the_position_law_never_acts_on_a_refused_or_stale_frame():

@@ -8,7 +8,7 @@ from collections import deque
 
 import pytest
 
-from semservo.control import ControlLaw, LawStep, TiltLaw
+from semservo.control import ControlLaw, LawStep, PositionLaw, TiltLaw
 from semservo.messages import MotionEstimate
 from semservo.protocol.controller import RunSettings
 from services.controller.run import (
@@ -181,6 +181,17 @@ def test_tilts_without_standard_errors_are_judged_on_the_latest_sweep_alone():
     run = make_run(dofs=["alpha", "beta"], tolerance_tilt_deg=0.1)
     assert sweep(run, 1, 0.3, 0.0, sigma=None).tilt_action == "moved"
     assert sweep(run, 2, 0.04, 0.0, sigma=None).tilt_mean_deg == {"alpha": 0.04, "beta": 0.0}
+
+
+def test_decide_lets_the_position_law_chain_moves_and_the_papers_law_make_one():
+    run = make_run(max_move_um=10.0, moves_per_frame=3)
+    run.law = PositionLaw(("x", "y"))
+    far = LawStep((100.0,), 1e4, 1.0, (), {"x_um": 30.0, "y_um": -40.0})
+    chained = decide(run, far, None)
+    assert chained.saturated and math.hypot(*chained.targets.values()) == pytest.approx(30.0)
+    assert chained.targets["x"] / chained.targets["y"] == pytest.approx(30.0 / -40.0)
+    paper = decide(make_run(max_move_um=10.0, moves_per_frame=3), far, None)  # ControlLaw
+    assert math.hypot(*paper.targets.values()) == pytest.approx(10.0)
 
 
 def test_decide_saturates_moves_and_turns_and_judges_divergence_above_its_floor():

@@ -74,7 +74,12 @@ class RunSettings(BaseModel):
     gain_max: PositiveFloat = Field(0.8, le=10, description="per second")
     min_confidence: float = Field(0.5, ge=0, le=1, description="lower-confidence estimates hold the stage")
     lost_after: Count = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
-    max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per iteration (saturation)")
+    max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per command (saturation)")
+    moves_per_frame: Count = Field(
+        3, le=10, description="the position law: once a move of the run has moved the content as commanded, a "
+                              "displacement beyond max_move_um is made on one frame as up to this many commands of "
+                              "at most max_move_um each, each written once the last has settled (1: one per frame; "
+                              "the paper's law makes one)")
     beam_shift_within_um: float = Field(
         0.0, ge=0, le=1000, description="once the error is at most this many um, the beam shift (beam_x, beam_y) makes "
                                         "the moves while it has room, the stage the rest: the beam makes the last "

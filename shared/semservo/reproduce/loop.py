@@ -33,8 +33,9 @@ import cv2
 import numpy as np
 
 from semservo.control import (
-    MODEL_UNCERTAINTY, AdaptiveGain, ControlLaw, StageSettling, UnexpectedResponse, make_law,
+    MODEL_UNCERTAINTY, AdaptiveGain, ControlLaw, StageSettling, UnexpectedResponse, make_law, move_pieces,
 )
+from semservo.config import StageSettings
 from semservo.reproduce import methods
 from semservo.simulation.sem import ScanSettings
 from semservo.simulation.world import HOME_VOLTAGE, PRESETS, World
@@ -107,6 +108,10 @@ class TrialSettings:
     reference_frames: int = 4
 
 
+#: The stage service's default rate limit (V/s): a chained move's pieces wait for it.
+STAGE_RATE_V_PER_S = StageSettings.model_fields["max_rate_v_per_s"].default
+
+
 #: The simulated SEM's sample, rasterized and blurred to each level, for the last (case,
 #: seed) a lab was made for: pure data (``SEM.render`` is pure given its inputs) and most
 #: of a new lab's cost, so consecutive labs of one preset and seed share it (one kept:
@@ -166,6 +171,23 @@ class Lab:
         if at is None:
             self.clock.t += 0.01  # the piezo settles in milliseconds
         return voltages
+
+    def move_in_pieces(self, move: dict[str, float], max_move_um: float, at: float) -> tuple[list, float, float]:
+        """A planar move (``x_um``, ``y_um``) made as the controller makes it: in pieces of
+        at most ``max_move_um`` (:func:`semservo.control.move_pieces`), each written once
+        the one before has settled and its voltage step is within the stage service's
+        rate limit. Returns the voltages after each piece, when the last was written and
+        when it will have settled (simulated s)."""
+        voltages, written_at, settled_at = [], at, at
+        for piece in move_pieces(move, max_move_um):
+            before = [self.world.voltage(channel) for channel in (0, 1)]
+            after = self.move(piece.get("x_um", 0.0), piece.get("y_um", 0.0), at=at)
+            voltages.append(after)
+            written_at = at
+            settled_at = at + self.settling.after_s(piece)
+            step_v = max(abs(after[name] - before[channel]) for channel, name in enumerate("xy"))
+            at = max(settled_at, at + step_v / STAGE_RATE_V_PER_S)
+        return voltages, written_at, settled_at
 
     def jog(self, dx_um: float, dy_um: float) -> dict[str, float]:
         """The trial's starting offset, exact on the simulated stage: the voltage that
@@ -306,6 +328,9 @@ class TimedSettings:
     time_budget_s: float | None = None
     lost_after: int = 5
     max_move_um: float = 10.0
+    #: The position law: once the stage has responded as commanded, a planar move of up to
+    #: this many ``max_move_um``, made in pieces (as the controller's ``moves_per_frame``).
+    max_moves: int = 3
     reference_frames: int = 4
     #: From a frame's end to the move's write: transfer, estimate, decision, serial line.
     latency_s: float = 0.05
@@ -326,7 +351,8 @@ def _law_for(name: str, model: str, settings: TimedSettings, noise_px: float):
     return make_law(name, ("x", "y"), gain=AdaptiveGain(), integral_time_s=settings.integral_time_s,
                     model_uncertainty=MODEL_UNCERTAINTY["uncalibrated" if model == "uncalibrated" else "calibrated"],
                     noise_px=noise_px,
-                    tolerance_px=settings.tolerance_px, max_move_um=settings.max_move_um)
+                    tolerance_px=settings.tolerance_px, max_move_um=settings.max_move_um,
+                    max_moves=getattr(settings, "max_moves", 1))
 
 
 @dataclass(frozen=True)
@@ -486,8 +512,9 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
             break
         move = dict(step.move)
         planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
-        if planar > settings.max_move_um:
-            move = {key: value * settings.max_move_um / planar for key, value in move.items()}
+        limit = settings.max_move_um * (settings.max_moves if law == "position" else 1)
+        if planar > limit:
+            move = {key: value * limit / planar for key, value in move.items()}
         iterations += 1
         if controller.converged and converged_at is None:
             record["action"] = "within tolerance"
@@ -502,11 +529,11 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
             controller.applied({})
             records.append(record)
             continue
-        written_at = interval[1] + settings.latency_s
-        record.update(cost=step.cost, gain=step.gain, move=move,
-                      voltages=lab.move(move.get("x_um", 0.0), move.get("y_um", 0.0), at=written_at), action="moved")
+        voltages, written_at, settled_at = lab.move_in_pieces(move, settings.max_move_um,
+                                                              interval[1] + settings.latency_s)
+        record.update(cost=step.cost, gain=step.gain, move=move, voltages=voltages[-1], pieces=len(voltages),
+                      action="moved")
         controller.applied(move, at_s=written_at)
-        settled_at = written_at + lab.settling.after_s(move)
         if converged_at is not None:
             corrections += 1
         records.append(record)
