@@ -38,7 +38,8 @@ from typing import Callable
 import numpy as np
 
 from semservo.control import (
-    MODEL_UNCERTAINTY, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, TiltLaw, make_law, move_pieces,
+    MODEL_UNCERTAINTY, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, PositionLaw, TiltLaw, make_law,
+    move_pieces,
 )
 from semservo.errors import BadRequest, CommandError, ServiceUnavailable
 from semservo.messages import MotionEstimate
@@ -152,7 +153,9 @@ class ControllerCore:
                          model_uncertainty=model_uncertainty(stage_state, planar),
                          tolerance_px=settings.tolerance_px, tolerance_deg=settings.tolerance_deg,
                          max_move_um=settings.max_move_um, max_moves=settings.moves_per_frame,
-                         max_turn_deg=settings.max_turn_deg),
+                         max_turn_deg=settings.max_turn_deg,
+                         # A driver in physical units closes its own loop: no creep to follow.
+                         creep_per_decade=0.0 if stage_state.kind == "physical" else PositionLaw.creep_per_decade),
             tilts=Tilts(TiltLaw(tilt_dofs, gain, self.camera), settled_ns=now_ns) if tilt_dofs else None,
             last_command_ns=now_ns, recent=deque(),
             beam=BeamAxes.of(stage_state) if settings.beam_shift_within_um > 0 else None)

@@ -464,13 +464,20 @@ class PositionLaw:
     rest); time adds v dt; a move u adds M diag(u) k (M: the camera-to-stage transform's
     content motion per unit move), linear in the state, so p, v and k are estimated
     together. A reversal of an axis's direction starts a minor hysteresis loop of another
-    gain: k's spread is raised to ``reversal_spread`` there.
+    gain: k's spread is raised to ``reversal_spread`` there. The last move creeps on
+    (``creep_per_decade`` of it per decade of time after its write, until the next move):
+    time adds that too, through k, so creep is neither read as drift nor as the stage's
+    gain.
 
     Each fresh frame: converged (:attr:`converged`) when the error predicted for now,
-    plus one standard deviation, is within tolerance and no move is due (below); else a move when the error predicted
+    plus one standard deviation, is within tolerance, and so is the error the last move's
+    creep leads to within ``creep_horizon_s``, and no move is due (below); else a move
+    when the error predicted
     for the next fresh frame is beyond ``deadband`` x tolerance and ``significance``
-    standard deviations: u = -(M diag(k + ``caution`` spread(k)))^-1 p, so a gain up to
-    ``caution`` spreads above the estimate does not overshoot; else held for another frame.
+    standard deviations (or the creep ahead carries it beyond tolerance): u = -(M diag(k +
+    ``caution`` spread(k)))^-1 p / (1 + the move's own creep to midway, in decades, between
+    the next frame and the horizon), so a gain up to ``caution`` spreads above the estimate
+    does not overshoot; else held for another frame.
 
     Safety: every move within ``max_move_um`` (planar, the direction kept) and
     ``max_turn_deg``; once a move of this run has moved the content as commanded (a
@@ -546,6 +553,18 @@ class PositionLaw:
     #: uncertainty: a piezo's gain varies along its stroke (a linear model's far more than
     #: a calibrated model's), so what the last moves taught fades with the travel.
     gain_walk: float = 0.05
+    #: Creep (``shared/reference/nv403-and-tritor.md``: "about 1-2 % of the last move per
+    #: decade of time after a step"): after a move written at t_w, the content goes on by
+    #: ``creep_per_decade`` x the move's content motion x log10(1 + (t - t_w) /
+    #: ``creep_start_s``), until the next move; ``creep_spread`` its relative 1-sigma. 0 for
+    #: a closed-loop stage (a driver in physical units).
+    creep_per_decade: float = 0.015
+    creep_start_s: float = 0.1
+    creep_spread: float = 0.5
+    #: Arrival is declared only if the last move's creep over this many seconds keeps the
+    #: target within tolerance (else the residue is trimmed first: a run that converged
+    #: right after a large move crept 0.1-0.2 px beyond tolerance within seconds).
+    creep_horizon_s: float = 10.0
     #: Converged when the error now plus this many of its standard deviations is within
     #: tolerance.
     margin: float = 1.0
@@ -562,6 +581,7 @@ class PositionLaw:
     _implausible: dict = field(default_factory=dict, repr=False)
     _kept_gains: tuple | None = field(default=None, repr=False)
     _responded: bool = field(default=False, repr=False)  # a planar move of this run judged plausible
+    _creeping: tuple | None = field(default=None, repr=False)  # the last move: (u, written at s), creeping
 
     def __post_init__(self):
         unknown = set(self.dofs) - set(_AXIS_OF)
@@ -578,7 +598,7 @@ class PositionLaw:
         if self.state is not None:
             kept = self.state[2 * n:].copy(), self.covariance[2 * n:, 2 * n:].copy()
         self.state = self.covariance = None
-        self._time = self._pending = self._last_error = None
+        self._time = self._pending = self._last_error = self._creeping = None
         self._implausible, self.converged, self._responded = {}, False, False
         self._kept_gains = kept
 
@@ -631,6 +651,25 @@ class PositionLaw:
                     matrix[row, column] = content[0 if dof == "x" else 1]
         return matrix
 
+    def _creep_decades(self, from_s: float, to_s: float) -> float:
+        """The decades of creep the last move adds between two times (0 without one)."""
+        if self._creeping is None or to_s <= from_s:
+            return 0.0
+        written = self._creeping[1]
+        decades = (math.log10(1.0 + max(to_s - written, 0.0) / self.creep_start_s)
+                   - math.log10(1.0 + max(from_s - written, 0.0) / self.creep_start_s))
+        return self.creep_per_decade * decades
+
+    def _creep(self, from_s: float | None, to_s: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """The content's creep (per DOF, px or degrees) between two times, from the last
+        move and the gains as estimated, and its spread."""
+        n = len(self.dofs)
+        if from_s is None or to_s is None or self._creeping is None:
+            return np.zeros(n), np.zeros(n)
+        fraction = self._creep_decades(from_s, to_s)
+        creep = fraction * self._content_per_move(self._pixel_size_nm) @ (self._creeping[0] * self.state[2 * n:])
+        return creep, self.creep_spread * np.abs(creep)
+
     def _predict(self, to_s: float | None) -> None:
         if to_s is None:  # no clock: no drift
             return
@@ -641,10 +680,16 @@ class PositionLaw:
         dt = to_s - self._time
         transition = np.eye(3 * n)
         transition[:n, n:2 * n] = np.eye(n) * dt
+        _, creep_spread = self._creep(self._time, to_s)
+        if self._creeping is not None:
+            # Creep is the last move's, through the stage's gains: linear in k.
+            transition[:n, 2 * n:] = (self._creep_decades(self._time, to_s)
+                                      * self._content_per_move(self._pixel_size_nm) @ np.diag(self._creeping[0]))
         self.state = transition @ self.state
         self.covariance = transition @ self.covariance @ transition.T
         walk = np.where(self._rotation, 0.0, (self.drift_walk_nm / self._pixel_size_nm) ** 2 * dt)
         self.covariance[n:2 * n, n:2 * n] += np.diag(walk)
+        self.covariance[:n, :n] += np.diag(creep_spread**2)
         self._time = to_s
 
     def _apply_move(self, move: dict[str, float]) -> None:
@@ -667,6 +712,8 @@ class PositionLaw:
         self.covariance = transition @ self.covariance @ transition.T
         content = np.abs(per_move @ commanded)
         self.covariance[:n, :n] += np.diag((self.unmodelled * content) ** 2)
+        # The last move creeps from its write on; the move before stops creeping.
+        self._creeping = (commanded, self._time) if self._time is not None and self.creep_per_decade > 0 else None
 
     def _measure(self, error: np.ndarray) -> None:
         n = len(self.dofs)
@@ -729,6 +776,8 @@ class PositionLaw:
         self._pending = {"before": self.state[:n].copy(), "move": dict(move),
                          "gain_variance": np.diag(self.covariance)[2 * n:].copy()}
         self._apply_move(move)
+        if at_s is None:  # no clock: the creep cannot be followed
+            self._creeping = None
         self._last_error = None
 
     def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
@@ -763,23 +812,35 @@ class PositionLaw:
         self._pending, self._last_error = None, units
         # Where the target is now, and at the middle of the next fresh frame (a move's
         # scan is not fresh: one and a half frames on).
+        next_frame = None if now is None else now + 1.5 * frame_time
         position, spread = self._forecast(now)
-        aim, aim_spread = self._forecast(None if now is None else now + 1.5 * frame_time)
+        aim, aim_spread = self._forecast(next_frame)
+        # Where the last move's creep takes the content if nothing moves (a move stops it).
+        creep_ahead, creep_ahead_spread = self._creep(now, None if now is None else now + self.creep_horizon_s)
+        ahead = position + creep_ahead
+        ahead_spread = np.hypot(spread, creep_ahead_spread)
         tolerances = np.where(self._rotation, self.tolerance_deg, self.tolerance_px)
         planar, rotation = self._norms(position), self._norms(position, rotation=True)
         planar_spread = self._norms(spread) / math.sqrt(max(sum(~self._rotation), 1))
+        planar_ahead = self._norms(ahead)
+        planar_ahead_spread = self._norms(ahead_spread) / math.sqrt(max(sum(~self._rotation), 1))
         # Act on what is significant now; aim at where the drift will have taken it (a
         # converged run that holds still corrects what will have drifted beyond the dead band).
         act = (np.abs(aim) > self.deadband * tolerances) & (np.abs(position) > self.significance * spread)
-        # The planar DOFs act together (a diagonal error is one error).
+        # The planar DOFs act together (a diagonal error is one error); a creep that will
+        # carry the content beyond tolerance is trimmed now.
         if (~self._rotation).any():
-            act[~self._rotation] = (self._norms(aim) > self.deadband * self.tolerance_px
-                                    and planar > self.significance * planar_spread)
-        # Arrived: within tolerance by a margin, and nothing left the law would still trim
-        # (a residue beyond the dead band that the frames show clearly: stopping there
-        # leaves the stage at the tolerance's edge, where a bias of the estimate or the
-        # next creep puts it beyond).
+            act[~self._rotation] = ((self._norms(aim) > self.deadband * self.tolerance_px
+                                     and planar > self.significance * planar_spread)
+                                    or (planar_ahead > self.tolerance_px
+                                        and planar_ahead > self.significance * planar_ahead_spread))
+        # Arrived: within tolerance by a margin, now and as far as the last move's creep
+        # goes within the horizon, and nothing left the law would still trim (a residue
+        # beyond the dead band that the frames show clearly: stopping there leaves the
+        # stage at the tolerance's edge, where a bias of the estimate or the next creep
+        # puts it beyond).
         self.converged = bool(planar + self.margin * planar_spread <= self.tolerance_px
+                              and planar_ahead + self.margin * planar_ahead_spread <= self.tolerance_px
                               and rotation + self.margin * self._norms(spread, rotation=True) <= self.tolerance_deg
                               and not act.any())
         if not act.any():
@@ -788,7 +849,17 @@ class PositionLaw:
         spreads = np.sqrt(np.diag(self.covariance)[2 * n:])
         # Reversals raise the spread before the move: the first move of a minor loop is cautious.
         per_move = self._content_per_move(pixel_size_nm)
-        nominal = np.linalg.solve(per_move, -np.where(act, aim, 0.0))  # the move at k = 1
+        # A move stops the last one's creep: aim at where the content is when it is written,
+        # plus the drift until the next frame; and the move's own creep carries it on, so
+        # it is shortened to put the target midway (in decades) between the next frame and
+        # the horizon.
+        aim = aim - self._creep(now, next_frame)[0]
+        own_creep = 0.0
+        if next_frame is not None and self.creep_per_decade > 0:
+            lag = next_frame - now
+            own_creep = self.creep_per_decade * (math.log10(1.0 + lag / self.creep_start_s)
+                                                 + math.log10(1.0 + (lag + self.creep_horizon_s) / self.creep_start_s)) / 2
+        nominal = np.linalg.solve(per_move, -np.where(act, aim, 0.0)) / (1.0 + own_creep)  # the move at k = 1
         for index, axis in enumerate(self.axes):
             direction = int(np.sign(nominal[index]))
             if direction and self._directions.get(axis, direction) != direction:
@@ -822,12 +893,14 @@ class PositionLaw:
         return self._norms(position), self._norms(spread) / math.sqrt(max(sum(~self._rotation), 1))
 
     def _forecast(self, at_s: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """The error predicted at ``at_s`` and its spread, per DOF."""
+        """The error predicted at ``at_s`` (drift and the last move's creep) and its
+        spread, per DOF."""
         n = len(self.dofs)
         dt = 0.0 if at_s is None or self._time is None else max(at_s - self._time, 0.0)
-        position = self.state[:n] + self.state[n:2 * n] * dt
+        creep, creep_spread = self._creep(self._time, at_s)
+        position = self.state[:n] + self.state[n:2 * n] * dt + creep
         variance = (np.diag(self.covariance)[:n] + 2 * dt * np.diag(self.covariance[:n, n:2 * n])
-                    + dt**2 * np.diag(self.covariance)[n:2 * n])
+                    + dt**2 * np.diag(self.covariance)[n:2 * n] + creep_spread**2)
         return position, np.sqrt(np.maximum(variance, 0.0))
 
     def _norms(self, values: np.ndarray, rotation: bool = False) -> float:
@@ -858,7 +931,8 @@ def make_law(name: str, dofs: Sequence[str] = ("x", "y"), *, camera_to_stage: Ca
              gain: AdaptiveGain | ExponentialGain | None = None, integral_time_s: float | None = None,
              model_uncertainty: float = 0.15, noise_px: float = 0.03, tolerance_px: float = 0.1,
              tolerance_deg: float = 0.05,
-             max_move_um: float = 10.0, max_moves: int = 1, max_turn_deg: float = 5.0) -> ControlLaw | PositionLaw:
+             max_move_um: float = 10.0, max_moves: int = 1, max_turn_deg: float = 5.0,
+             creep_per_decade: float = PositionLaw.creep_per_decade) -> ControlLaw | PositionLaw:
     """The planar law a run's settings name (``law``: one of :data:`LAWS`). Both take
     ``step(dx_px, dy_px, rotation_deg, pixel_size_nm, sampling_time_s)`` on the frames the
     caller acts on and ``applied(move)`` after the stage's reply; each ignores what it
@@ -870,5 +944,5 @@ def make_law(name: str, dofs: Sequence[str] = ("x", "y"), *, camera_to_stage: Ca
     if name == "position":
         return PositionLaw(tuple(dofs), camera_to_stage, model_uncertainty=model_uncertainty, noise_px=noise_px,
                            tolerance_px=tolerance_px, tolerance_deg=tolerance_deg, max_move_um=max_move_um,
-                           max_moves=max_moves, max_turn_deg=max_turn_deg)
+                           max_moves=max_moves, max_turn_deg=max_turn_deg, creep_per_decade=creep_per_decade)
     raise ValueError(f"unknown law {name!r}; laws: {', '.join(LAWS)}")

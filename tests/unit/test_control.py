@@ -231,6 +231,64 @@ def test_a_move_is_made_in_equal_pieces_within_the_limit():
     assert move_pieces({"rotation_deg": 2.0}, 10.0) == [{"rotation_deg": 2.0}]
 
 
+def creeping_plant(law: PositionLaw, start_px, *, creep_per_decade: float, gain: float = 1.05, pixel_nm: float = 177.0,
+                   frame_s: float = 0.46, frames: int = 12, seed: int = 3):
+    """A stage whose content goes on by ``creep_per_decade`` of the last move per decade
+    of time after it (log10(1 + t / 0.1 s), the reference's "1-2 % of the last move per
+    decade"), until the next move. Returns the true error (px) at the frame the law
+    declared arrival, 10 s later, and that frame's index (None: never)."""
+    rng = np.random.default_rng(seed)
+    camera = CameraToStage()
+    base, last_move, written_at, t = np.array(start_px, dtype=float), np.zeros(2), None, 0.0
+
+    def content(at_s):
+        if written_at is None:
+            return base
+        return base + last_move * creep_per_decade * math.log10(1 + max(at_s - written_at, 0.0) / 0.1)
+
+    for index in range(frames):
+        measured = content(t + frame_s / 2) + rng.normal(0.0, 0.01, 2)
+        step = law.step(measured[0], measured[1], 0.0, pixel_nm, frame_interval_s=(t, t + frame_s),
+                        now_s=t + frame_s + 0.05)
+        if law.converged:
+            return float(np.hypot(*content(t + frame_s))), float(np.hypot(*content(t + frame_s + 10.0))), index
+        if step.move:
+            at = t + frame_s + 0.05
+            base = content(at)  # the move before stops creeping
+            last_move = gain * np.array(camera.content_move_px(step.move.get("x_um", 0.0), step.move.get("y_um", 0.0),
+                                                               pixel_nm))
+            base, written_at = base + last_move, at
+            law.applied(step.move, at_s=at)
+            t += frame_s
+        t += frame_s
+    return float(np.hypot(*content(t))), float(np.hypot(*content(t + 10.0))), None
+
+
+def test_the_position_law_follows_the_creep_of_its_last_move_and_arrives_where_it_stays():
+    """Creep of 1.5 % of a 60 px move per decade: the law predicts it, so it does not
+    declare arrival where the creep carries the content beyond tolerance seconds later.
+    A law told there is no creep arrives on the frame after the move and drifts out."""
+    arrived, later, index = creeping_plant(PositionLaw(("x", "y"), noise_px=0.01), (50.0, -35.0),
+                                           creep_per_decade=0.015)
+    assert index is not None and index <= 5
+    assert arrived <= 0.1 and later <= 0.1, (arrived, later)
+
+
+@pytest.mark.parametrize("creep_per_decade", [0.015, 0.0])
+def test_a_large_move_that_lands_within_tolerance_is_trimmed_before_its_creep_carries_it_out(creep_per_decade):
+    """The frame after a 60 px move shows the target within tolerance; the move's creep
+    (1.5 % of it per decade) will carry the content about 1 px on within 10 s: the law
+    trims now instead of declaring arrival. Told there is no creep, it arrives."""
+    law = PositionLaw(("x", "y"), noise_px=0.01, creep_per_decade=creep_per_decade)
+    first = law.step(60.0, 0.0, 0.0, 177.0, frame_interval_s=(0.0, 0.46), now_s=0.51)
+    law.applied(first.move, at_s=0.51)
+    landed = law.step(0.03, 0.0, 0.0, 177.0, frame_interval_s=(0.92, 1.38), now_s=1.43)
+    if creep_per_decade:
+        assert not law.converged and landed.move and landed.move["x_um"] != 0.0
+    else:
+        assert law.converged and not landed.move
+
+
 def test_the_position_law_never_acts_on_a_refused_or_stale_frame():
     law = PositionLaw(("x", "y"))
     assert law.step(50.0, 0.0, 0.0, 177.0, confident=False) == LawStep.idle()
