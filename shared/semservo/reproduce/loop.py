@@ -340,6 +340,12 @@ class TimedSettings:
     scan_averaged: bool = True
     #: After the start jog, before the run starts (the jog's settling and early creep).
     start_after_s: float = 1.0
+    #: ... plus a part of this drawn from the trial's seed and start (the same for every
+    #: law and stage model): trials then meet the stage's vibration (7-93 Hz) at random
+    #: phases. Without it every trial of a preset scanned its frames at the same times
+    #: after teaching, and its errors of one sign from the 7 Hz vibration's phase at
+    #: ×5000 repeated in all of them.
+    start_jitter_s: float = 1.0
     #: Keep servoing this long after converging (0: stop there), counting the corrections.
     hold_s: float = 0.0
     integral_time_s: float | None = 10.0  # the paper's law, as in run_trial
@@ -425,7 +431,8 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     taught_um = np.array(taught.taught_um)
     converge_frames = settings.converge_frames
     lab.jog(*start_um)
-    started = lab.clock.t + settings.start_after_s
+    jitter = np.random.default_rng([seed, *(int(round(abs(value) * 1e3)) for value in start_um)])
+    started = lab.clock.t + settings.start_after_s + jitter.uniform(0.0, settings.start_jitter_s)
     frame_time = lab.settings.frame_time_s
     pixel_nm = lab.pixel_um * 1000
 

@@ -411,10 +411,16 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                   "not acted on), and the next frame scanned wholly after the move has settled (the stage's settling "
                   "model) is the next fresh one; seconds at each preset's real frame rate. Starts 5, 15, 30 % of the "
                   f"field and half a pixel away, {timing['trials']} per cell in random directions, the same for both "
-                  f"laws; moves saturate at {settings['max_move_um']:g} um; the paper's law converges when the mean of "
+                  f"laws, each started {settings.get('start_after_s', 1.0):g}-"
+                  f"{settings.get('start_after_s', 1.0) + settings.get('start_jitter_s', 0.0):g} s after its jog (a random part "
+                  "from its seed: trials meet the stage's vibration at random phases); the paper's law's moves "
+                  f"saturate at {settings['max_move_um']:g} um, the position law's at "
+                  f"{settings.get('max_moves', 1)} x that once the stage has responded as commanded (made in "
+                  f"pieces of at most {settings['max_move_um']:g} um); the paper's law converges when the mean of "
                   f"its last {settings['converge_frames']} fresh errors is within tolerance (the controller now asks "
                   "the mean of their sizes, which is stricter), the position law "
-                  "on its own estimate (error plus one standard deviation within tolerance); tolerance "
+                  "on its own estimate (error plus one standard deviation within tolerance, now and as far as its "
+                  "last move's creep goes in 10 s); tolerance "
                   f"{settings['tolerance_px']:g} px; a budget of {settings['time_budget_s']:g} simulated seconds."
                   + quick, "", "### Per preset (calibrated stage model, every offset)", ""]
         lines += time_to_target_headline_lines(timing)
