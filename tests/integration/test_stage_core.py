@@ -362,6 +362,48 @@ def test_a_far_target_is_reached_in_chained_moves_within_the_stages_step_and_rat
         real.close()
 
 
+def test_an_operators_stop_between_a_chained_moves_commands_holds_the_stage_and_ends_the_run_stopped(link, tmp_path):
+    """The operator stops the stage (it holds at once) while the controller is between
+    the commands of a chained move: the next command is refused, nothing more is
+    written, and the run ends stopped, saying so."""
+    import time
+
+    from semservo.control import CameraToStage
+    from services.stage.commands import handlers
+
+    _, pty = link
+    real = StageCore(pty.path, settle_s={"x": 0.01, "y": 0.01})
+    assert real.connect()
+
+    class StoppedMidChain(LocalPort):
+        moves = 0
+
+        def call(self, command, request=None, /, **fields):
+            reply = super().call(command, request, **fields)
+            if command.name == "move":
+                self.moves += 1
+                if self.moves == 2:  # the chained move's first command: the operator stops
+                    real.stop("operator pressed stop")
+            return reply
+
+    try:
+        core = ControllerCore(StoppedMidChain(handlers, real), runs_dir=tmp_path)
+        core.start(RunSettings(max_move_um=10.0, moves_per_frame=3), "ref")
+        content = (250.0, -40.0)
+        first = core.on_estimate(estimate(1, *content, scan_started_at_ns=time.time_ns()))
+        time.sleep(0.2)
+        moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
+        voltages = dict(real.voltages)
+        chained = core.on_estimate(estimate(2, content[0] + moved[0], content[1] + moved[1],
+                                            scan_started_at_ns=time.time_ns()))
+        assert chained["action"] == "refused by the stage: stopped"
+        assert core.state == "stopped" and "stopped" in core.reason
+        assert real.state == "stopped" and real.counters["moves"] == 2, "one command of the chain, then none"
+        assert real.voltages != voltages  # the first command was written before the stop
+    finally:
+        real.close()
+
+
 def test_the_position_law_ends_a_run_whose_content_does_not_follow_its_moves(stage, tmp_path):
     """A wrong camera-to-stage sign, a blocked axis or wrong estimates: the content does
     not move as commanded, twice in a row, and the run fails with the reason instead of
