@@ -73,8 +73,6 @@ TURN_AXES = {"rotation": "rotation_deg", "alpha": "tilt_x_deg", "beta": "tilt_y_
 
 _RUN_ID = re.compile(r"[0-9]{8}-[0-9]{6}-[0-9a-f]{6}")
 
-
-
 #: The longest a chained move's next command waits for the stage (its settling and rate
 #: limit are milliseconds; a reply that asks for more is not waited on for longer).
 CHAIN_WAIT_MAX_S = 1.0
@@ -85,6 +83,7 @@ def _sleep_until_ns(when_ns: int) -> None:
     delay_s = (when_ns - time.time_ns()) / 1e9
     if delay_s > 0:
         time.sleep(min(delay_s, CHAIN_WAIT_MAX_S))
+
 
 class ControllerCore:
     def __init__(self, stage: Port, *, estimator: Port | None = None, camera: CameraToStage | None = None,
