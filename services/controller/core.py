@@ -50,7 +50,7 @@ from semservo.protocol.controller import ControllerState, ControllerStatus, RunS
 from services.controller.run import (
     IterationRecord, Run, Tilts, Verdict, admit, decide, gate, judge, law_step, measure, sampling_time, tilt_step,
 )
-from services.controller.split import BeamAxes, split
+from services.controller.split import BEAM_AXIS, BeamAxes, split
 
 log = logging.getLogger("controller")
 
@@ -68,21 +68,29 @@ def model_uncertainty(stage_state, dofs) -> float:
     kinds = {stage_state.models.get(axis, "linear") for axis in planar}
     return MODEL_UNCERTAINTY["calibrated" if kinds and kinds <= {"branches"} else "uncalibrated"]
 
+#: The planar DOF a beam axis moves the content along (the stage's own axes are theirs).
+PLANAR_AXIS = {beam: axis for axis, beam in BEAM_AXIS.items()}
+
 #: The stage's axis for each turning DOF.
 TURN_AXES = {"rotation": "rotation_deg", "alpha": "tilt_x_deg", "beta": "tilt_y_deg"}
 
 _RUN_ID = re.compile(r"[0-9]{8}-[0-9]{6}-[0-9a-f]{6}")
 
 #: The longest a chained move's next command waits for the stage (its settling and rate
-#: limit are milliseconds; a reply that asks for more is not waited on for longer).
-CHAIN_WAIT_MAX_S = 1.0
+#: limit take milliseconds); where a stage asks for longer, the rest of the move is left
+#: to the next fresh frame rather than starve the stage's watchdog of heartbeats.
+CHAIN_WAIT_MAX_S = 0.5
 
 
-def _sleep_until_ns(when_ns: int) -> None:
-    """Wait until Unix time ``when_ns`` (at most :data:`CHAIN_WAIT_MAX_S`)."""
+def _wait_until_ns(when_ns: int) -> bool:
+    """Wait until Unix time ``when_ns``; False, at once, when that is more than
+    :data:`CHAIN_WAIT_MAX_S` away."""
     delay_s = (when_ns - time.time_ns()) / 1e9
+    if delay_s > CHAIN_WAIT_MAX_S:
+        return False
     if delay_s > 0:
-        time.sleep(min(delay_s, CHAIN_WAIT_MAX_S))
+        time.sleep(delay_s)
+    return True
 
 
 class ControllerCore:
@@ -331,7 +339,7 @@ class ControllerCore:
             return record.to_json()
         # What the stage carried out, and when: the position law learns the stage's gain
         # from it (the paper's law needs nothing).
-        carried = {f"{axis}_um": value for axis, value in decision.targets.items()}
+        carried = {f"{PLANAR_AXIS.get(axis, axis)}_um": value for axis, value in (record.targets or {}).items()}
         carried.update({axis: value for axis, value in decision.turns.items() if axis == "rotation_deg"})
         # A chained move has landed by its last command.
         last_written_ns = record.pieces_written_at_ns[-1] if record.pieces_written_at_ns else record.command_written_at_ns
@@ -357,13 +365,14 @@ class ControllerCore:
                 error_um = record.error_px * record.pixel_size_nm / 1000 if record.pixel_size_nm else None
                 pieces = move_pieces({f"{axis}_um": value for axis, value in decision.targets.items()},
                                      run.settings.max_move_um)
-                record.targets, record.pieces, record.pieces_written_at_ns = {}, len(pieces), []
+                record.targets, record.pieces_written_at_ns = {}, []
                 written = None
                 for piece in pieces:
-                    if written is not None:
-                        # A chained move: the next command once the last has settled and
-                        # its voltage step is within the stage's rate limit.
-                        _sleep_until_ns(max(written.settled_at_ns or 0, written.ready_at_ns or 0))
+                    # A chained move: the next command once the last has settled and any
+                    # step is within the stage's rate limit (the stage's reply says when).
+                    if written is not None and not _wait_until_ns(max(written.settled_at_ns or 0,
+                                                                      written.ready_at_ns or 0)):
+                        break
                     targets = split({axis[:-3]: value for axis, value in piece.items()}, run.beam,
                                     run.settings.beam_shift_within_um, error_um)
                     written = self.stage.call(stage_protocol.MOVE, targets=targets, relative=True, owner=self.owner)
@@ -374,6 +383,7 @@ class ControllerCore:
                     record.pieces_written_at_ns.append(written.written_at_ns)
                     if record.command_written_at_ns is None:
                         record.command_written_at_ns = written.written_at_ns
+                record.pieces = len(record.pieces_written_at_ns)
                 record.command_settled_at_ns = written.settled_at_ns
                 record.voltages, record.positions_um = written.voltages, written.positions_um
             if decision.turns:

@@ -381,7 +381,6 @@ class StageCore:
     def _write(self, volts: dict[str, float], owner: str | None) -> dict:
         now = self.clock()
         written_at_ns = time.time_ns()
-        largest_step_v = max((abs(value - self.voltages.get(axis, value)) for axis, value in volts.items()), default=0.0)
         readback = self._io(lambda driver: driver.write_outputs({self.channels[a]: v for a, v in volts.items()}))
         for axis, value in volts.items():
             self.voltages[axis] = readback[self.channels[axis]]
@@ -396,7 +395,9 @@ class StageCore:
         settle_s = max(self.settle_s.get(axis, DEFAULT_SETTLE_S) for axis in volts)
         return {"written_at_ns": written_at_ns, "voltages": dict(self.voltages), "positions_um": self.positions(),
                 "settled_at_ns": written_at_ns + int(settle_s * 1e9),
-                "ready_at_ns": written_at_ns + int(largest_step_v / self.limits.max_rate_v_per_s * 1e9) + 1}
+                # Any step the step limit allows is within the rate limit from then on (the
+                # next command's step is not known here: pieces equal in um are not in volts).
+                "ready_at_ns": written_at_ns + int(self.limits.max_step_v / self.limits.max_rate_v_per_s * 1e9) + 1}
 
     def positions(self) -> dict[str, float]:
         return {axis: model.position_um for axis, model in self.models.items()}

@@ -464,10 +464,10 @@ class PositionLaw:
     rest); time adds v dt; a move u adds M diag(u) k (M: the camera-to-stage transform's
     content motion per unit move), linear in the state, so p, v and k are estimated
     together. A reversal of an axis's direction starts a minor hysteresis loop of another
-    gain: k's spread is raised to ``reversal_spread`` there. The last move creeps on
-    (``creep_per_decade`` of it per decade of time after its write, until the next move):
-    time adds that too, through k, so creep is neither read as drift nor as the stage's
-    gain.
+    gain: k's spread is raised to ``reversal_spread`` there. The last move's planar part
+    creeps on (``creep_per_decade`` of it per decade of time after its write, until the
+    next move; a chained move counts as written with its last command): time adds that
+    too, through k, so creep is neither read as drift nor as the stage's gain.
 
     Each fresh frame: converged (:attr:`converged`) when the error predicted for now,
     plus one standard deviation, is within tolerance, and so is the error the last move's
@@ -712,8 +712,11 @@ class PositionLaw:
         self.covariance = transition @ self.covariance @ transition.T
         content = np.abs(per_move @ commanded)
         self.covariance[:n, :n] += np.diag((self.unmodelled * content) ** 2)
-        # The last move creeps from its write on; the move before stops creeping.
-        self._creeping = (commanded, self._time) if self._time is not None and self.creep_per_decade > 0 else None
+        # The last move's planar part creeps from its write on (a piezo's; the rotation
+        # stage's gears do not); the move before stops creeping.
+        planar = np.where(self._rotation, 0.0, commanded)
+        self._creeping = ((planar, self._time) if self._time is not None and self.creep_per_decade > 0 and planar.any()
+                          else None)
 
     def _measure(self, error: np.ndarray) -> None:
         n = len(self.dofs)
@@ -859,7 +862,8 @@ class PositionLaw:
             lag = next_frame - now
             own_creep = self.creep_per_decade * (math.log10(1.0 + lag / self.creep_start_s)
                                                  + math.log10(1.0 + (lag + self.creep_horizon_s) / self.creep_start_s)) / 2
-        nominal = np.linalg.solve(per_move, -np.where(act, aim, 0.0)) / (1.0 + own_creep)  # the move at k = 1
+        nominal = np.linalg.solve(per_move, -np.where(act, aim, 0.0))  # the move at k = 1
+        nominal = np.where(self._rotation, nominal, nominal / (1.0 + own_creep))
         for index, axis in enumerate(self.axes):
             direction = int(np.sign(nominal[index]))
             if direction and self._directions.get(axis, direction) != direction:

@@ -343,23 +343,60 @@ def test_a_far_target_is_reached_in_chained_moves_within_the_stages_step_and_rat
     real = StageCore(pty.path, settle_s={"x": 0.01, "y": 0.01})  # default limits, the real clock
     assert real.connect()
     try:
-        core = ControllerCore(LocalStage(real), runs_dir=tmp_path)
-        core.start(RunSettings(max_move_um=10.0, moves_per_frame=3), "ref")
-        content = (250.0, -40.0)  # 45 um away at 177 nm/px
-        first = core.on_estimate(estimate(1, *content, scan_started_at_ns=time.time_ns()))
-        assert first["action"] == "moved" and first["pieces"] == 1
-        assert math.hypot(*first["targets"].values()) == pytest.approx(10.0)
-        time.sleep(0.2)  # the next frame: the first move's voltage step is within the rate limit by then
-        moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
-        content = (content[0] + moved[0], content[1] + moved[1])  # the stage did as commanded
-        chained = core.on_estimate(estimate(2, *content, scan_started_at_ns=time.time_ns()))
-        assert chained["action"] == "moved", chained["action"]
-        assert chained["pieces"] >= 3 and math.hypot(*chained["targets"].values()) > 20.0
-        written = chained["pieces_written_at_ns"]
-        assert written == sorted(written) and len(written) == chained["pieces"]
-        assert real.counters["refused"] == 0 and real.counters["moves"] == 1 + chained["pieces"]
+        # Every way, and back: pieces equal in um are not in volts (the branches are curved).
+        for seq, content in enumerate([(250.0, -40.0), (-250.0, 40.0), (40.0, 250.0), (-40.0, -250.0)]):
+            core = ControllerCore(LocalStage(real), runs_dir=tmp_path)
+            core.start(RunSettings(max_move_um=10.0, moves_per_frame=3), "ref")  # 45 um away at 177 nm/px
+            moves_before = real.counters["moves"]
+            time.sleep(0.2)  # the next frame: the last run's voltage steps are within the rate limit
+            first = core.on_estimate(estimate(2 * seq + 1, *content, scan_started_at_ns=time.time_ns()))
+            assert first["action"] == "moved" and first["pieces"] == 1
+            assert math.hypot(*first["targets"].values()) == pytest.approx(10.0)
+            time.sleep(0.2)
+            moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
+            content = (content[0] + moved[0], content[1] + moved[1])  # the stage did as commanded
+            chained = core.on_estimate(estimate(2 * seq + 2, *content, scan_started_at_ns=time.time_ns()))
+            assert chained["action"] == "moved", chained["action"]
+            assert chained["pieces"] == 3 and 20.0 < math.hypot(*chained["targets"].values()) <= 30.0 + 1e-9
+            written = chained["pieces_written_at_ns"]
+            assert written == sorted(written) and len(written) == 3
+            assert real.counters["refused"] == 0 and real.counters["moves"] == moves_before + 4
+            core.stop("next direction")
+            if real.state == "stopped":
+                real.resume()
     finally:
         real.close()
+
+
+def test_a_stage_that_settles_slowly_gets_the_rest_of_a_chained_move_on_the_next_frame(link, tmp_path):
+    """A chained move's next command waits for the stage to settle, but not for longer
+    than the controller may go without feeding the stage's watchdog: the rest of the
+    move is left to the next fresh frame, and the law learns from the piece made."""
+    import math
+    import time
+
+    from semservo.control import CameraToStage
+
+    _, pty = link
+    slow = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=FakeClock(),
+                     settle_s={"x": 2.0, "y": 2.0})
+    assert slow.connect()
+    try:
+        core = ControllerCore(LocalStage(slow), runs_dir=tmp_path)
+        core.start(RunSettings(max_move_um=10.0, moves_per_frame=3), "ref")
+        content = (250.0, -40.0)
+        first = core.on_estimate(estimate(1, *content, scan_started_at_ns=time.time_ns()))
+        moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
+        content = (content[0] + moved[0], content[1] + moved[1])
+        slow.clock.now += 2.5  # the rate limit's clock: the next frame, after the stage settled
+        started = time.monotonic()
+        chained = core.on_estimate(estimate(2, *content, scan_started_at_ns=first["command_settled_at_ns"] + 1))
+        assert time.monotonic() - started < 1.0, "it did not wait the stage's 2 s"
+        assert chained["action"] == "moved" and chained["pieces"] == 1
+        assert math.hypot(*chained["targets"].values()) <= 10.0 + 1e-9 < math.hypot(*chained["move"].values())
+        assert core.run.law._pending["move"] == {f"{axis}_um": value for axis, value in chained["targets"].items()}
+    finally:
+        slow.close()
 
 
 def test_an_operators_stop_between_a_chained_moves_commands_holds_the_stage_and_ends_the_run_stopped(link, tmp_path):

@@ -265,9 +265,8 @@ def creeping_plant(law: PositionLaw, start_px, *, creep_per_decade: float, gain:
 
 
 def test_the_position_law_follows_the_creep_of_its_last_move_and_arrives_where_it_stays():
-    """Creep of 1.5 % of a 60 px move per decade: the law predicts it, so it does not
-    declare arrival where the creep carries the content beyond tolerance seconds later.
-    A law told there is no creep arrives on the frame after the move and drifts out."""
+    """Creep of 1.5 % of the last move per decade: the law predicts it, so it does not
+    declare arrival where the creep carries the content beyond tolerance seconds later."""
     arrived, later, index = creeping_plant(PositionLaw(("x", "y"), noise_px=0.01), (50.0, -35.0),
                                            creep_per_decade=0.015)
     assert index is not None and index <= 5

@@ -48,9 +48,9 @@ class MoveReply(CommandReply):
     positions_um: dict[str, float] = Field(description="every axis's position as its model estimates it")
     settled_at_ns: int | None = Field(None, description="Unix ns the stage will have settled (from each axis's "
                                                         "settling time); frames scanned before show it moving")
-    ready_at_ns: int | None = Field(None, description="Unix ns from which a step as large as this one is within the "
-                                                      "stage's rate limit (a chained move's next command waits for it "
-                                                      "and for settled_at_ns)")
+    ready_at_ns: int | None = Field(None, description="Unix ns from which any step the step limit allows is within "
+                                                      "the rate limit (a chained move's next command waits for it and "
+                                                      "for settled_at_ns)")
 
 
 class RotateRequest(CommandRequest):

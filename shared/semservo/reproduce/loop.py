@@ -108,8 +108,11 @@ class TrialSettings:
     reference_frames: int = 4
 
 
-#: The stage service's default rate limit (V/s): a chained move's pieces wait for it.
-STAGE_RATE_V_PER_S = StageSettings.model_fields["max_rate_v_per_s"].default
+#: What a chained move's pieces wait for besides the settling, as from the stage
+#: service's ``ready_at_ns`` with its default limits: until a step of the largest size
+#: one command may ask is within the rate limit.
+CHAIN_INTERVAL_S = (StageSettings.model_fields["max_step_v"].default
+                    / StageSettings.model_fields["max_rate_v_per_s"].default)
 
 
 #: The simulated SEM's sample, rasterized and blurred to each level, for the last (case,
@@ -175,18 +178,15 @@ class Lab:
     def move_in_pieces(self, move: dict[str, float], max_move_um: float, at: float) -> tuple[list, float, float]:
         """A planar move (``x_um``, ``y_um``) made as the controller makes it: in pieces of
         at most ``max_move_um`` (:func:`semservo.control.move_pieces`), each written once
-        the one before has settled and its voltage step is within the stage service's
-        rate limit. Returns the voltages after each piece, when the last was written and
-        when it will have settled (simulated s)."""
+        the one before has settled and the stage service's ``ready_at_ns`` has passed
+        (:data:`CHAIN_INTERVAL_S`). Returns the voltages after each piece, when the last
+        was written and when it will have settled (simulated s)."""
         voltages, written_at, settled_at = [], at, at
         for piece in move_pieces(move, max_move_um):
-            before = [self.world.voltage(channel) for channel in (0, 1)]
-            after = self.move(piece.get("x_um", 0.0), piece.get("y_um", 0.0), at=at)
-            voltages.append(after)
+            voltages.append(self.move(piece.get("x_um", 0.0), piece.get("y_um", 0.0), at=at))
             written_at = at
             settled_at = at + self.settling.after_s(piece)
-            step_v = max(abs(after[name] - before[channel]) for channel, name in enumerate("xy"))
-            at = max(settled_at, at + step_v / STAGE_RATE_V_PER_S)
+            at = max(settled_at, at + CHAIN_INTERVAL_S)
         return voltages, written_at, settled_at
 
     def jog(self, dx_um: float, dy_um: float) -> dict[str, float]:
@@ -358,7 +358,7 @@ def _law_for(name: str, model: str, settings: TimedSettings, noise_px: float):
                     model_uncertainty=MODEL_UNCERTAINTY["uncalibrated" if model == "uncalibrated" else "calibrated"],
                     noise_px=noise_px,
                     tolerance_px=settings.tolerance_px, max_move_um=settings.max_move_um,
-                    max_moves=getattr(settings, "max_moves", 1))
+                    max_moves=settings.max_moves)
 
 
 @dataclass(frozen=True)
@@ -431,7 +431,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     taught_um = np.array(taught.taught_um)
     converge_frames = settings.converge_frames
     lab.jog(*start_um)
-    jitter = np.random.default_rng([seed, *(int(round(abs(value) * 1e3)) for value in start_um)])
+    jitter = np.random.default_rng([seed, *(int(round(value * 1e3)) % 2**32 for value in start_um)])
     started = lab.clock.t + settings.start_after_s + jitter.uniform(0.0, settings.start_jitter_s)
     frame_time = lab.settings.frame_time_s
     pixel_nm = lab.pixel_um * 1000
