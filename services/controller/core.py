@@ -381,11 +381,12 @@ class ControllerCore:
                     for axis, value in targets.items():
                         record.targets[axis] = record.targets.get(axis, 0.0) + value
                     record.pieces_written_at_ns.append(written.written_at_ns)
+                    record.pieces = len(record.pieces_written_at_ns)
                     if record.command_written_at_ns is None:
                         record.command_written_at_ns = written.written_at_ns
-                record.pieces = len(record.pieces_written_at_ns)
-                record.command_settled_at_ns = written.settled_at_ns
-                record.voltages, record.positions_um = written.voltages, written.positions_um
+                    # Where the stage is after each command: a chain refused part way keeps it.
+                    record.command_settled_at_ns = written.settled_at_ns
+                    record.voltages, record.positions_um = written.voltages, written.positions_um
             if decision.turns:
                 turned = self.stage.call(stage_protocol.ROTATE, targets=decision.turns, relative=True,
                                          owner=self.owner)

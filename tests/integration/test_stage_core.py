@@ -434,6 +434,7 @@ def test_an_operators_stop_between_a_chained_moves_commands_holds_the_stage_and_
         chained = core.on_estimate(estimate(2, content[0] + moved[0], content[1] + moved[1],
                                             scan_started_at_ns=time.time_ns()))
         assert chained["action"] == "refused by the stage: stopped"
+        assert chained["pieces"] == 1 and chained["voltages"] == dict(real.voltages), "the record keeps what was made"
         assert core.state == "stopped" and "stopped" in core.reason
         assert real.state == "stopped" and real.counters["moves"] == 2, "one command of the chain, then none"
         assert real.voltages != voltages  # the first command was written before the stop
