@@ -31,7 +31,9 @@ from typing import Literal
 
 import numpy as np
 
-from semservo.control import ControlLaw, LawStep, PositionLaw, TiltLaw, UnexpectedResponse
+from semservo.control import (
+    ControlLaw, LawStep, PositionLaw, TiltLaw, UnexpectedResponse, planar_limit_um, saturate_planar,
+)
 from semservo.messages import MotionEstimate
 from semservo.protocol.controller import RunSettings
 
@@ -454,17 +456,8 @@ def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:
     of 5 x tolerance): near the target the cost is estimation noise and vibration,
     whatever tolerance the run asks for."""
     settings = run.settings
-    move = dict(step.move)
-    planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
-    # The position law may chain moves (it asks for more than one command's worth only
-    # once the stage has responded as commanded); the paper's law makes one per frame.
-    limit = settings.max_move_um * (settings.moves_per_frame if isinstance(run.law, PositionLaw) else 1)
-    saturated = planar > limit
-    if saturated:
-        scale = limit / planar
-        for key in ("x_um", "y_um"):
-            if key in move:
-                move[key] *= scale
+    move, saturated = saturate_planar(step.move, planar_limit_um(run.law, settings.max_move_um,
+                                                                 settings.moves_per_frame))
     targets = {axis: move[f"{axis}_um"] for axis in ("x", "y") if f"{axis}_um" in move}
     turns = {axis: move[axis] for axis in ("rotation_deg",) if axis in move}
     if tilt_step is not None:

@@ -482,10 +482,11 @@ class PositionLaw:
     Safety: every move within ``max_move_um`` (planar, the direction kept) and
     ``max_turn_deg``; once a move of this run has moved the content as commanded (a
     response judged plausible, below), a planar move may reach ``max_moves`` x
-    ``max_move_um``, which the caller makes as that many moves of at most ``max_move_um``
-    each (:func:`move_pieces`), each written after the last has settled: a 30 % offset is
-    then one frame's work, not three, while a first move, on a stage not yet seen to
-    respond, stays within one ``max_move_um``; noise is not chased; a response implausible (the content moved less
+    ``max_move_um``, which the caller makes as the fewest equal commands of at most
+    ``max_move_um`` (:func:`move_pieces`), each written after the last has settled: a 30 %
+    offset is then one frame's work, not three, while a first move, on a stage not yet
+    seen to respond, stays within one ``max_move_um``; noise is not chased; a response
+    implausible (the content moved less
     than 0.2 or more than 5 times the commanded move, or the wrong way) on the first fresh
     frame after a move is asked again on the next one without moving (a move that landed
     late reads as none); implausible there too, it counts, and two such moves in a row on
@@ -562,8 +563,8 @@ class PositionLaw:
     creep_start_s: float = 0.1
     creep_spread: float = 0.5
     #: Arrival is declared only if the last move's creep over this many seconds keeps the
-    #: target within tolerance (else the residue is trimmed first: a run that converged
-    #: right after a large move crept 0.1-0.2 px beyond tolerance within seconds).
+    #: target within tolerance (else the residue is trimmed first: a 50 px move creeps
+    #: 0.75 px per decade, so arrival on the frame after it would not hold).
     creep_horizon_s: float = 10.0
     #: Converged when the error now plus this many of its standard deviations is within
     #: tolerance.
@@ -651,23 +652,24 @@ class PositionLaw:
                     matrix[row, column] = content[0 if dof == "x" else 1]
         return matrix
 
-    def _creep_decades(self, from_s: float, to_s: float) -> float:
-        """The decades of creep the last move adds between two times (0 without one)."""
-        if self._creeping is None or to_s <= from_s:
-            return 0.0
-        written = self._creeping[1]
-        decades = (math.log10(1.0 + max(to_s - written, 0.0) / self.creep_start_s)
-                   - math.log10(1.0 + max(from_s - written, 0.0) / self.creep_start_s))
-        return self.creep_per_decade * decades
+    def _creep_fraction(self, elapsed_s: float) -> float:
+        """The fraction of a move it has crept ``elapsed_s`` after its write."""
+        return self.creep_per_decade * math.log10(1.0 + max(elapsed_s, 0.0) / self.creep_start_s)
+
+    def _creep_per_gain(self, from_s: float | None, to_s: float | None) -> np.ndarray:
+        """The content's creep between two times per unit of the stage's gains k (n x n:
+        the creep is this times k), from the last move; zeros without one."""
+        n = len(self.dofs)
+        if from_s is None or to_s is None or self._creeping is None or to_s <= from_s:
+            return np.zeros((n, n))
+        move, written = self._creeping
+        fraction = self._creep_fraction(to_s - written) - self._creep_fraction(from_s - written)
+        return fraction * self._content_per_move(self._pixel_size_nm) @ np.diag(move)
 
     def _creep(self, from_s: float | None, to_s: float | None) -> tuple[np.ndarray, np.ndarray]:
-        """The content's creep (per DOF, px or degrees) between two times, from the last
-        move and the gains as estimated, and its spread."""
-        n = len(self.dofs)
-        if from_s is None or to_s is None or self._creeping is None:
-            return np.zeros(n), np.zeros(n)
-        fraction = self._creep_decades(from_s, to_s)
-        creep = fraction * self._content_per_move(self._pixel_size_nm) @ (self._creeping[0] * self.state[2 * n:])
+        """The content's creep (per DOF, px) between two times, through the gains as
+        estimated, and its spread."""
+        creep = self._creep_per_gain(from_s, to_s) @ self.state[2 * len(self.dofs):]
         return creep, self.creep_spread * np.abs(creep)
 
     def _predict(self, to_s: float | None) -> None:
@@ -681,10 +683,7 @@ class PositionLaw:
         transition = np.eye(3 * n)
         transition[:n, n:2 * n] = np.eye(n) * dt
         _, creep_spread = self._creep(self._time, to_s)
-        if self._creeping is not None:
-            # Creep is the last move's, through the stage's gains: linear in k.
-            transition[:n, 2 * n:] = (self._creep_decades(self._time, to_s)
-                                      * self._content_per_move(self._pixel_size_nm) @ np.diag(self._creeping[0]))
+        transition[:n, 2 * n:] = self._creep_per_gain(self._time, to_s)  # the last move's creep: linear in k
         self.state = transition @ self.state
         self.covariance = transition @ self.covariance @ transition.T
         walk = np.where(self._rotation, 0.0, (self.drift_walk_nm / self._pixel_size_nm) ** 2 * dt)
@@ -858,10 +857,9 @@ class PositionLaw:
         # the horizon.
         aim = aim - self._creep(now, next_frame)[0]
         own_creep = 0.0
-        if next_frame is not None and self.creep_per_decade > 0:
+        if next_frame is not None:
             lag = next_frame - now
-            own_creep = self.creep_per_decade * (math.log10(1.0 + lag / self.creep_start_s)
-                                                 + math.log10(1.0 + (lag + self.creep_horizon_s) / self.creep_start_s)) / 2
+            own_creep = (self._creep_fraction(lag) + self._creep_fraction(lag + self.creep_horizon_s)) / 2
         nominal = np.linalg.solve(per_move, -np.where(act, aim, 0.0))  # the move at k = 1
         nominal = np.where(self._rotation, nominal, nominal / (1.0 + own_creep))
         for index, axis in enumerate(self.axes):
@@ -911,6 +909,23 @@ class PositionLaw:
         """The planar norm (px) of per-DOF values, or with ``rotation`` the rotation's |value|."""
         chosen = values[self._rotation] if rotation else values[~self._rotation]
         return float(np.hypot(*chosen)) if chosen.size == 2 else float(np.abs(chosen).sum())
+
+
+def planar_limit_um(law: ControlLaw | PositionLaw, max_move_um: float, moves_per_frame: int) -> float:
+    """The largest planar move one frame's step may make: the position law may chain
+    ``moves_per_frame`` commands of ``max_move_um`` (it asks for more than one only once
+    the stage has responded as commanded); the paper's law makes one."""
+    return max_move_um * (moves_per_frame if isinstance(law, PositionLaw) else 1)
+
+
+def saturate_planar(move: dict[str, float], limit_um: float) -> tuple[dict[str, float], bool]:
+    """``move`` with its planar part (``x_um``, ``y_um``) scaled down to ``limit_um``, its
+    direction kept, and whether it had to be."""
+    planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
+    if planar <= limit_um:
+        return dict(move), False
+    return {axis: value * limit_um / planar if axis in ("x_um", "y_um") else value
+            for axis, value in move.items()}, True
 
 
 def move_pieces(move: dict[str, float], max_move_um: float) -> list[dict[str, float]]:

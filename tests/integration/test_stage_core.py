@@ -3,9 +3,14 @@ pseudo-terminal, opened through pyserial; and the controller's core driving it."
 
 from __future__ import annotations
 
+import contextlib
+import math
+import time
+
 import pytest
 
 from semservo import nv40
+from semservo.control import CameraToStage
 from semservo.errors import CommandError
 from semservo.messages import MotionEstimate
 from semservo.protocol import LocalPort
@@ -134,6 +139,23 @@ def LocalStage(core: StageCore) -> LocalPort:
     return LocalPort(stage_handlers, core)
 
 
+@contextlib.contextmanager
+def connected(pty, **options):
+    """A stage core of its own on the emulator's link (``options``: StageCore's), closed after."""
+    core = StageCore(pty.path, **options)
+    assert core.connect()
+    try:
+        yield core
+    finally:
+        core.close()
+
+
+def as_commanded(content: tuple[float, float], record: dict) -> tuple[float, float]:
+    """The content (px at 177 nm/px) after ``record``'s planar move, made exactly as commanded."""
+    moved = CameraToStage().content_move_px(record["move"]["x_um"], record["move"]["y_um"], 177.0)
+    return content[0] + moved[0], content[1] + moved[1]
+
+
 def report(reference_id: str | None) -> estimator_protocol.Report:
     reference = None if reference_id is None else estimator_protocol.Reference(
         id=reference_id, kind="frame", shape=[512, 512], pixel_size_nm=177.0, taught_at_ns=1)
@@ -192,13 +214,9 @@ def test_controller_acts_only_on_fresh_confident_estimates(stage, tmp_path):
 
 
 def test_a_frame_scanned_while_the_stage_settles_is_stale(link, tmp_path):
-    import time
-
     _, pty = link
-    settling = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=FakeClock(),
-                         settle_s={"x": 0.5, "y": 0.2})
-    assert settling.connect()
-    try:
+    with connected(pty, limits=StageLimits(max_rate_v_per_s=1e6), clock=FakeClock(),
+                   settle_s={"x": 0.5, "y": 0.2}) as settling:
         core = ControllerCore(LocalStage(settling), runs_dir=tmp_path)
         core.start(RunSettings(), "ref")
         moved = core.on_estimate(estimate(1, 20.0, -10.0, scan_started_at_ns=time.time_ns()))
@@ -208,8 +226,6 @@ def test_a_frame_scanned_while_the_stage_settles_is_stale(link, tmp_path):
         settling.clock.now += 1.0  # the rate limit's clock
         after = core.on_estimate(estimate(3, 15.0, -7.0, scan_started_at_ns=moved["command_settled_at_ns"] + 1))
         assert after["action"] == "moved"
-    finally:
-        settling.close()
 
 
 def test_controller_converges_and_stop_stops_the_stage(stage, tmp_path):
@@ -334,15 +350,8 @@ def test_a_far_target_is_reached_in_chained_moves_within_the_stages_step_and_rat
     ``moves_per_frame`` x ``max_move_um`` on one frame; the controller writes it as that
     many commands, each within the step limit and waiting for the stage's settling and
     rate limit (the stage's real clock and default limits: nothing is refused)."""
-    import math
-    import time
-
-    from semservo.control import CameraToStage
-
     _, pty = link
-    real = StageCore(pty.path, settle_s={"x": 0.01, "y": 0.01})  # default limits, the real clock
-    assert real.connect()
-    try:
+    with connected(pty, settle_s={"x": 0.01, "y": 0.01}) as real:  # default limits, the real clock
         # Every way, and back: pieces equal in um are not in volts (the branches are curved).
         for seq, content in enumerate([(250.0, -40.0), (-250.0, 40.0), (40.0, 250.0), (-40.0, -250.0)]):
             core = ControllerCore(LocalStage(real), runs_dir=tmp_path)
@@ -353,9 +362,8 @@ def test_a_far_target_is_reached_in_chained_moves_within_the_stages_step_and_rat
             assert first["action"] == "moved" and first["pieces"] == 1
             assert math.hypot(*first["targets"].values()) == pytest.approx(10.0)
             time.sleep(0.2)
-            moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
-            content = (content[0] + moved[0], content[1] + moved[1])  # the stage did as commanded
-            chained = core.on_estimate(estimate(2 * seq + 2, *content, scan_started_at_ns=time.time_ns()))
+            chained = core.on_estimate(estimate(2 * seq + 2, *as_commanded(content, first),
+                                                scan_started_at_ns=time.time_ns()))
             assert chained["action"] == "moved", chained["action"]
             assert chained["pieces"] == 3 and 20.0 < math.hypot(*chained["targets"].values()) <= 30.0 + 1e-9
             written = chained["pieces_written_at_ns"]
@@ -364,82 +372,59 @@ def test_a_far_target_is_reached_in_chained_moves_within_the_stages_step_and_rat
             core.stop("next direction")
             if real.state == "stopped":
                 real.resume()
-    finally:
-        real.close()
 
 
 def test_a_stage_that_settles_slowly_gets_the_rest_of_a_chained_move_on_the_next_frame(link, tmp_path):
     """A chained move's next command waits for the stage to settle, but not for longer
     than the controller may go without feeding the stage's watchdog: the rest of the
     move is left to the next fresh frame, and the law learns from the piece made."""
-    import math
-    import time
-
-    from semservo.control import CameraToStage
-
     _, pty = link
-    slow = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=FakeClock(),
-                     settle_s={"x": 2.0, "y": 2.0})
-    assert slow.connect()
-    try:
+    with connected(pty, limits=StageLimits(max_rate_v_per_s=1e6), clock=FakeClock(),
+                   settle_s={"x": 2.0, "y": 2.0}) as slow:
         core = ControllerCore(LocalStage(slow), runs_dir=tmp_path)
         core.start(RunSettings(max_move_um=10.0, moves_per_frame=3), "ref")
         content = (250.0, -40.0)
         first = core.on_estimate(estimate(1, *content, scan_started_at_ns=time.time_ns()))
-        moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
-        content = (content[0] + moved[0], content[1] + moved[1])
         slow.clock.now += 2.5  # the rate limit's clock: the next frame, after the stage settled
         started = time.monotonic()
-        chained = core.on_estimate(estimate(2, *content, scan_started_at_ns=first["command_settled_at_ns"] + 1))
+        chained = core.on_estimate(estimate(2, *as_commanded(content, first),
+                                            scan_started_at_ns=first["command_settled_at_ns"] + 1))
         assert time.monotonic() - started < 1.0, "it did not wait the stage's 2 s"
         assert chained["action"] == "moved" and chained["pieces"] == 1
         assert math.hypot(*chained["targets"].values()) <= 10.0 + 1e-9 < math.hypot(*chained["move"].values())
         assert core.run.law._pending["move"] == {f"{axis}_um": value for axis, value in chained["targets"].items()}
-    finally:
-        slow.close()
 
 
 def test_an_operators_stop_between_a_chained_moves_commands_holds_the_stage_and_ends_the_run_stopped(link, tmp_path):
     """The operator stops the stage (it holds at once) while the controller is between
     the commands of a chained move: the next command is refused, nothing more is
     written, and the run ends stopped, saying so."""
-    import time
-
-    from semservo.control import CameraToStage
-    from services.stage.commands import handlers
-
     _, pty = link
-    real = StageCore(pty.path, settle_s={"x": 0.01, "y": 0.01})
-    assert real.connect()
+    with connected(pty, settle_s={"x": 0.01, "y": 0.01}) as real:
 
-    class StoppedMidChain(LocalPort):
-        moves = 0
+        class StoppedMidChain(LocalPort):
+            moves = 0
 
-        def call(self, command, request=None, /, **fields):
-            reply = super().call(command, request, **fields)
-            if command.name == "move":
-                self.moves += 1
-                if self.moves == 2:  # the chained move's first command: the operator stops
-                    real.stop("operator pressed stop")
-            return reply
+            def call(self, command, request=None, /, **fields):
+                reply = super().call(command, request, **fields)
+                if command.name == "move":
+                    self.moves += 1
+                    if self.moves == 2:  # the chained move's first command: the operator stops
+                        real.stop("operator pressed stop")
+                return reply
 
-    try:
-        core = ControllerCore(StoppedMidChain(handlers, real), runs_dir=tmp_path)
+        core = ControllerCore(StoppedMidChain(stage_handlers, real), runs_dir=tmp_path)
         core.start(RunSettings(max_move_um=10.0, moves_per_frame=3), "ref")
         content = (250.0, -40.0)
         first = core.on_estimate(estimate(1, *content, scan_started_at_ns=time.time_ns()))
         time.sleep(0.2)
-        moved = CameraToStage().content_move_px(first["move"]["x_um"], first["move"]["y_um"], 177.0)
         voltages = dict(real.voltages)
-        chained = core.on_estimate(estimate(2, content[0] + moved[0], content[1] + moved[1],
-                                            scan_started_at_ns=time.time_ns()))
+        chained = core.on_estimate(estimate(2, *as_commanded(content, first), scan_started_at_ns=time.time_ns()))
         assert chained["action"] == "refused by the stage: stopped"
         assert chained["pieces"] == 1 and chained["voltages"] == dict(real.voltages), "the record keeps what was made"
         assert core.state == "stopped" and "stopped" in core.reason
         assert real.state == "stopped" and real.counters["moves"] == 2, "one command of the chain, then none"
         assert real.voltages != voltages  # the first command was written before the stop
-    finally:
-        real.close()
 
 
 def test_the_position_law_ends_a_run_whose_content_does_not_follow_its_moves(stage, tmp_path):

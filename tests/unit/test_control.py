@@ -134,7 +134,8 @@ def test_the_tilt_law_takes_its_signs_from_the_camera_to_stage_transform():
 # The position law (not the paper's)
 
 from semservo.control import (  # noqa: E402
-    LAWS, PositionLaw, StageSettling, UnexpectedResponse, make_law, move_pieces, settling_time_s,
+    LAWS, PositionLaw, StageSettling, UnexpectedResponse, make_law, move_pieces, planar_limit_um, saturate_planar,
+    settling_time_s,
 )
 
 
@@ -218,6 +219,14 @@ def test_the_position_law_chains_moves_only_once_the_stage_has_responded_as_comm
     again = wrong.step(*content, 0.0, pixel_nm)  # implausible again: it counts, and nothing is unlocked
     assert math.hypot(again.move["x_um"], again.move["y_um"]) <= 10.0 + 1e-9
     assert not wrong._responded
+
+
+def test_saturation_keeps_the_direction_and_the_turn_and_only_the_position_law_chains():
+    move, saturated = saturate_planar({"x_um": 30.0, "y_um": -40.0, "rotation_deg": 3.0}, 10.0)
+    assert saturated and move == pytest.approx({"x_um": 6.0, "y_um": -8.0, "rotation_deg": 3.0})
+    assert saturate_planar({"x_um": 3.0}, 10.0) == ({"x_um": 3.0}, False)
+    assert planar_limit_um(PositionLaw(("x", "y")), 10.0, 3) == 30.0
+    assert planar_limit_um(make_law("paper"), 10.0, 3) == 10.0
 
 
 def test_a_move_is_made_in_equal_pieces_within_the_limit():

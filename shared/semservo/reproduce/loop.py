@@ -34,6 +34,7 @@ import numpy as np
 
 from semservo.control import (
     MODEL_UNCERTAINTY, AdaptiveGain, ControlLaw, StageSettling, UnexpectedResponse, make_law, move_pieces,
+    planar_limit_um, saturate_planar,
 )
 from semservo.config import StageSettings
 from semservo.reproduce import methods
@@ -290,10 +291,7 @@ def run_trial(case: str, method: str, start_um: tuple[float, float], *, seed: in
         sampling = interval[1] - last_end if last_end is not None else 2 * (interval[1] - interval[0])
         last_end = interval[1]
         step = law.step(measured.dx, measured.dy, 0.0, pixel_nm, sampling)
-        move = dict(step.move)
-        planar = math.hypot(move["x_um"], move["y_um"])
-        if planar > settings.max_move_um:
-            move = {key: value * settings.max_move_um / planar for key, value in move.items()}
+        move, _ = saturate_planar(step.move, settings.max_move_um)
         record.update(cost=step.cost, gain=step.gain, voltages=lab.move(move["x_um"], move["y_um"]),
                       action="moved")
         records.append(record)
@@ -517,11 +515,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
             record["action"] = "held: unexpected response"
             records.append(record)
             break
-        move = dict(step.move)
-        planar = math.hypot(move.get("x_um", 0.0), move.get("y_um", 0.0))
-        limit = settings.max_move_um * (settings.max_moves if law == "position" else 1)
-        if planar > limit:
-            move = {key: value * limit / planar for key, value in move.items()}
+        move, _ = saturate_planar(step.move, planar_limit_um(controller, settings.max_move_um, settings.max_moves))
         iterations += 1
         if controller.converged and converged_at is None:
             record["action"] = "within tolerance"
