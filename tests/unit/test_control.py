@@ -356,6 +356,51 @@ def test_the_position_law_holds_against_drift_and_does_not_chase_noise():
     assert sum(1 for step in steps if step.move) <= 5
 
 
+def test_a_view_moved_by_a_tilt_keeps_the_drift_learned_and_starts_the_position_afresh():
+    # Hold against drift long enough to learn it, then the view jumps (a tilt about the
+    # cradle's pivot): the position restarts from the next frame, the drift does not.
+    law = PositionLaw(("x", "y"), noise_px=0.03)
+    position_plant(law, (0.0, 0.0), noise_px=0.03, drift_px_per_s=0.05, frames=120, pixel_nm=42.0, hold=True)
+    drift, drift_covariance = law.state[2:4].copy(), law.covariance[2:4, 2:4].copy()
+    gains = law.state[4:6].copy()
+    assert drift == pytest.approx([0.05, 0.05], abs=0.02)
+    law.view_moved()
+    assert law.state is None and not law.converged
+    law.step(3.0, -2.0, 0.0, 42.0, frame_interval_s=(1000.0, 1000.46), now_s=1000.5)
+    assert law.state[:2] == pytest.approx([3.0, -2.0], abs=0.05)  # the new view's error, from its frame
+    assert law.state[2:4] == pytest.approx(drift, abs=1e-6)  # the sample's drift, as learned
+    assert law.covariance[2:4, 2:4] == pytest.approx(drift_covariance, rel=1e-3, abs=1e-12)
+    assert law.state[4:6] == pytest.approx(gains)
+    # Another magnification (the position in other pixels) forgets the drift too.
+    law.step(3.0, -2.0, 0.0, 84.0, frame_interval_s=(1001.0, 1001.46), now_s=1001.5)
+    assert law.state[2:4] == pytest.approx([0.0, 0.0])
+
+
+def test_a_frame_at_rest_the_model_did_not_predict_is_followed_not_averaged_away():
+    # Arrived and holding, the law's estimate is pinned by many frames; then the content
+    # moves 0.14 px without a move of the law's (a hysteresis minor loop's gain grown, a
+    # bump). The next frame is 4.7 noise deviations off: the law does not stay converged
+    # on its model's 0.0x px, it corrects.
+    rng = np.random.default_rng(3)
+    law = PositionLaw(("x", "y"), noise_px=0.03)
+    t = 0.0
+    for _ in range(60):
+        law.step(*rng.normal(0.0, 0.03, 2), 0.0, 42.0, frame_interval_s=(t, t + 0.46), now_s=t + 0.5)
+        t += 0.46
+    assert law.converged
+    step = law.step(0.0, 0.14, 0.0, 42.0, frame_interval_s=(t, t + 0.46), now_s=t + 0.5)
+    assert not law.converged and step.move
+    assert law.planar_estimate()[0] > 0.1
+    # Without the gate the model's prediction wins: still "arrived" on that frame.
+    law = PositionLaw(("x", "y"), noise_px=0.03, innovation_gate=math.inf)
+    rng, t = np.random.default_rng(3), 0.0
+    for _ in range(60):
+        law.step(*rng.normal(0.0, 0.03, 2), 0.0, 42.0, frame_interval_s=(t, t + 0.46), now_s=t + 0.5)
+        t += 0.46
+    law.step(0.0, 0.14, 0.0, 42.0, frame_interval_s=(t, t + 0.46), now_s=t + 0.5)
+    assert law.converged
+
+
 def test_the_position_law_trims_a_clear_residue_at_the_tolerance_edge_before_it_declares_arrival():
     """0.09 px off, seen clearly (estimates 0.005 px noisy): within the 0.1 px tolerance,
     but a bias of the estimate or the next creep would put the stage beyond it; the law
