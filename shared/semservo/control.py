@@ -467,7 +467,11 @@ class PositionLaw:
     gain: k's spread is raised to ``reversal_spread`` there. The last move's planar part
     creeps on (``creep_per_decade`` of it per decade of time after its write, until the
     next move; a chained move counts as written with its last command): time adds that
-    too, through k, so creep is neither read as drift nor as the stage's gain.
+    too, through k, so creep is neither read as drift nor as the stage's gain. A frame at
+    rest that the model did not predict (beyond ``innovation_gate`` standard deviations)
+    raises the position's variance, so the estimate follows the frames when something the
+    model leaves out moved the content. A tilt that moves the view (:meth:`view_moved`)
+    restarts the position only; the drift learned stays.
 
     Each fresh frame: converged (:attr:`converged`) when the error predicted for now,
     plus one standard deviation, is within tolerance, and so is the error the last move's
