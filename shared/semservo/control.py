@@ -359,9 +359,10 @@ class TiltLaw:
     gain: AdaptiveGain | ExponentialGain = field(default_factory=AdaptiveGain)
     camera_to_stage: CameraToStage = field(default_factory=CameraToStage)
     previous_velocity: np.ndarray | None = None
+    previous_gain: float | None = None
 
     def reset(self) -> None:
-        self.previous_velocity = None
+        self.previous_velocity = self.previous_gain = None
 
     def step(self, alpha_deg: float, beta_deg: float, sampling_time_s: float) -> LawStep:
         """Error (rad), cost, gain, velocity (rad/s) and the stage's tilt move (degrees,
@@ -378,9 +379,18 @@ class TiltLaw:
         index = [TILT_DEGREES_OF_FREEDOM.index(dof) for dof in self.dofs]
         error = vector[index]
         interaction = full[np.ix_(index, index)]
-        gain, velocity, moved = velocity_and_displacement(error, interaction, self.gain(np.degrees(error)),
-                                                          sampling_time_s, self.previous_velocity)
-        self.previous_velocity = velocity
+        # The sweeps come at uneven intervals (one scanned during a tilt move is not
+        # used, so the next interval is two sweeps long): eq. 37's previous velocity,
+        # commanded at a gain capped for a shorter interval, would be carried over the
+        # longer one (a 5-DOF run moved beta 1.4 degrees on a 0.44 degree error and
+        # overshot). It is scaled to this interval's capped gain, so the move keeps the
+        # no-overshoot bound of :func:`velocity_and_displacement` whatever the intervals.
+        gain = min(self.gain(np.degrees(error)), NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
+        previous = self.previous_velocity
+        if previous is not None and self.previous_gain and gain < self.previous_gain:
+            previous = previous * (gain / self.previous_gain)
+        gain, velocity, moved = velocity_and_displacement(error, interaction, gain, sampling_time_s, previous)
+        self.previous_velocity, self.previous_gain = velocity, gain
         move = self.camera_to_stage.stage_move(dict(zip(self.dofs, moved)))
         return LawStep(_floats(error), cost(error), gain, _floats(velocity), move)
 

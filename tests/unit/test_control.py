@@ -130,6 +130,21 @@ def test_the_tilt_law_takes_its_signs_from_the_camera_to_stage_transform():
     assert plain.move["tilt_x_deg"] < 0 < plain.move["tilt_y_deg"]  # drives alpha = 1, beta = -0.5 to zero
 
 
+@pytest.mark.parametrize("intervals", [(10.0, 10.0, 10.0, 10.0), (10.0, 80.0, 10.0, 40.0), (80.0, 10.0, 80.0, 10.0)])
+def test_the_tilt_law_approaches_without_overshoot_whatever_the_intervals_between_sweeps(intervals):
+    # A tilt plant that turns as told, sweeps at uneven intervals (one scanned during a
+    # tilt move is skipped, so the next interval is twice as long): the error falls on
+    # every sweep and never changes sign.
+    law = TiltLaw(("alpha", "beta"))
+    error = np.array([-0.96, -1.6])
+    for interval in intervals:
+        step = law.step(*error, interval)
+        moved = np.array([step.move["tilt_x_deg"], step.move["tilt_y_deg"]])
+        after = error + moved  # the default signs: a move of +1 degree adds 1 degree to the error
+        assert np.all(np.abs(after) < np.abs(error)) and np.all(np.sign(after) == np.sign(error)), (interval, error, after)
+        error = after
+
+
 # --------------------------------------------------------------------------------------
 # The position law (not the paper's)
 
