@@ -436,6 +436,14 @@ def test_a_hopeless_texture_is_refused_at_once_with_how_well_it_pinned_the_tilts
     few[0, :3] = 0.1
     refused = pooled_tilt([few], KERNEL, PIXEL_UM, step)
     assert refused.confidence == 0 and "clear focus peak" in refused.reason and not wants_another_sweep(refused)
+    # Judged reachable on its first sweep, a view refused after 3 pooled sweeps is swept
+    # a fourth time even where 1 / sqrt(n) projects just over the line from there: the
+    # pooled standard error is an estimate too.
+    from dataclasses import replace
+
+    marginal = replace(estimate, sweeps=3, alpha_uncertainty_deg=1.2 * MAX_TILT_UNCERTAINTY_DEG,
+                       beta_uncertainty_deg=1.1 * MAX_TILT_UNCERTAINTY_DEG)
+    assert wants_another_sweep(marginal) and not wants_another_sweep(replace(marginal, sweeps=4))
 
 
 def test_the_benchmarks_teach_pools_its_reference_as_the_service_does():
