@@ -345,7 +345,7 @@ class ControllerCore:
         last_written_ns = record.pieces_written_at_ns[-1] if record.pieces_written_at_ns else record.command_written_at_ns
         run.law.applied(carried, last_written_ns / 1e9 if last_written_ns else None)
         if decision.turns.keys() & {TURN_AXES["alpha"], TURN_AXES["beta"]}:
-            run.law.view_moved()  # the pivot's lever moves the view by design: the law starts afresh
+            run.law.view_moved()  # the pivot's lever moves the view by design: the position restarts, the drift stays
         run.iterations += 1
         run.last_command_ns = max(record.command_written_at_ns, record.command_settled_at_ns or 0)
         interval = estimate.frame_source_interval_s

@@ -383,8 +383,10 @@ class TiltLaw:
         # used, so the next interval is two sweeps long): eq. 37's previous velocity,
         # commanded at a gain capped for a shorter interval, would be carried over the
         # longer one (a 5-DOF run moved beta 1.4 degrees on a 0.44 degree error and
-        # overshot). It is scaled to this interval's capped gain, so the move keeps the
-        # no-overshoot bound of :func:`velocity_and_displacement` whatever the intervals.
+        # overshot). Whenever this gain is lower than the previous one (capped for a
+        # longer interval, or a smaller error), the previous velocity is scaled to it, so
+        # the move keeps the no-overshoot bound of :func:`velocity_and_displacement`
+        # whatever the intervals; a move only ever gets smaller for it.
         gain = min(self.gain(np.degrees(error)), NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
         previous = self.previous_velocity
         if previous is not None and self.previous_gain and gain < self.previous_gain:
@@ -477,11 +479,9 @@ class PositionLaw:
     gain: k's spread is raised to ``reversal_spread`` there. The last move's planar part
     creeps on (``creep_per_decade`` of it per decade of time after its write, until the
     next move; a chained move counts as written with its last command): time adds that
-    too, through k, so creep is neither read as drift nor as the stage's gain. A frame at
-    rest that the model did not predict (beyond ``innovation_gate`` standard deviations)
-    raises the position's variance, so the estimate follows the frames when something the
-    model leaves out moved the content. A tilt that moves the view (:meth:`view_moved`)
-    restarts the position only; the drift learned stays.
+    too, through k, so creep is neither read as drift nor as the stage's gain. A tilt that
+    moves the view (:meth:`view_moved`) restarts the position only; the drift learned
+    stays.
 
     Each fresh frame: converged (:attr:`converged`) when the error predicted for now,
     plus one standard deviation, is within tolerance, and so is the error the last move's
@@ -583,9 +583,6 @@ class PositionLaw:
     #: Converged when the error now plus this many of its standard deviations is within
     #: tolerance.
     margin: float = 1.0
-    #: A frame at rest this many standard deviations from the prediction is followed, not
-    #: averaged away (:meth:`_measure`); 3: a Gaussian noise passes it 997 times in 1000.
-    innovation_gate: float = 3.0
     #: True after a step that put the target within tolerance.
     converged: bool = False
     state: np.ndarray | None = field(default=None, repr=False)  # [p, v, k] per DOF
@@ -624,18 +621,19 @@ class PositionLaw:
     def view_moved(self) -> None:
         """The view moved by design (a tilt about a pivot below the surface shifts it): the
         position starts afresh from the next fresh frame; what was learned of the sample's
-        drift, the stage's gains and the noise stays. Without this, the view's jump would
-        read as the stage's implausible response to the last planar move. The drift is the
-        sample's (thermal), which a turn of the cradle does not change: forgetting it made
-        every tilt move start the drift over from its prior, and a run that tilts often
-        (5-DOF) chased a drift it was still learning, its position estimate lagging the
-        frames by up to 0.1 px when it stopped (``bench/tilt.py --sample-images``)."""
+        drift, of the stage's gains and response, and of the noise stays. Without the
+        restart, the view's jump would read as the stage's implausible response to the
+        last planar move; the drift is the sample's (thermal), which a turn of the cradle
+        does not change, so a run that tilts often (5-DOF) need not learn it again from
+        its prior after every tilt move."""
         n = len(self.dofs)
-        drift = None
+        drift = self._kept_drift
         if self.state is not None:
             drift = self.state[n:2 * n].copy(), self.covariance[n:2 * n, n:2 * n].copy()
-        responded = self._responded
+        gains, responded = self._kept_gains, self._responded
         self.reset()
+        if self._kept_gains is None:  # no state yet: what an earlier run left stays
+            self._kept_gains = gains
         self._kept_drift, self._responded = drift, responded
 
     def noise(self) -> np.ndarray:
@@ -747,25 +745,12 @@ class PositionLaw:
         self._creeping = ((planar, self._time) if self._time is not None and self.creep_per_decade > 0 and planar.any()
                           else None)
 
-    def _measure(self, error: np.ndarray, at_rest: bool = False) -> None:
-        """The Kalman update on a frame's error. ``at_rest``: no move since the last frame,
-        so the model predicted this frame from drift and creep alone; a DOF whose
-        innovation is beyond ``innovation_gate`` of its standard deviations there shows
-        the content moved in a way the model leaves out (a hysteresis minor loop whose
-        gain grew over many small moves, a bump), and its position's variance is raised
-        until the innovation is one standard deviation, so the estimate follows the frame
-        rather than the model that missed it. (On the first frame after a move the
-        innovation teaches the stage's gain instead, and is left alone.)"""
+    def _measure(self, error: np.ndarray) -> None:
         n = len(self.dofs)
         observation = np.zeros((n, 3 * n))
         observation[:, :n] = np.eye(n)
         innovation = error - self.state[:n]
         noise_variance = self.noise() ** 2
-        if at_rest:
-            predicted_variance = np.diag(self.covariance)[:n] + noise_variance
-            surprise = innovation**2 > self.innovation_gate**2 * predicted_variance
-            for index in np.flatnonzero(surprise):
-                self.covariance[index, index] += innovation[index] ** 2 - predicted_variance[index]
         innovation_covariance = self.covariance[:n, :n] + np.diag(noise_variance)
         gain = self.covariance @ observation.T @ np.linalg.inv(innovation_covariance)
         self.state = self.state + gain @ innovation
@@ -854,7 +839,7 @@ class PositionLaw:
                 difference = (units - self._last_error)[~self._rotation]
                 self._scatter[0] += float((difference**2).mean()) / 2
                 self._scatter[1] += 1
-            self._measure(units, at_rest=self._pending is None)
+            self._measure(units)
         self._pending, self._last_error = None, units
         # Where the target is now, and at the middle of the next fresh frame (a move's
         # scan is not fresh: one and a half frames on).

@@ -436,14 +436,20 @@ def test_a_hopeless_texture_is_refused_at_once_with_how_well_it_pinned_the_tilts
     few[0, :3] = 0.1
     refused = pooled_tilt([few], KERNEL, PIXEL_UM, step)
     assert refused.confidence == 0 and "clear focus peak" in refused.reason and not wants_another_sweep(refused)
-    # Judged reachable on its first sweep, a view refused after 3 pooled sweeps is swept
-    # a fourth time even where 1 / sqrt(n) projects just over the line from there: the
-    # pooled standard error is an estimate too.
+    # Once pooled, a view refused after 3 sweeps is swept a fourth time where 1 / sqrt(n)
+    # projects a little over the line from there (POOLING_SLACK): the pooled standard
+    # error is an estimate too.
     from dataclasses import replace
 
     marginal = replace(estimate, sweeps=3, alpha_uncertainty_deg=1.2 * MAX_TILT_UNCERTAINTY_DEG,
                        beta_uncertainty_deg=1.1 * MAX_TILT_UNCERTAINTY_DEG)
     assert wants_another_sweep(marginal) and not wants_another_sweep(replace(marginal, sweeps=4))
+    # Far over the line even then (2 sweeps at twice the line project 1.4 x it for 4): refused.
+    assert not wants_another_sweep(replace(marginal, sweeps=2, alpha_uncertainty_deg=2 * MAX_TILT_UNCERTAINTY_DEG))
+    # A plane that holds for too few kernels is refused for that, however its errors read.
+    from semservo.estimation.tilt import MIN_KERNELS
+
+    assert not wants_another_sweep(replace(marginal, kernels_used=MIN_KERNELS - 1))
 
 
 def test_the_benchmarks_teach_pools_its_reference_as_the_service_does():
