@@ -386,6 +386,14 @@ def test_a_view_moved_by_a_tilt_keeps_the_drift_learned_and_starts_the_position_
     assert law.state[2:4] == pytest.approx(drift, abs=1e-6)  # the sample's drift, as learned
     assert law.covariance[2:4, 2:4] == pytest.approx(drift_covariance, rel=1e-3, abs=1e-12)
     assert law.state[4:6] == pytest.approx(gains)
+    # A second tilt before any frame (no state): what was kept stays kept.
+    law.reset()
+    law.step(3.0, -2.0, 0.0, 42.0, frame_interval_s=(1000.0, 1000.46), now_s=1000.5)
+    law.state[4:6] = kept = np.array([0.8, 1.2])  # gains as if learned
+    law.view_moved()
+    law.view_moved()
+    law.step(1.0, 1.0, 0.0, 42.0, frame_interval_s=(1002.0, 1002.46), now_s=1002.5)
+    assert law.state[4:6] == pytest.approx(kept)
     # Another magnification (the position in other pixels) forgets the drift too.
     law.step(3.0, -2.0, 0.0, 84.0, frame_interval_s=(1001.0, 1001.46), now_s=1001.5)
     assert law.state[2:4] == pytest.approx([0.0, 0.0])
