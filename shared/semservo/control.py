@@ -241,18 +241,25 @@ class LawStep:
 
 
 def velocity_and_displacement(error: np.ndarray, interaction: np.ndarray, gain: float, sampling_time_s: float,
-                              previous_velocity: np.ndarray | None) -> tuple[float, np.ndarray, np.ndarray]:
+                              previous_velocity: np.ndarray | None, previous_gain: float | None = None
+                              ) -> tuple[float, np.ndarray, np.ndarray]:
     """The sequence both of the paper's laws share: the gain capped for the sampling
     time, the velocity (eq. 36) and the displacement over the sampling time (eq. 37,
     from the previous velocity, or the current one on the first iteration).
 
     Eq. 37 scales the move with the sampling time, so a slow image source (or a
     sped-up simulation that renders slower than it scans) would overshoot: the gain is
-    capped where the loop stops approaching monotonically. Returns (gain, velocity,
-    displacement)."""
+    capped where the loop stops approaching monotonically. ``previous_gain``: the gain
+    the previous velocity was commanded at; given, and above this one (capped for a
+    longer interval, or a smaller error), the previous velocity is scaled to this gain,
+    so that eq. 37 does not carry a velocity capped for a short interval over a long one
+    and the bound holds whatever the intervals (a move only gets smaller for it; the
+    tilts' sweeps come unevenly). Returns (gain, velocity, displacement)."""
     gain = min(gain, NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
     velocity = levenberg_marquardt_velocity(error, interaction, gain)
     previous = previous_velocity if previous_velocity is not None else velocity
+    if previous_velocity is not None and previous_gain and gain < previous_gain:
+        previous = previous_velocity * (gain / previous_gain)
     return gain, velocity, displacement(previous, velocity, sampling_time_s)
 
 
@@ -380,18 +387,11 @@ class TiltLaw:
         error = vector[index]
         interaction = full[np.ix_(index, index)]
         # The sweeps come at uneven intervals (one scanned during a tilt move is not
-        # used, so the next interval is two sweeps long): eq. 37's previous velocity,
-        # commanded at a gain capped for a shorter interval, would be carried over the
-        # longer one (a 5-DOF run moved beta 1.4 degrees on a 0.44 degree error and
-        # overshot). Whenever this gain is lower than the previous one (capped for a
-        # longer interval, or a smaller error), the previous velocity is scaled to it, so
-        # the move keeps the no-overshoot bound of :func:`velocity_and_displacement`
-        # whatever the intervals; a move only ever gets smaller for it.
-        gain = min(self.gain(np.degrees(error)), NO_OVERSHOOT_GAIN_TIMES_T / max(sampling_time_s, 1e-6))
-        previous = self.previous_velocity
-        if previous is not None and self.previous_gain and gain < self.previous_gain:
-            previous = previous * (gain / self.previous_gain)
-        gain, velocity, moved = velocity_and_displacement(error, interaction, gain, sampling_time_s, previous)
+        # used, so the next interval is two sweeps long): eq. 37's previous velocity is
+        # scaled to this interval's capped gain (a 5-DOF run moved beta 1.4 degrees on a
+        # 0.44 degree error and overshot when it was not).
+        gain, velocity, moved = velocity_and_displacement(error, interaction, self.gain(np.degrees(error)),
+                                                          sampling_time_s, self.previous_velocity, self.previous_gain)
         self.previous_velocity, self.previous_gain = velocity, gain
         move = self.camera_to_stage.stage_move(dict(zip(self.dofs, moved)))
         return LawStep(_floats(error), cost(error), gain, _floats(velocity), move)
@@ -750,8 +750,7 @@ class PositionLaw:
         observation = np.zeros((n, 3 * n))
         observation[:, :n] = np.eye(n)
         innovation = error - self.state[:n]
-        noise_variance = self.noise() ** 2
-        innovation_covariance = self.covariance[:n, :n] + np.diag(noise_variance)
+        innovation_covariance = self.covariance[:n, :n] + np.diag(self.noise() ** 2)
         gain = self.covariance @ observation.T @ np.linalg.inv(innovation_covariance)
         self.state = self.state + gain @ innovation
         self.covariance = (np.eye(3 * n) - gain @ observation) @ self.covariance

@@ -395,7 +395,7 @@ def test_a_view_moved_by_a_tilt_keeps_the_drift_learned_and_starts_the_position_
     law.step(1.0, 1.0, 0.0, 42.0, frame_interval_s=(1002.0, 1002.46), now_s=1002.5)
     assert law.state[4:6] == pytest.approx(kept)
     # Another magnification (the position in other pixels) forgets the drift too.
-    law.step(3.0, -2.0, 0.0, 84.0, frame_interval_s=(1001.0, 1001.46), now_s=1001.5)
+    law.step(3.0, -2.0, 0.0, 84.0, frame_interval_s=(1003.0, 1003.46), now_s=1003.5)
     assert law.state[2:4] == pytest.approx([0.0, 0.0])
 
 

@@ -86,6 +86,7 @@ MAX_TEACH_SWEEPS = 4
 #: Once a view is being pooled, it is swept again while 1 / sqrt(n) projects its
 #: standard error within this factor of ``MAX_TILT_UNCERTAINTY_DEG`` (:func:`wants_another_sweep`).
 POOLING_SLACK = 1.25
+
 #: The taught pose's tilts are swept again while either is pinned less tightly than this
 #: (degrees, its standard error): every later measurement is taken against the taught
 #: plane and carries its error whole, so it is pinned tighter than one measurement must
@@ -585,8 +586,9 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
     could bring a refused estimate under the line at the best rate, 1 / sqrt(n): a
     texture hopeless at that rate after its first sweep is refused at once (the
     estimate's reason stands), not swept again; once pooling has begun, the projection
-    may be up to ``POOLING_SLACK`` over the line. An estimate refused for another reason (too few kernels with a
-    clear peak, depths that are not one plane) is not swept again either."""
+    may be up to ``POOLING_SLACK`` over the line. An estimate refused for another reason
+    (too few kernels with a clear peak, depths that are not one plane) is not swept again
+    either."""
     if estimate.sweeps >= max_sweeps:
         return False
     worst = max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg)
