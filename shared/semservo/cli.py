@@ -541,6 +541,12 @@ def command_calibrate(args: argparse.Namespace) -> int:
 DEMO_OFFSET_UM = (6.0, -4.0)
 DEMO_PIXEL_UM = 0.1769
 DEMO_MAX_JOG_UM = 8.0
+#: How long the demo waits for its run: x, y (and the turn) take seconds to a minute; five
+#: degrees of freedom wait on focus sweeps (tens of seconds each, one in two held back as
+#: scanned during a tilt move): on a real picture as the sample one run took 265 s, another
+#: more than 300.
+DEMO_TIMEOUT_S = 300.0
+DEMO_TIMEOUT_5DOF_S = 900.0
 
 
 def command_demo(args: argparse.Namespace) -> int:
@@ -648,7 +654,8 @@ def command_demo(args: argparse.Namespace) -> int:
         run_id = run.run_id
         print(f"3. positioning run {run_id} started ({', '.join(dofs)}; {args.law} law; tolerance {args.tolerance:g} px); "
               "waiting ...", flush=True)
-        result = lab.wait(run_id, timeout=args.timeout, stop_on_timeout=True)
+        timeout = args.timeout if args.timeout is not None else (DEMO_TIMEOUT_5DOF_S if tilts else DEMO_TIMEOUT_S)
+        result = lab.wait(run_id, timeout=timeout, stop_on_timeout=True)
         print(f"4. {result.state} after {result.iterations} iterations ({result.fresh_frames or 0} fresh frames) "
               f"in {result.duration_s or 0:.1f} s{' (' + result.reason + ')' if result.reason else ''}")
         if result.final_error_px is not None:
@@ -685,7 +692,11 @@ def command_demo(args: argparse.Namespace) -> int:
             print(f"   the run's record: {url}/runs/{run_id}  (dashboard: {url}/)")
         return 0 if result.state == "converged" else 1
     except WaitTimeout as error:
-        print(f"demo gave up: {error.message}", file=sys.stderr)
+        # The give-up stopped the stage (no run outlives the demo), and a stop holds, across
+        # restarts too, until someone resumes it: say how, or the next demo only refuses.
+        print(f"demo gave up: {error.message}. The stage holds stopped until resumed: run the next demo with "
+              f"--resume, or the dashboard's Resume, or POST {url}/stage/resume; --timeout waits longer.",
+              file=sys.stderr)
         return 1
     except SemservoError as error:
         print(f"demo failed: {error}", file=sys.stderr)
@@ -868,7 +879,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="with --dof all: tilts about x and y, degrees (default 2 -1.5)")
     demo.add_argument("--frames", type=int, default=4, help="live frames averaged into the reference (default 4)")
     demo.add_argument("--settle", type=float, default=1.0, help="seconds to wait after the jog (default 1)")
-    demo.add_argument("--timeout", type=float, default=300.0, help="give up on the run after this many seconds")
+    demo.add_argument("--timeout", type=float, default=None,
+                      help=f"give up on the run after this many seconds (default {DEMO_TIMEOUT_S:g}; "
+                           f"{DEMO_TIMEOUT_5DOF_S:g} with --dof all, whose focus sweeps take tens of seconds each)")
     demo.add_argument("--speedup", type=float, help="when the demo starts the system: simulated time this much faster")
     demo.add_argument("--verbose", action="store_true", help="show the services' logs when the demo starts them")
     demo.add_argument("--resume", action="store_true", help="let a stage an operator stopped move again first (a "
