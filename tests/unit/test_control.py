@@ -156,16 +156,19 @@ from semservo.control import (  # noqa: E402
 
 def position_plant(law: PositionLaw, start_px, *, gain: float = 1.0, pixel_nm: float = 177.0, noise_px: float = 0.0,
                    drift_px_per_s: float = 0.0, frames: int = 30, frame_s: float = 0.46, seed: int = 0,
-                   camera: CameraToStage = CameraToStage(), hold: bool = False):
+                   camera: CameraToStage = CameraToStage(), hold: bool = False, noise_of=None):
     """A stage that moves ``gain`` times the commanded move (the law's model unknown to
     it), frames every ``frame_s`` (a move makes the next frame stale: fresh ones every
-    other), estimates with Gaussian noise. Returns the true errors after each step, the
-    steps, and the step the law declared convergence at (None: never)."""
+    other), estimates with Gaussian noise (or ``noise_of(scan number)``, px). Returns the
+    true errors after each step, the steps, and the step the law declared convergence at
+    (None: never)."""
     rng = np.random.default_rng(seed)
     content = np.array(start_px, dtype=float)
     t, history, steps, converged_at = 0.0, [], [], None
     for index in range(frames):
         measured = content + rng.normal(0.0, noise_px, 2) if noise_px else content
+        if noise_of is not None:
+            measured = content + noise_of(int(round(t / frame_s)))
         step = law.step(measured[0], measured[1], 0.0, pixel_nm, frame_interval_s=(t, t + frame_s),
                         now_s=t + frame_s + 0.05)
         steps.append(step)
@@ -369,6 +372,46 @@ def test_the_position_law_holds_against_drift_and_does_not_chase_noise():
     law = PositionLaw(("x", "y"), noise_px=0.03)
     history, steps, _ = position_plant(law, (0.0, 0.0), noise_px=0.03, frames=200, pixel_nm=42.0, hold=True)
     assert sum(1 for step in steps if step.move) <= 5
+
+
+def alternating_noise(amplitude_px: float, seed: int = 3):
+    """An estimate's noise like x5000's vibration aliased by the frame: each frame off by
+    nearly the opposite of the last, the amplitude wandering slowly, a little white noise."""
+    rng = np.random.default_rng(seed)
+    phase = rng.uniform(0, 2 * np.pi, 2)
+    return lambda scan: (amplitude_px * (-1) ** scan * np.cos(2 * np.pi * 0.04 * scan + phase)
+                         + rng.normal(0.0, 0.01, 2))
+
+
+def test_the_position_law_learns_that_consecutive_frames_noise_alternates_and_averages_it_away():
+    # Frames at rest 0.04 px from the target, each up to 0.15 px off the opposite way to
+    # the last; the prior noise is what a teach measures of one frame.
+    arrived = {}
+    for floor in (-0.9, 0.0):  # 0: the noise taken as white
+        arrivals = []
+        for seed in range(5):
+            law = PositionLaw(("x", "y"), noise_px=0.12, noise_correlation_floor=floor)
+            history, steps, converged_at = position_plant(law, (0.03, -0.02), frames=40, pixel_nm=42.0,
+                                                          noise_of=alternating_noise(0.15, seed))
+            arrivals.append(converged_at if converged_at is not None else 99)
+            assert np.hypot(*history[-1]) <= 0.1
+        arrived[floor] = arrivals
+    assert max(arrived[-0.9]) <= 8, arrived  # seen: 2-7 frames
+    assert np.median(arrived[0.0]) >= 2 * np.median(arrived[-0.9]), arrived  # seen: 14 against 3
+    # Held longer, the law learns the correlation itself: -0.9 or near.
+    law = PositionLaw(("x", "y"), noise_px=0.12)
+    position_plant(law, (0.03, -0.02), frames=40, pixel_nm=42.0, noise_of=alternating_noise(0.15), hold=True)
+    assert law.noise_model()[1] == pytest.approx([-0.9, -0.9], abs=0.15)
+
+
+def test_the_position_law_takes_white_noise_and_drift_as_uncorrelated_noise():
+    law = PositionLaw(("x", "y"), noise_px=0.03)
+    position_plant(law, (0.0, 0.0), noise_px=0.03, frames=150, pixel_nm=42.0, hold=True)
+    sigma, phi = law.noise_model()
+    assert sigma == pytest.approx([0.03, 0.03], rel=0.3) and phi[0] > -0.3
+    law = PositionLaw(("x", "y"), noise_px=0.01)
+    position_plant(law, (0.0, 0.0), noise_px=0.005, drift_px_per_s=0.05, frames=150, pixel_nm=42.0, hold=True)
+    assert law.noise_model()[1] == pytest.approx([0.0, 0.0])  # a drift's positive correlation is not noise's
 
 
 def test_a_view_moved_by_a_tilt_keeps_the_drift_learned_and_starts_the_position_afresh():
