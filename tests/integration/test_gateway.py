@@ -286,6 +286,13 @@ def test_a_demo_that_gives_up_stops_the_run_it_started(system, tmp_path):
     run = lab.wait(run_id, timeout=30)
     assert run.state == "stopped" and "gave up waiting" in run.reason
     assert lab.stage().state == "stopped", "a stop holds the stage, as every stop does"
+    assert "--resume" in done.stderr, "the message says how the next demo gets past the stop"
+    # The next demo, as the message says: it resumes the stage first (and gives up again).
+    again = subprocess.run([sys.executable, "-m", "semservo", "demo", "--url", str(lab.http.base_url).rstrip("/"),
+                            "--timeout", "1", "--offset", "-9", "7", "--law", "paper", "--resume"], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=120)
+    assert "resumed (--resume)" in again.stdout and "demo gave up" in again.stderr, again.stdout + again.stderr
+    lab.wait(lab.runs(limit=1)[0].id, timeout=30)
     lab.resume()
 
 
