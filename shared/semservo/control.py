@@ -488,13 +488,18 @@ class PositionLaw:
     (lag-1 correlation -0.5 to -0.9 over ten simulated scenes; the mean of two frames 0.01-
     0.02 px from the truth where one frame is 0.03-0.12). So the noise is a state too, e
     per DOF (a frame measures p + e), an AR(1) process over frames: e' = phi^g e over a gap
-    of g frames, stationary variance sigma^2 (:meth:`noise_model`). sigma and phi are
-    learned from the frames at rest (no move between them), by the variogram: half the
-    mean squared difference of frames 1 and 2 apart, D1 = sigma^2 (1 - phi) and D2 =
-    sigma^2 (1 - phi^2), each pooled with a white prior (``noise_px``, ``noise_weight``
-    pairs). Only a negative phi (down to ``noise_correlation_floor``) is used: a positive
-    one, in a few frames, is indistinguishable from the drift and the creep the state
-    already has. With phi = 0 this is the white-noise filter exactly.
+    of g frames, stationary variance sigma^2 (:meth:`noise_model`); over a gap that is
+    not a whole number of frames (an image source resting between scans for varying
+    times) the phase is lost and e starts afresh. sigma and phi are learned from the
+    frames at rest (no move between them), by the variogram: half the mean squared
+    difference of frames 1 and 2 apart, D1 = sigma^2 (1 - phi) and D2 = sigma^2 (1 -
+    phi^2). D1 is pooled with a white prior (``noise_px``, ``noise_weight`` pairs); phi =
+    D2 / D1 - 1 is measured on triples of consecutive frames only (so both lags have as
+    many pairs; a noise above the prior then does not read as a correlation), shrunk
+    towards 0 by the prior's weight, and only a negative phi (down to
+    ``noise_correlation_floor``) is used: a positive one, in a few frames, is
+    indistinguishable from the drift and the creep the state already has. With phi = 0
+    the filter's equations are the white-noise filter's.
 
     Each fresh frame: converged (:attr:`converged`) when the error predicted for now,
     plus one standard deviation, is within tolerance, and so is the error the last move's
@@ -601,15 +606,17 @@ class PositionLaw:
     margin: float = 1.0
     #: True after a step that put the target within tolerance.
     converged: bool = False
-    state: np.ndarray | None = field(default=None, repr=False)  # [p, v, k] per DOF
+    state: np.ndarray | None = field(default=None, repr=False)  # [p, v, k, e] per DOF
     covariance: np.ndarray | None = field(default=None, repr=False)
     _time: float | None = field(default=None, repr=False)  # the state's time
     _pixel_size_nm: float | None = field(default=None, repr=False)
     _pending: dict | None = field(default=None, repr=False)  # last move applied, not yet seen
-    #: The last two frames at rest since the last move: (frame number, error); and the
-    #: variogram of the frames at rest, lags 1 and 2: [sum of half squared differences, pairs].
+    #: The last two frames at rest since the last move: (the frame's middle, s, or None
+    #: without a clock; its planar error); and the variogram of the frames at rest: the
+    #: sum of half squared differences of consecutive frames and their pairs, and over
+    #: triples of consecutive frames, the sums at lag 1 and at lag 2 and the triples.
     _at_rest: list = field(default_factory=list, repr=False)
-    _variogram: list = field(default_factory=lambda: [[0.0, 0], [0.0, 0]], repr=False)
+    _variogram: list = field(default_factory=lambda: [0.0, 0, 0.0, 0.0, 0], repr=False)
     _measured_middle: float | None = field(default=None, repr=False)  # the last frame measured's middle (s)
     _frame_middle: float | None = field(default=None, repr=False)  # the last frame's middle (s)
     _frame_period: float | None = field(default=None, repr=False)  # the stream's, as seen (s)
@@ -667,8 +674,12 @@ class PositionLaw:
         lag-1 correlation of consecutive frames' noise (the class docstring's variogram;
         the rotation's noise is taken as white, from its prior)."""
         weight, prior = self.noise_weight, self.noise_px**2
-        lag1, lag2 = ((weight * prior + total) / (weight + pairs) for total, pairs in self._variogram)
-        correlation = float(np.clip(lag2 / lag1 - 1.0, self.noise_correlation_floor, 0.0))
+        lag1_total, pairs, triple_lag1, triple_lag2, triples = self._variogram
+        lag1 = (weight * prior + lag1_total) / (weight + pairs)
+        correlation = 0.0
+        if triples and triple_lag1 > 0:
+            shrink = triples / (triples + weight)
+            correlation = float(np.clip(shrink * (triple_lag2 / triple_lag1 - 1.0), self.noise_correlation_floor, 0.0))
         sigma = math.sqrt(lag1 / (1.0 - correlation))
         return (np.where(self._rotation, self.noise_deg, sigma),
                 np.where(self._rotation, 0.0, correlation))
@@ -776,12 +787,13 @@ class PositionLaw:
         self._creeping = ((planar, self._time) if self._time is not None and self.creep_per_decade > 0 and planar.any()
                           else None)
 
-    def _advance_noise(self, frames: int) -> None:
+    def _advance_noise(self, frames: int | None) -> None:
         """The noise state e over ``frames`` frames: e' = phi^frames e, its variance
-        topped up to the stationary sigma^2."""
+        topped up to the stationary sigma^2 (None: not a whole number of frames, e afresh;
+        0: the same frame again, the same e)."""
         n = len(self.dofs)
         sigma, correlation = self.noise_model()
-        carried = correlation ** max(frames, 1)
+        carried = np.zeros_like(correlation) if frames is None else correlation ** frames
         transition = np.eye(4 * n)
         transition[3 * n:, 3 * n:] = np.diag(carried)
         self.state = transition @ self.state
@@ -803,31 +815,46 @@ class PositionLaw:
         self.covariance = (self.covariance + self.covariance.T) / 2
 
     def _see_frame(self, middle: float | None, frame_time: float) -> None:
-        """Learn the stream's frame period: the shortest interval seen between the middles
-        of two frames, at least the scan's time (an image source may rest between scans)."""
-        if middle is None or frame_time <= 0:
+        """The stream's frame period: the scan's time (a continuously scanning SEM's
+        period; a source that rests between scans makes the gaps fractional, and the
+        noise's phase is then not followed), or, for frames whose interval has no length
+        (an acquisition time only), the shortest interval seen between two frames."""
+        if middle is None:
             return
-        if self._frame_middle is not None and middle - self._frame_middle >= 0.9 * frame_time:
-            interval = max(middle - self._frame_middle, frame_time)
-            self._frame_period = min(self._frame_period or interval, interval)
+        if frame_time > 0:
+            self._frame_period = frame_time
+        elif self._frame_middle is not None and middle > self._frame_middle:
+            self._frame_period = min(self._frame_period or math.inf, middle - self._frame_middle)
         self._frame_middle = middle
 
-    def _frames_between(self, earlier: float | None, later: float | None) -> int:
-        """Frames from one frame's middle to another's (1 without a clock)."""
-        if earlier is None or later is None or not self._frame_period:
+    def _frames_between(self, earlier: float | None, later: float | None) -> int | None:
+        """Whole frames from one frame's middle to another's: 1 without a clock, None
+        when the gap is not within a quarter frame of a whole number (or no period is
+        known yet)."""
+        if earlier is None or later is None:
             return 1
-        return max(int(round((later - earlier) / self._frame_period)), 1)
+        if not self._frame_period:
+            return None
+        frames = (later - earlier) / self._frame_period
+        whole = int(round(frames))
+        return whole if whole >= 0 and abs(frames - whole) <= 0.25 else None
 
     def _learn_noise(self, middle: float | None, error: np.ndarray) -> None:
-        """The variogram of the frames at rest since the last move (lags of 1 and 2
-        frames)."""
+        """The variogram of the frames at rest since the last move, over triples of
+        consecutive frames (lags 1 and 2 together)."""
         planar = error[~self._rotation]
-        for index, (earlier_middle, earlier) in enumerate(self._at_rest):
-            lag = (self._frames_between(earlier_middle, middle) if middle is not None
-                   else len(self._at_rest) - index)
-            if lag in (1, 2):
-                self._variogram[lag - 1][0] += float(((planar - earlier) ** 2).mean()) / 2
-                self._variogram[lag - 1][1] += 1
+        if not self._at_rest:
+            self._at_rest = [(middle, planar)]
+            return
+        last_middle, last = self._at_rest[-1]
+        lag1 = float(((planar - last) ** 2).mean()) / 2
+        if self._frames_between(last_middle, middle) == 1:
+            self._variogram[0] += lag1
+            self._variogram[1] += 1
+            if len(self._at_rest) == 2 and self._frames_between(*(entry[0] for entry in self._at_rest)) == 1:
+                self._variogram[2] += lag1
+                self._variogram[3] += float(((planar - self._at_rest[0][1]) ** 2).mean()) / 2
+                self._variogram[4] += 1
         self._at_rest = (self._at_rest + [(middle, planar)])[-2:]
 
     def _check_response(self, error: np.ndarray) -> bool:

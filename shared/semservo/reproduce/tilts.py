@@ -372,16 +372,18 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
 
 
 def _start(lab, settings_of_runs: dict, say: Callable[[str], None], tries: int = 3) -> dict:
-    """A 5-DOF run's start, tried again after a 503 (a service that did not answer in
-    time, e.g. an estimator computing a focus sweep on a loaded machine: nothing moved),
-    as a lab script would; any other refusal is the benchmark's result."""
+    """A 5-DOF run's start, tried again when the controller says the estimator did not
+    answer in time (``estimator_unavailable``, 503: an estimator computing a focus sweep
+    on a loaded machine; nothing moved, no run started), as a lab script would; any other
+    refusal (a gateway's 503 for a controller that did not answer may have started one)
+    is the benchmark's result."""
     from semservo.client import SemservoError
 
     for attempt in range(1, tries):
         try:
             return lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
         except SemservoError as error:
-            if error.status != 503:
+            if error.code != "estimator_unavailable":
                 raise
             say(f"    start not taken ({error.message}); again in 5 s")
             time.sleep(5.0)
