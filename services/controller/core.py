@@ -227,10 +227,8 @@ class ControllerCore:
                     # The estimator's code kept: "no_tilt_reference" is the system's state
                     # (teach with tilts first, HTTP 409), not a malformed request.
                     raise CommandError(error.code, f"{what} cannot be servoed: {error.message}") from None
-                # Not the request's fault (a 422) but a peer that did not answer: 503, try again.
-                raise CommandError("estimator_unavailable",
-                                   f"{what} cannot be servoed now: the estimator, which measures it, did not "
-                                   f"answer ({error}); nothing moved, try again") from None
+                raise BadRequest(f"{what} cannot be servoed: the estimator, which measures it, did not take the "
+                                 f"request ({error})") from None
             log.warning("could not set the estimator's measurements: %s", error)
 
     def _estimator_account(self) -> str:

@@ -53,9 +53,8 @@ def main(argv: list[str] | None = None) -> int:
         events.publish(ControllerEvent(kind=kind, run_id=core.run and core.run.id, data=data))
 
     # Longer than the loop's 1 s for a run's start: an estimator busy planning a new
-    # reference's FFTs, or computing a focus sweep's depths on a loaded machine, answers
-    # late, but answers (two tries of "measure" stay within the gateway's 15 s for a start).
-    estimator = ServicePort(estimator_client, timeouts={"report": 5.0, "measure": 4.0})
+    # reference's FFTs answers late, but answers.
+    estimator = ServicePort(estimator_client, timeouts={"report": 5.0})
     core = ControllerCore(ServicePort(stage_client), estimator=estimator, camera=config.camera_to_stage(),
                           runs_dir=config.runs_dir, watchdog_s=config.watchdog_s, publish=publish)
     motion = MessageSubscriber(connect(settings.estimator.host, settings.estimator.motion_port), MOTION_TOPIC,
