@@ -390,11 +390,10 @@ def _move_to(lab, x_um: float, y_um: float, halvings: int = 4) -> None:
 
 
 def _start(lab, settings_of_runs: dict, say: Callable[[str], None], tries: int = 3) -> dict:
-    """A 5-DOF run's start, tried again when the controller says the estimator did not
-    answer in time (``estimator_unavailable``, 503: an estimator computing a focus sweep
-    on a loaded machine; nothing moved, no run started), as a lab script would; any other
-    refusal (a gateway's 503 for a controller that did not answer may have started one)
-    is the benchmark's result."""
+    """A 5-DOF run's start, tried again on an ``estimator_unavailable`` refusal (a code
+    the controller does not send yet: an estimator busy with a focus sweep on a loaded
+    machine is still refused as a 422, see the README's 5-DOF notes), as a lab script
+    would; any other refusal is the benchmark's result."""
     from semservo.client import SemservoError
 
     for attempt in range(1, tries):
