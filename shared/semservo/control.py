@@ -574,7 +574,7 @@ class PositionLaw:
     significance: float = 2.0
     noise_px: float = 0.03  # the estimate's noise per frame at rest (prior), px
     noise_deg: float = 0.01  # and for the rotation, degrees
-    noise_weight: float = 3.0  # the prior's weight, in frame pairs (at each lag)
+    noise_weight: float = 3.0  # the prior's weight, in frame pairs (it also shrinks the learned correlation)
     #: The most negative lag-1 correlation of the estimate's noise the law believes (the
     #: variogram's estimate is clipped to [this, 0]).
     noise_correlation_floor: float = -0.9

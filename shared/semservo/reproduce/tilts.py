@@ -348,7 +348,7 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
                 lab.rotate(relative=False, **{key: angles[key] + value for key, value in targets.items()})
                 time.sleep(25.0 / speedup + 0.5)  # let the stage arrive (4 degrees per second at most)
                 started = time.monotonic()
-                run = _start(lab, settings_of_runs, say)
+                run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
                 record = lab.wait(run["run_id"], timeout=900)
                 truth = record.get("truth") or {}
                 view = _view_error(fakelab, record, taught_pose)
@@ -387,24 +387,6 @@ def _move_to(lab, x_um: float, y_um: float, halvings: int = 4) -> None:
         _move_to(lab, (here["x"] + x_um) / 2, (here["y"] + y_um) / 2, halvings - 1)
         time.sleep(0.5)  # within the stage's rate limit
         _move_to(lab, x_um, y_um, halvings - 1)
-
-
-def _start(lab, settings_of_runs: dict, say: Callable[[str], None], tries: int = 3) -> dict:
-    """A 5-DOF run's start, tried again on an ``estimator_unavailable`` refusal (a code
-    the controller does not send yet: an estimator busy with a focus sweep on a loaded
-    machine is still refused as a 422, see the README's 5-DOF notes), as a lab script
-    would; any other refusal is the benchmark's result."""
-    from semservo.client import SemservoError
-
-    for attempt in range(1, tries):
-        try:
-            return lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
-        except SemservoError as error:
-            if error.code != "estimator_unavailable":
-                raise
-            say(f"    start not taken ({error.message}); again in 5 s")
-            time.sleep(5.0)
-    return lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
 
 
 def _pose(answer: dict) -> Pose:
