@@ -10,10 +10,12 @@ optionally restart with back-off, and stop in reverse order with SIGTERM then SI
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import os
 import random
+import shutil
 import signal
 import socket
 import subprocess
@@ -365,11 +367,14 @@ def fresh_port_environment() -> dict[str, str]:
     """SEMSERVO_* variables giving every service a fresh loopback port (the stage service
     finds the emulated NV 40/3 on the chosen TCP port) and a fresh folder for what the
     stage service keeps across restarts (no system inherits another's armed or stopped
-    stage). Returns the variables; the caller sets them."""
+    stage). The folder is removed when this process exits (the services it starts are
+    stopped by then). Returns the variables; the caller sets them."""
     chosen = {name: free_port() for name in PORT_SETTINGS}
     variables = {variable: str(chosen[name]) for name, variable in PORT_SETTINGS.items()}
     variables["SEMSERVO_STAGE__SERIAL_URL"] = f"socket://127.0.0.1:{chosen['serial_tcp']}"
-    variables["SEMSERVO_STAGE__STATE_DIR"] = tempfile.mkdtemp(prefix="semservo-stage-")
+    state_dir = tempfile.mkdtemp(prefix="semservo-stage-")
+    atexit.register(shutil.rmtree, state_dir, ignore_errors=True)
+    variables["SEMSERVO_STAGE__STATE_DIR"] = state_dir
     return variables
 
 

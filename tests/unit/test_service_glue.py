@@ -162,3 +162,20 @@ def test_a_source_that_cannot_focus_refuses_a_sweep_in_words(tmp_path):
     with pytest.raises(CommandError) as refused:
         handlers.dispatch(server, "start_sweep", {"working_distances_um": [-1.0, 0.0, 1.0]})
     assert refused.value.code == "not_supported" and "replay" in refused.value.message
+
+
+def test_the_stage_state_folder_of_a_fresh_system_is_removed_when_the_process_exits():
+    """Every test and benchmark system gets a fresh stage-state folder; one left behind
+    per system filled /tmp with hundreds of empty folders per CI run."""
+    import subprocess
+    import sys
+
+    script = ("from semservo.launcher import fresh_port_environment\n"
+              "import os\n"
+              "folder = fresh_port_environment()['SEMSERVO_STAGE__STATE_DIR']\n"
+              "assert os.path.isdir(folder)\n"
+              "print(folder)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=True)
+    folder = Path(done.stdout.strip())
+    assert folder.name.startswith("semservo-stage-")
+    assert not folder.exists()

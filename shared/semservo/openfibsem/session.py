@@ -11,8 +11,10 @@ and y), ``beam_limit_um`` (the beam shift's travel where the SDK does not report
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
+import shutil
 import tempfile
 import threading
 from dataclasses import dataclass, field
@@ -82,7 +84,8 @@ _lock = threading.Lock()
 def connect(manufacturer: str = "Demo", host: str = "localhost", config: str | None = None):
     """The microscope at ``host`` (fibsem's ``setup_session``), connected once per process:
     the image source and the motion driver of one process share it. The session's
-    folder is a temporary one (fibsem's default lies inside its installed package)."""
+    folder is a temporary one (fibsem's default lies inside its installed package),
+    removed when the process exits."""
     require_fibsem()
     from fibsem import utils
 
@@ -90,6 +93,7 @@ def connect(manufacturer: str = "Demo", host: str = "localhost", config: str | N
     with _lock:
         if key not in _microscopes:
             session = tempfile.mkdtemp(prefix="semservo-openfibsem-")
+            atexit.register(shutil.rmtree, session, ignore_errors=True)
             microscope, _settings = utils.setup_session(session_path=session, config_path=config,
                                                         manufacturer=manufacturer, ip_address=host,
                                                         setup_logging=False)
