@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 
 from semservo.control import (
-    MODEL_UNCERTAINTY, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, PositionLaw, TiltLaw, make_law,
+    MODEL_UNCERTAINTY, AdaptiveGain, CameraToStage, ControlLaw, ExponentialGain, PositionLaw, make_law, make_tilt_law,
     move_pieces,
 )
 from semservo.errors import BadRequest, CommandError, ServiceUnavailable
@@ -163,7 +163,8 @@ class ControllerCore:
                          max_turn_deg=settings.max_turn_deg,
                          # A driver in physical units closes its own loop: no creep to follow.
                          creep_per_decade=0.0 if stage_state.kind == "physical" else PositionLaw.creep_per_decade),
-            tilts=Tilts(TiltLaw(tilt_dofs, gain, self.camera), settled_ns=now_ns) if tilt_dofs else None,
+            tilts=Tilts(make_tilt_law(settings.law, tilt_dofs, camera_to_stage=self.camera, gain=gain), settled_ns=now_ns)
+            if tilt_dofs else None,
             last_command_ns=now_ns, recent=deque(),
             beam=BeamAxes.of(stage_state) if settings.beam_shift_within_um > 0 else None)
         self.state, self.reason = "servoing", ""

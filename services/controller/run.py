@@ -32,7 +32,7 @@ from typing import Literal
 import numpy as np
 
 from semservo.control import (
-    ControlLaw, LawStep, PositionLaw, TiltLaw, UnexpectedResponse, planar_limit_um, saturate_planar,
+    ControlLaw, LawStep, PositionLaw, PositionTiltLaw, TiltLaw, UnexpectedResponse, planar_limit_um, saturate_planar,
 )
 from semservo.messages import MotionEstimate
 from semservo.protocol.controller import RunSettings
@@ -134,7 +134,7 @@ class IterationRecord:
 class Tilts:
     """The tilts' part of a run: they are measured once per focus sweep."""
 
-    law: TiltLaw
+    law: TiltLaw | PositionTiltLaw
     last_seq: int | None = None  # the last sweep looked at
     settled_ns: int = 0  # when the last tilt move has arrived: sweeps scanned before are stale
     within: dict[str, float] | None = None  # the last fresh sweep's errors, when within tolerance

@@ -353,6 +353,22 @@ def theta_u(rotation: np.ndarray) -> np.ndarray:
     return theta * axis / (2 * math.sin(theta))
 
 
+def tilt_error(alpha_deg: float, beta_deg: float, dofs: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The tilt error as the theta-u vector of the rotation R_x(alpha) R_y(beta) between
+    the current and the taught surface (eq. 30), its components for ``dofs`` (rad), and
+    their interaction matrix, the x-y block of L_w (eq. 34)."""
+    from semservo.estimation.tilt import tilt_rotation  # the convention lives there
+
+    unknown = set(dofs) - set(TILT_DEGREES_OF_FREEDOM)
+    if unknown:
+        raise ValueError(f"unknown tilt degrees of freedom {sorted(unknown)}")
+    vector = theta_u(tilt_rotation(alpha_deg if "alpha" in dofs else 0.0, beta_deg if "beta" in dofs else 0.0))
+    theta = float(np.linalg.norm(vector))
+    full = theta_u_interaction(theta, vector if theta > 0 else (1.0, 0.0, 0.0))
+    index = [TILT_DEGREES_OF_FREEDOM.index(dof) for dof in dofs]
+    return vector[index], full[np.ix_(index, index)]
+
+
 @dataclass
 class TiltLaw:
     """The law of eq. 36-37 for the tilts: the error is the theta-u vector of the tilt
@@ -374,18 +390,7 @@ class TiltLaw:
     def step(self, alpha_deg: float, beta_deg: float, sampling_time_s: float) -> LawStep:
         """Error (rad), cost, gain, velocity (rad/s) and the stage's tilt move (degrees,
         ``move`` has "tilt_x_deg", "tilt_y_deg" for the chosen DOFs)."""
-        from semservo.estimation.tilt import tilt_rotation  # the convention lives there
-
-        unknown = set(self.dofs) - set(TILT_DEGREES_OF_FREEDOM)
-        if unknown:
-            raise ValueError(f"unknown tilt degrees of freedom {sorted(unknown)}")
-        vector = theta_u(tilt_rotation(alpha_deg if "alpha" in self.dofs else 0.0,
-                                       beta_deg if "beta" in self.dofs else 0.0))
-        theta = float(np.linalg.norm(vector))
-        full = theta_u_interaction(theta, vector if theta > 0 else (1.0, 0.0, 0.0))
-        index = [TILT_DEGREES_OF_FREEDOM.index(dof) for dof in self.dofs]
-        error = vector[index]
-        interaction = full[np.ix_(index, index)]
+        error, interaction = tilt_error(alpha_deg, beta_deg, self.dofs)
         # The sweeps come at uneven intervals (one scanned during a tilt move is not
         # used, so the next interval is two sweeps long): eq. 37's previous velocity is
         # scaled to this interval's capped gain (a 5-DOF run moved beta 1.4 degrees on a
@@ -395,6 +400,52 @@ class TiltLaw:
         self.previous_velocity, self.previous_gain = velocity, gain
         move = self.camera_to_stage.stage_move(dict(zip(self.dofs, moved)))
         return LawStep(_floats(error), cost(error), gain, _floats(velocity), move)
+
+
+@dataclass
+class PositionTiltLaw:
+    """The tilts' position-based step (not in the paper; the tilts' part of
+    ``law="position"``): the tilt error the focus sweeps since the last tilt move
+    measured, undone in one move.
+
+    Why: the paper's law (eq. 36-37, :class:`TiltLaw`), capped to approach without
+    overshoot at the sweeps' sampling time, moves at most a third of the error per
+    sweep, and every sweep is seconds of scanning: a 5-DOF run from 7 degrees took
+    eight to ten tilt moves and hit its iteration limit on a real scene. The tilt stage
+    is motorised and repeatable (no piezo hysteresis to model), so the measured error is
+    commanded whole (``fraction``); what is left is the estimate's own error, which the
+    next sweeps measure. The error is the theta-u vector of eq. 30 as for
+    :class:`TiltLaw`; the move is its opposite, through the camera-to-stage tilt signs.
+    The caller holds errors its sweeps cannot tell from zero and saturates at
+    ``max_turn_deg``, as for the paper's law.
+    """
+
+    dofs: tuple[str, ...] = TILT_DEGREES_OF_FREEDOM
+    camera_to_stage: CameraToStage = field(default_factory=CameraToStage)
+    fraction: float = 1.0
+
+    def reset(self) -> None:
+        """Nothing carried from one step to the next."""
+
+    def step(self, alpha_deg: float, beta_deg: float, sampling_time_s: float | None = None) -> LawStep:
+        """Error (rad), cost, the fraction commanded (as the gain) and the stage's tilt
+        move (degrees, "tilt_x_deg", "tilt_y_deg" for the chosen DOFs); no velocity."""
+        error, _ = tilt_error(alpha_deg, beta_deg, self.dofs)
+        move = self.camera_to_stage.stage_move(dict(zip(self.dofs, -self.fraction * error)))
+        return LawStep(_floats(error), cost(error), self.fraction, (), move)
+
+
+def make_tilt_law(name: str, dofs: Sequence[str], *, camera_to_stage: CameraToStage | None = None,
+                  gain: AdaptiveGain | ExponentialGain | None = None) -> TiltLaw | PositionTiltLaw:
+    """The tilt law that goes with the planar law ``name`` (one of :data:`LAWS`): the
+    paper's (eq. 36-37) with ``law="paper"``, one whole step per measurement with
+    ``law="position"``."""
+    camera_to_stage = camera_to_stage or CameraToStage()
+    if name == "paper":
+        return TiltLaw(tuple(dofs), gain or AdaptiveGain(), camera_to_stage)
+    if name == "position":
+        return PositionTiltLaw(tuple(dofs), camera_to_stage)
+    raise ValueError(f"unknown law {name!r}; laws: {', '.join(LAWS)}")
 
 
 # --------------------------------------------------------------------------------------
