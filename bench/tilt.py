@@ -193,8 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tolerance-px", type=float, default=None,
                         help="the runs' x, y tolerance (default 0.3 px; 0.1 with --sample-images)")
     parser.add_argument("--law", choices=["paper", "position"], default="paper",
-                        help="the planar law of the 5-DOF runs (default: the paper's, as the README's tables; "
-                             "position: the controller's default)")
+                        help="the law of the 5-DOF runs, x, y, rotation and tilts (default: the paper's, as the README's "
+                             "tables; position: the controller's default)")
     parser.add_argument("--records", type=Path, default=None, metavar="DIR",
                         help="with --sample-images: keep each scene's system folder (its runs' records and journals, "
                              "runs/<id>.json and .jsonl) in DIR/<scene> instead of a temporary folder")

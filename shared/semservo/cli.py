@@ -872,8 +872,8 @@ def build_parser() -> argparse.ArgumentParser:
                            "(x, y, gamma and the tilts alpha, beta, from focus sweeps; a demo that starts the system "
                            "starts it in the small-depth-of-field 'tilts' preset)")
     demo.add_argument("--law", choices=["position", "paper"], default="position",
-                      help="the planar law: position-based (default: a few moves) or the paper's (eq. 30-37; see "
-                           "the README's time-to-target table)")
+                      help="the law: position-based (default: a few moves, and one tilt move per measurement) or the "
+                           "paper's (eq. 30-37; see the README's time-to-target table)")
     demo.add_argument("--turn", type=float, default=3.0, help="with --dof rotation/all: turn about the beam, degrees")
     demo.add_argument("--tilt", type=float, nargs=2, default=(2.0, -1.5), metavar=("ALPHA", "BETA"),
                       help="with --dof all: tilts about x and y, degrees (default 2 -1.5)")

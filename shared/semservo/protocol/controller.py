@@ -62,12 +62,13 @@ class RunSettings(BaseModel):
                             "(lands nearer, takes more frames, and may never end where vibration exceeds the tolerance)")
     max_iterations: Count = Field(150, le=100_000, description="moves before the run fails")
     law: Literal["position", "paper"] = Field(
-        "position", description="the planar law (x, y, rotation): 'position' (the default), a position-based step "
-                                "that commands the whole measured displacement through the stage's model, learns "
-                                "the stage's gain and the drift (a Kalman filter) and converges on its own "
-                                "estimate, in 4-6 fresh frames where the paper's law takes 18-50 (semservo.control."
-                                "PositionLaw; it ignores gain and integral_time_s); 'paper', the paper's velocity "
-                                "law (eq. 30-37, with gain and integral_time_s)")
+        "position", description="the law: 'position' (the default), a position-based step that commands the whole "
+                                "measured displacement through the stage's model, learns the stage's gain and the "
+                                "drift (a Kalman filter) and converges on its own estimate, in 4-6 fresh frames where "
+                                "the paper's law takes 18-50 (semservo.control.PositionLaw; it ignores gain and "
+                                "integral_time_s), and undoes the tilts the focus sweeps measure in one move "
+                                "(PositionTiltLaw); 'paper', the paper's velocity law (eq. 30-37, with gain and "
+                                "integral_time_s) for x, y, rotation and the tilts")
     gain: Literal["adaptive", "exponential"] = Field("adaptive", description="eq. 35, or the exponential gain")
     gain_scale: PositiveFloat = Field(50.0, description="Lambda of eq. 35 (error x s)")
     gain_min: PositiveFloat = Field(0.5, le=10, description="per second")
