@@ -529,7 +529,8 @@ def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> La
     else:
         elapsed = max(estimate.tilt_sweep_s or 1.0, 1e-3)
     tilts.last_end_s = end_s
-    step = tilts.law.step(mean.get("alpha", estimate.alpha_deg), mean.get("beta", estimate.beta_deg), elapsed)
+    step = tilts.law.step(mean.get("alpha", estimate.alpha_deg), mean.get("beta", estimate.beta_deg), elapsed,
+                          spread_deg=spread)
     record.tilt_error, record.tilt_cost, record.tilt_gain = step.error, step.cost, step.gain
     record.tilt_velocity, record.tilt_sampling_time_s, record.tilt_action = step.velocity, elapsed, "moved"
     return step

@@ -159,6 +159,17 @@ def test_the_position_tilt_law_undoes_the_measured_tilt_in_one_move(start):
     assert flipped.move["tilt_y_deg"] == pytest.approx(-step.move["tilt_y_deg"])
 
 
+def test_the_position_tilt_law_shrinks_a_step_its_measurement_cannot_tell_well_from_zero():
+    law = PositionTiltLaw(("alpha", "beta"))
+    far = law.step(6.0, -0.2, spread_deg={"alpha": 0.07, "beta": 0.1})
+    assert far.move["tilt_x_deg"] == pytest.approx(-6.0 * (1 - (0.07 / 6.0) ** 2), rel=0.02)  # nearly whole
+    assert far.move["tilt_y_deg"] == pytest.approx(0.2 * 0.75, rel=0.02)  # e = 2 sigma: three quarters
+    within_noise = law.step(0.05, 0.0, spread_deg={"alpha": 0.07, "beta": 0.07})
+    assert within_noise.move["tilt_x_deg"] == 0.0 and within_noise.move["tilt_y_deg"] == 0.0
+    unknown = law.step(0.2, 0.0, spread_deg={"alpha": 0.0, "beta": 0.0})  # no standard error: taken as it is
+    assert unknown.move["tilt_x_deg"] == pytest.approx(-0.2, rel=1e-3)
+
+
 def test_each_planar_law_brings_its_tilt_law():
     from semservo.control import make_tilt_law
 
