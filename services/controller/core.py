@@ -48,7 +48,8 @@ from semservo.protocol import estimator as estimator_protocol
 from semservo.protocol import stage as stage_protocol
 from semservo.protocol.controller import ControllerState, ControllerStatus, RunSettings
 from services.controller.run import (
-    IterationRecord, Run, Tilts, Verdict, admit, decide, gate, judge, law_step, measure, sampling_time, tilt_step,
+    IterationRecord, Run, Tilts, Verdict, admit, decide, foreshortening_changed, gate, judge, law_step, measure,
+    sampling_time, tilt_step,
 )
 from services.controller.split import BEAM_AXIS, BeamAxes, split
 
@@ -307,6 +308,9 @@ class ControllerCore:
         sweeps_before = run.tilts.sweeps if run.tilts is not None else 0
         tilt = tilt_step(run, estimate, record) if run.tilts is not None else None
         elapsed = sampling_time(run, estimate)
+        if foreshortening_changed(run, estimate):
+            # The turn is read through another foreshortening from here: re-measured.
+            run.law.view_moved()
         step = law_step(run, estimate, elapsed, time.time_ns())
         if isinstance(step, Verdict):
             self._record(record, step.action)

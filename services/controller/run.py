@@ -34,6 +34,7 @@ import numpy as np
 from semservo.control import (
     ControlLaw, LawStep, PositionLaw, PositionTiltLaw, TiltLaw, UnexpectedResponse, planar_limit_um, saturate_planar,
 )
+from semservo.estimation.tilt import foreshortening
 from semservo.messages import MotionEstimate
 from semservo.protocol.controller import RunSettings
 
@@ -147,6 +148,9 @@ class Tilts:
     since_move: list[tuple[dict[str, float], dict[str, float] | None]] = field(default_factory=list)
     #: Whether the last sweep's error was held as not yet told from zero (pooling).
     holding: bool = False
+    #: The foreshortening the estimator undid on the last frame (from the tilts it
+    #: reported with it; :func:`foreshortening_changed`).
+    undone: np.ndarray | None = None
 
     def deciding(self) -> bool:
         """Pooling sweeps to tell an error from zero, and not for too long yet
@@ -474,6 +478,32 @@ def decide(run: Run, step: LawStep, tilt_step: LawStep | None) -> Decision:
                  if run.rising >= settings.diverge_iterations else None)
     return Decision(LawStep(step.error, step.cost, step.gain, step.velocity, move, step.integral, step.held), targets, turns,
                     saturated, turn_saturated, diverging)
+
+
+#: A change of the foreshortening the estimator undoes (any entry of the matrix A of
+#: :func:`semservo.estimation.tilt.foreshortening`) beyond this fraction of the rotation
+#: tolerance (as radians) restarts the position law's estimate (:func:`foreshortening_changed`).
+FORESHORTENING_CHANGE = 0.25
+
+
+def foreshortening_changed(run: Run, estimate: MotionEstimate) -> bool:
+    """Whether the estimator undid another foreshortening on this frame than on the one
+    before, enough to move the turn it reads (a run servoing the rotation and the tilts).
+
+    The estimator undoes the foreshortening of the tilts its last sweep measured; after a
+    tilt move the frames until the next sweep are undone with the tilts before it, and
+    the turn they read is off by as much as the change (a 5-DOF run on a real scene read
+    -0.002 degree of turn until the sweep after a 1.7, 2.9 degree tilt move, then -0.08,
+    the truth; the position law, sure of the earlier frames, took the jump for noise
+    and the run converged 0.08 degree off). When the basis changes, what the law has
+    learned of the position no longer holds: the caller restarts it (``view_moved``)."""
+    if run.tilts is None or "rotation" not in run.settings.dofs:
+        return False
+    undone = foreshortening(estimate.alpha_deg, estimate.beta_deg)
+    previous, run.tilts.undone = run.tilts.undone, undone
+    if previous is None:
+        return False
+    return float(np.abs(undone - previous).max()) > FORESHORTENING_CHANGE * math.radians(run.settings.tolerance_deg)
 
 
 def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> LawStep | None:

@@ -14,8 +14,9 @@ import numpy as np
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
 from semservo.estimation.raster import SCAN_AVERAGED_FROM_S, scan_lasted_s
-from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
-                                      plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, wants_another_sweep)
+from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, UNDO_FORESHORTENING_FROM_DEG, TiltEstimate, depth_map,
+                                      egi_tilt_between, estimate_tilt, plan_sweep, pool_depths, pooled_tilt,
+                                      undo_foreshortening, wants_another_sweep)
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
 from semservo.wire import Frame
@@ -484,7 +485,8 @@ class EstimatorCore:
         started = time.perf_counter()
         pixels = frame.pixels
         tilt = self.last_tilt if self.measure_tilts else None
-        if tilt and tilt.get("alpha_deg") is not None and max(abs(tilt["alpha_deg"]), abs(tilt["beta_deg"])) >= 0.05:
+        if tilt and tilt.get("alpha_deg") is not None and max(abs(tilt["alpha_deg"]),
+                                                              abs(tilt["beta_deg"])) >= UNDO_FORESHORTENING_FROM_DEG:
             # Seen square on, as the reference was: a tilted view is foreshortened, which
             # the log-polar angle reads as degrees of turn (14 at 15 degrees of tilt).
             pixels = undo_foreshortening(pixels, tilt["alpha_deg"], tilt["beta_deg"])

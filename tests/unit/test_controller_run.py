@@ -232,3 +232,37 @@ def test_each_degree_of_freedom_is_named_once_and_the_schema_says_so():
     with pytest.raises(ValueError, match="each degree of freedom once"):
         RunSettings(dofs=["x", "x", "x", "x", "x"])
     assert RunSettings(dofs=["x", "rotation", "gamma"]).dofs == ["x", "rotation", "gamma"]
+
+
+def test_a_new_foreshortening_undone_by_the_estimator_restarts_what_the_position_law_knows_of_the_turn():
+    from services.controller.run import foreshortening_changed
+
+    run = make_run(dofs=["x", "y", "rotation", "alpha", "beta"], tolerance_deg=0.05)
+    # The sweep before a tilt move of (-1.65, -2.93) degrees, then the one after it.
+    assert not foreshortening_changed(run, estimate(alpha_deg=1.65, beta_deg=2.93, tilt_seq=15))
+    assert not foreshortening_changed(run, estimate(alpha_deg=1.65, beta_deg=2.93, tilt_seq=15))
+    assert foreshortening_changed(run, estimate(alpha_deg=-0.036, beta_deg=-0.012, tilt_seq=16))
+    # Near the goal, sweeps that differ by their noise leave the turn as it was read.
+    assert not foreshortening_changed(run, estimate(alpha_deg=0.06, beta_deg=-0.09, tilt_seq=17))
+    assert not foreshortening_changed(run, estimate(alpha_deg=None, beta_deg=None, tilt_seq=18))
+    without_rotation = make_run(dofs=["x", "y", "alpha", "beta"])
+    assert not foreshortening_changed(without_rotation, estimate(alpha_deg=3.0, beta_deg=3.0, tilt_seq=1))
+    assert not foreshortening_changed(without_rotation, estimate(alpha_deg=0.0, beta_deg=0.0, tilt_seq=2))
+
+    # What the restart is for: a law sure of a turn read through the old foreshortening
+    # takes the truth, 0.08 degree away, for noise; restarted, it turns.
+    def settled_law() -> PositionLaw:
+        law = PositionLaw(("x", "y", "rotation"), tolerance_px=0.1, tolerance_deg=0.05)
+        for frame in range(12):
+            start = frame * 0.6
+            law.step(0.01, -0.01, -0.002, 70.0, frame_interval_s=(start, start + 0.36), now_s=start + 0.4)
+        assert law.converged
+        return law
+
+    sure = settled_law()
+    step = sure.step(0.01, -0.01, -0.08, 70.0, frame_interval_s=(7.2, 7.56), now_s=7.6)
+    assert "rotation_deg" not in step.move
+    restarted = settled_law()
+    restarted.view_moved()
+    step = restarted.step(0.01, -0.01, -0.08, 70.0, frame_interval_s=(7.2, 7.56), now_s=7.6)
+    assert step.move["rotation_deg"] == pytest.approx(0.08, rel=0.25) and not restarted.converged

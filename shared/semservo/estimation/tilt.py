@@ -819,14 +819,29 @@ def plan_sweep(centre: float, depth_of_field: float, field: float, *, tilt_deg: 
 # The view square on
 
 
+#: Tilts (degrees, both axes) below which a frame is measured as it is, not resampled to
+#: undo its foreshortening.
+UNDO_FORESHORTENING_FROM_DEG = 0.05
+
+
+def foreshortening(alpha_deg: float | None, beta_deg: float | None) -> np.ndarray:
+    """A = [[cos beta, 0], [sin alpha sin beta, cos alpha]]: how a surface tilted by
+    R_x(alpha) R_y(beta) is seen (orthographically), as the estimator undoes it; the
+    identity when the tilts are not known or both under
+    :data:`UNDO_FORESHORTENING_FROM_DEG` (the frame is then measured as it is)."""
+    if alpha_deg is None or beta_deg is None or max(abs(alpha_deg), abs(beta_deg)) < UNDO_FORESHORTENING_FROM_DEG:
+        return np.eye(2)
+    alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
+    return np.array([[np.cos(beta), 0.0], [np.sin(alpha) * np.sin(beta), np.cos(alpha)]])
+
+
 def undo_foreshortening(frame: np.ndarray, alpha_deg: float, beta_deg: float) -> np.ndarray:
     """The frame as the surface would look square on, about the image centre: a surface
-    tilted by R_x(alpha) R_y(beta) is seen (orthographically) through
-    A = [[cos beta, 0], [sin alpha sin beta, cos alpha]]; this resamples the frame
-    through A (bicubic). The rotation about the beam is then measured on it: on the raw
-    frame of a surface tilted by 15 degrees the log-polar angle was off by up to 14
-    degrees (the foreshortening is an anisotropic scale), on this one by 0.03 at most
-    (``bench/tilt.py``)."""
+    tilted by R_x(alpha) R_y(beta) is seen (orthographically) through A
+    (:func:`foreshortening`); this resamples the frame through A (bicubic). The rotation
+    about the beam is then measured on it: on the raw frame of a surface tilted by 15
+    degrees the log-polar angle was off by up to 14 degrees (the foreshortening is an
+    anisotropic scale), on this one by 0.03 at most (``bench/tilt.py``)."""
     import cv2
 
     alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
