@@ -906,8 +906,11 @@ class PositionLaw:
 
     def _learn_noise(self, middle: float | None, error: np.ndarray) -> None:
         """The variogram of the frames at rest since the last move, over triples of
-        consecutive frames (lags 1 and 2 together)."""
+        consecutive frames (lags 1 and 2 together). Planar DOFs only (the rotation's
+        noise is its prior): a rotation-only law learns nothing here."""
         planar = error[~self._rotation]
+        if not planar.size:
+            return
         if not self._at_rest:
             self._at_rest = [(middle, planar)]
             return

@@ -540,6 +540,16 @@ def test_laws_are_picked_by_name():
         PositionLaw(("x", "alpha"))
 
 
+def test_a_rotation_only_position_law_holds_still_without_learning_a_planar_noise(recwarn):
+    # It used to average an empty planar error at rest ("mean of empty slice").
+    law = PositionLaw(("rotation",), noise_deg=0.002)
+    for frame in range(6):
+        step = law.step(0.0, 0.0, 0.001, 70.0, frame_interval_s=(frame * 0.6, frame * 0.6 + 0.36))
+    assert step.move == {} and law.converged
+    assert np.isfinite(law.noise_model()[0]).all()
+    assert not [warning for warning in recwarn if issubclass(warning.category, RuntimeWarning)]
+
+
 def test_the_position_law_turns_the_rotation_too():
     law = PositionLaw(("x", "y", "rotation"), noise_px=0.01, noise_deg=0.002)
     camera = CameraToStage(axis_signs=(1, -1), orientation_deg=20.0, rotation_sign=-1)
