@@ -496,9 +496,14 @@ def foreshortening_changed(run: Run, estimate: MotionEstimate) -> bool:
     -0.002 degree of turn until the sweep after a 1.7, 2.9 degree tilt move, then -0.08,
     the truth; the position law, sure of the earlier frames, took the jump for noise
     and the run converged 0.08 degree off). When the basis changes, what the law has
-    learned of the position no longer holds: the caller restarts it (``view_moved``)."""
+    learned of the position no longer holds: the caller restarts it (``view_moved``).
+    A restart is not tied to a tilt move: with a DOF held at several degrees of tilt,
+    sweeps that differ by their noise may restart it too, once per sweep at most (the
+    cost: the position re-measured from the next frame)."""
     if run.tilts is None or "rotation" not in run.settings.dofs:
         return False
+    if (estimate.alpha_deg is None or estimate.beta_deg is None) and run.tilts.undone is not None:
+        return False  # a sweep that could not tell the tilts: the estimator undoes the last ones that could
     undone = foreshortening(estimate.alpha_deg, estimate.beta_deg)
     previous, run.tilts.undone = run.tilts.undone, undone
     if previous is None:

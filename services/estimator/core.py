@@ -161,7 +161,8 @@ class EstimatorCore:
         self.tilt_settings = tilt or TiltSettings()
         self.tilt_reference: TiltReference | None = None
         self.measure_tilts = False
-        self.last_tilt: dict | None = None  # the latest tilt measurement against the reference
+        self.undone_tilt: dict | None = None  # the tilts whose foreshortening frames are undone with
+        self.last_tilt = None  # the latest tilt measurement against the reference
         self.tilt_sequence = 0
         self.tilt_error: str | None = None
         #: The taught pose's focus sweep after a teach with tilts: it runs in the background
@@ -174,6 +175,20 @@ class EstimatorCore:
         self.reference_pixels: np.ndarray | None = None
 
     # -- tilts (focus sweeps) ----------------------------------------------------
+    @property
+    def last_tilt(self) -> dict | None:
+        """The latest tilt measurement against the reference (None: none yet)."""
+        return self._last_tilt
+
+    @last_tilt.setter
+    def last_tilt(self, measured: dict | None) -> None:
+        # Frames are undone with the last tilts measured with confidence: a sweep that
+        # could not tell them leaves the foreshortening as it was (undoing nothing at a
+        # few degrees of tilt would turn the view by tenths of a degree).
+        if measured is None or measured.get("confidence", 0) > 0:
+            self.undone_tilt = measured
+        self._last_tilt = measured
+
     def next_sweep(self) -> list[float]:
         """The working distances (um) of the next sweep: wide for the first, tracking
         after (:func:`semservo.estimation.tilt.plan_sweep`)."""
@@ -484,7 +499,8 @@ class EstimatorCore:
                              f"{self.estimator.shape}; teach again after changing the scan")
         started = time.perf_counter()
         pixels = frame.pixels
-        tilt = self.last_tilt if self.measure_tilts else None
+        # One snapshot: the tracker's thread may measure the next sweep meanwhile.
+        latest, tilt = (self.last_tilt, self.undone_tilt) if self.measure_tilts else (None, None)
         if tilt and tilt.get("alpha_deg") is not None and max(abs(tilt["alpha_deg"]),
                                                               abs(tilt["beta_deg"])) >= UNDO_FORESHORTENING_FROM_DEG:
             # Seen square on, as the reference was: a tilted view is foreshortened, which
@@ -505,7 +521,7 @@ class EstimatorCore:
             frame_source_interval_s=frame.header.source_interval_s,
             published_at_ns=now, estimation_ms=elapsed_ms, scan_averaged=averaged,
             latency_ms=(now - frame.header.published_at_ns) / 1e6,
-            **self._tilt_fields(),
+            **self._tilt_fields(latest),
         )
         self.counters["estimates"] += 1
         self.last_estimate = estimate
@@ -521,10 +537,9 @@ class EstimatorCore:
                                previous_acquired_at_ns=previous)
         return lasted is None or lasted >= SCAN_AVERAGED_FROM_S
 
-    def _tilt_fields(self) -> dict:
-        """The latest tilt measurement against this reference, carried by every estimate
-        (the controller acts on each one once: by its ``tilt_seq``)."""
-        tilt = self.last_tilt
+    def _tilt_fields(self, tilt: dict | None) -> dict:
+        """``tilt``, the latest tilt measurement against this reference, carried by every
+        estimate (the controller acts on each one once: by its ``tilt_seq``)."""
         if not self.measure_tilts or tilt is None or self.reference is None or tilt["reference_id"] != self.reference.id:
             return {}
         return {"alpha_deg": tilt["alpha_deg"], "beta_deg": tilt["beta_deg"], "tilt_confidence": tilt["confidence"],

@@ -419,7 +419,8 @@ def simulated_system(folder: Path, *, speedup: float = 20, fps: float = 100, res
     from semservo.simulation.sample_image import system_environment
 
     folder = Path(folder)
-    variables = {**fresh_port_environment(), **faster_lab_environment(speedup, fps),
+    fresh = fresh_port_environment()
+    variables = {**fresh, **faster_lab_environment(speedup, fps),
                  "SEMSERVO_CONTROLLER__RUNS_DIR": str(folder / "runs"),
                  "SEMSERVO_GATEWAY__DATABASE": str(folder / "runs" / "semservo.sqlite"), **settings}
     with environment(variables):
@@ -437,3 +438,7 @@ def simulated_system(folder: Path, *, speedup: float = 20, fps: float = 100, res
             launcher.stop()
             if out is None:
                 log.close()
+            # The stage's state folder made for this system (not one the caller chose):
+            # removed now, not only at exit (a test session starts hundreds).
+            if variables["SEMSERVO_STAGE__STATE_DIR"] == fresh["SEMSERVO_STAGE__STATE_DIR"]:
+                shutil.rmtree(fresh["SEMSERVO_STAGE__STATE_DIR"], ignore_errors=True)

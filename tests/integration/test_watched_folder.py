@@ -87,3 +87,6 @@ def test_positions_the_stage_from_frames_saved_to_a_watched_folder(tmp_path):
         assert "skipped zz_garbage.tif: " in log
         for open_client in (estimator, stage, controller, fakelab, imageserver):
             open_client.close()
+        state_dir = settings.stage.state_dir
+        assert state_dir.is_dir() and state_dir.name.startswith("semservo-stage-")
+    assert not state_dir.exists()  # the system's own stage-state folder goes with it

@@ -245,6 +245,12 @@ def test_a_new_foreshortening_undone_by_the_estimator_restarts_what_the_position
     # Near the goal, sweeps that differ by their noise leave the turn as it was read.
     assert not foreshortening_changed(run, estimate(alpha_deg=0.06, beta_deg=-0.09, tilt_seq=17))
     assert not foreshortening_changed(run, estimate(alpha_deg=None, beta_deg=None, tilt_seq=18))
+    # A sweep that cannot tell the tilts leaves the estimator undoing the last ones that could.
+    far = make_run(dofs=["x", "y", "rotation", "alpha", "beta"], tolerance_deg=0.05)
+    assert not foreshortening_changed(far, estimate(tilt_seq=None))  # nothing measured yet: nothing undone
+    assert foreshortening_changed(far, estimate(alpha_deg=4.0, beta_deg=-3.0, tilt_seq=1))  # the first sweep
+    assert not foreshortening_changed(far, estimate(alpha_deg=None, beta_deg=None, tilt_seq=2))
+    assert not foreshortening_changed(far, estimate(alpha_deg=4.0, beta_deg=-3.0, tilt_seq=3))
     without_rotation = make_run(dofs=["x", "y", "alpha", "beta"])
     assert not foreshortening_changed(without_rotation, estimate(alpha_deg=3.0, beta_deg=3.0, tilt_seq=1))
     assert not foreshortening_changed(without_rotation, estimate(alpha_deg=0.0, beta_deg=0.0, tilt_seq=2))

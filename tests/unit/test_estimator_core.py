@@ -327,3 +327,16 @@ def test_the_scan_averaged_shift_only_for_frames_scanned_slowly_enough_for_it_to
     # A simulated lab's own clock first, however fast it runs against the wall clock.
     assert scan_lasted_s((512, 512), source_interval_s=(2.0, 2.19), dwell_ns=100.0, scan_started_at_ns=0,
                          acquired_at_ns=10**7) == pytest.approx(0.19)
+
+
+def test_a_sweep_that_cannot_tell_the_tilts_leaves_the_frames_undone_with_the_last_that_could():
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    confident = {"alpha_deg": 2.0, "beta_deg": -1.5, "confidence": 0.9}
+    failed = {"alpha_deg": None, "beta_deg": None, "confidence": 0.0}
+    core.last_tilt = confident
+    core.last_tilt = failed
+    assert core.last_tilt is failed and core.undone_tilt is confident
+    core.last_tilt = {"alpha_deg": 0.1, "beta_deg": 0.0, "confidence": 0.8}
+    assert core.undone_tilt["alpha_deg"] == 0.1
+    core.clear()  # a new reference's sweeps start afresh: nothing undone
+    assert core.last_tilt is None and core.undone_tilt is None
