@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import PlainTextResponse, Response
@@ -78,8 +79,13 @@ class Listeners(set):
 
         loop.call_soon_threadsafe(deliver)
 
-    def close_all(self) -> None:
-        """From any thread: every listener says goodbye and ends (the server is stopping)."""
+    def close_all(self, wait_s: float = 1.0) -> None:
+        """From any thread but the server's: every listener says goodbye (1001, going
+        away) and ends (the server is stopping); waits up to ``wait_s`` for them to have
+        done so, or the server's own shutdown would close them first, as a restart (1012)."""
         loop = self.loop
         if loop is not None and not loop.is_closed():
             loop.call_soon_threadsafe(self.closing.set)
+            deadline = time.monotonic() + wait_s
+            while len(self) and time.monotonic() < deadline:
+                time.sleep(0.01)
