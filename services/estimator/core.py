@@ -14,9 +14,9 @@ import numpy as np
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
 from semservo.estimation.raster import SCAN_AVERAGED_FROM_S, scan_lasted_s
-from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, UNDO_FORESHORTENING_FROM_DEG, TiltEstimate, depth_map,
-                                      egi_tilt_between, estimate_tilt, plan_sweep, pool_depths, pooled_tilt,
-                                      undo_foreshortening, wants_another_sweep)
+from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
+                                      plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, undoes_foreshortening,
+                                      wants_another_sweep)
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
 from semservo.wire import Frame
@@ -161,7 +161,7 @@ class EstimatorCore:
         self.tilt_settings = tilt or TiltSettings()
         self.tilt_reference: TiltReference | None = None
         self.measure_tilts = False
-        self.undone_tilt: dict | None = None  # the tilts whose foreshortening frames are undone with
+        self.undone_tilt: dict | None  # the tilts frames are undone with (set with last_tilt)
         self.last_tilt = None  # the latest tilt measurement against the reference
         self.tilt_sequence = 0
         self.tilt_error: str | None = None
@@ -501,8 +501,7 @@ class EstimatorCore:
         pixels = frame.pixels
         # One snapshot: the tracker's thread may measure the next sweep meanwhile.
         latest, tilt = (self.last_tilt, self.undone_tilt) if self.measure_tilts else (None, None)
-        if tilt and tilt.get("alpha_deg") is not None and max(abs(tilt["alpha_deg"]),
-                                                              abs(tilt["beta_deg"])) >= UNDO_FORESHORTENING_FROM_DEG:
+        if tilt and undoes_foreshortening(tilt.get("alpha_deg"), tilt.get("beta_deg")):
             # Seen square on, as the reference was: a tilted view is foreshortened, which
             # the log-polar angle reads as degrees of turn (14 at 15 degrees of tilt).
             pixels = undo_foreshortening(pixels, tilt["alpha_deg"], tilt["beta_deg"])

@@ -824,15 +824,24 @@ def plan_sweep(centre: float, depth_of_field: float, field: float, *, tilt_deg: 
 UNDO_FORESHORTENING_FROM_DEG = 0.05
 
 
+def undoes_foreshortening(alpha_deg: float | None, beta_deg: float | None) -> bool:
+    """Whether a frame seen at these tilts is resampled to undo its foreshortening: the
+    tilts known and one of them at least :data:`UNDO_FORESHORTENING_FROM_DEG`."""
+    return alpha_deg is not None and beta_deg is not None and \
+        max(abs(alpha_deg), abs(beta_deg)) >= UNDO_FORESHORTENING_FROM_DEG
+
+
+def _seen_through(alpha_deg: float, beta_deg: float) -> np.ndarray:
+    alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
+    return np.array([[np.cos(beta), 0.0], [np.sin(alpha) * np.sin(beta), np.cos(alpha)]])
+
+
 def foreshortening(alpha_deg: float | None, beta_deg: float | None) -> np.ndarray:
     """A = [[cos beta, 0], [sin alpha sin beta, cos alpha]]: how a surface tilted by
     R_x(alpha) R_y(beta) is seen (orthographically), as the estimator undoes it; the
-    identity when the tilts are not known or both under
-    :data:`UNDO_FORESHORTENING_FROM_DEG` (the frame is then measured as it is)."""
-    if alpha_deg is None or beta_deg is None or max(abs(alpha_deg), abs(beta_deg)) < UNDO_FORESHORTENING_FROM_DEG:
-        return np.eye(2)
-    alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
-    return np.array([[np.cos(beta), 0.0], [np.sin(alpha) * np.sin(beta), np.cos(alpha)]])
+    identity where it does not (:func:`undoes_foreshortening`: the frame is then
+    measured as it is)."""
+    return _seen_through(alpha_deg, beta_deg) if undoes_foreshortening(alpha_deg, beta_deg) else np.eye(2)
 
 
 def undo_foreshortening(frame: np.ndarray, alpha_deg: float, beta_deg: float) -> np.ndarray:
@@ -844,8 +853,7 @@ def undo_foreshortening(frame: np.ndarray, alpha_deg: float, beta_deg: float) ->
     anisotropic scale), on this one by 0.03 at most (``bench/tilt.py``)."""
     import cv2
 
-    alpha, beta = np.radians(alpha_deg), np.radians(beta_deg)
-    forward = np.array([[np.cos(beta), 0.0], [np.sin(alpha) * np.sin(beta), np.cos(alpha)]])
+    forward = _seen_through(alpha_deg, beta_deg)
     centre = (np.array(frame.shape[::-1], dtype=np.float64) - 1) / 2
     matrix = np.hstack([forward, (centre - forward @ centre)[:, None]])
     return cv2.warpAffine(np.asarray(frame, dtype=np.float32), matrix, frame.shape[::-1],
