@@ -233,6 +233,19 @@ class ControllerCore:
                                  f"request ({error})") from None
             log.warning("could not set the estimator's measurements: %s", error)
 
+    def _estimator_tilted(self, settles_at_ns: int | None) -> bool:
+        """Tell the estimator of a tilt move: the focus sweep it is scanning shows poses in
+        between (the run would not act on it), so it starts the next once the tilt has
+        settled. Whether it did; not being heard costs only time (that sweep is then
+        scanned to its end and held as stale)."""
+        if self.estimator is None:
+            return False
+        try:
+            return self.estimator.call(estimator_protocol.TILTED, settles_at_ns=settles_at_ns).restarted
+        except (CommandError, ServiceUnavailable) as error:
+            log.warning("could not tell the estimator of the tilt move: %s", error)
+            return False
+
     def _estimator_account(self) -> str:
         """Why estimates stopped, in words, from what the estimator says of itself."""
         if self.estimator is None:
@@ -402,6 +415,7 @@ class ControllerCore:
                 record.command_settled_at_ns = max(record.command_settled_at_ns or 0, turned.settled_at_ns)
                 if tilting:
                     run.tilts.moved(record.command_settled_at_ns)
+                    record.tilt_sweeps_restarted = self._estimator_tilted(record.command_settled_at_ns)
                     # A tilt about the pivot below the surface shifts the view: the planar
                     # cost jumps by design, so divergence is judged afresh from here.
                     run.min_cost, run.rising = math.inf, 0

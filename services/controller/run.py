@@ -115,6 +115,9 @@ class IterationRecord:
     tilt_pooled: int | None = None  # sweeps since the last tilt move the errors were averaged over
     tilt_mean_deg: dict[str, float] | None = None  # their mean: what the tilts were judged and moved on
     tilt_spread_deg: dict[str, float] | None = None  # its standard error
+    # After a tilt move: the estimator cancelled the focus sweep in progress (its frames show
+    # poses in between) and starts the next once the tilt has settled.
+    tilt_sweeps_restarted: bool | None = None
 
     @classmethod
     def of(cls, estimate: MotionEstimate) -> "IterationRecord":

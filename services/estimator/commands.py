@@ -100,6 +100,12 @@ def measure(estimator: Estimator, request: protocol.MeasureRequest) -> protocol.
     return protocol.MeasureReply.model_validate(result)
 
 
+@handlers.handles(protocol.TILTED)
+def tilted(estimator: Estimator, request: protocol.TiltedRequest) -> protocol.TiltedReply:
+    restarted = estimator.tracker.tilted(request.settles_at_ns) if estimator.tracker is not None else False
+    return protocol.TiltedReply(restarted=restarted)
+
+
 @handlers.handles(protocol.REFERENCE_IMAGE)
 def reference_image(estimator: Estimator, request: protocol.ReferenceImageRequest) -> protocol.ReferenceImage:
     core = estimator.core

@@ -34,6 +34,13 @@ log = logging.getLogger("estimator.tilts")
 #: How often a running sweep is asked about.
 POLL_S = 0.05
 
+#: At most this long (s) a cancelled sweep is waited for to finish the scan it was in.
+CANCEL_WAIT_S = 30.0
+
+#: At most this long (s) the next sweep waits for a tilt move to settle (a goniometer
+#: settles in well under a second; more would be a clock out of step).
+MAX_TILT_WAIT_S = 5.0
+
 
 class SweepFailed(RuntimeError):
     """The image server could not sweep (no source that can focus, a failed scan, timeout)."""
@@ -41,14 +48,18 @@ class SweepFailed(RuntimeError):
 
 def run_sweep(client: ControlClient, working_distances_um: list[float], timeout_s: float,
               cancelled: Callable[[], bool] = lambda: False,
-              progress: Callable[[int, int], None] = lambda scanned, frames: None):
+              progress: Callable[[int, int], None] = lambda scanned, frames: None,
+              stopping: Callable[[], bool] = lambda: False):
     """One focus sweep through the image server: (frames, the sweep's reply).
-    ``progress(scanned, frames)`` is told as the scans come in."""
+    ``progress(scanned, frames)`` is told as the scans come in. Once ``cancelled()``,
+    the image server is told to stop the sweep and, unless ``stopping()``, waited for
+    until it has (the next sweep can then start); SweepFailed("cancelled")."""
     try:
         started = client.request("start_sweep", working_distances_um=list(working_distances_um))
         deadline = time.monotonic() + timeout_s
         while True:
             if cancelled():
+                cancel_sweep(client, started["sweep_id"], min(timeout_s, CANCEL_WAIT_S), stopping)
                 raise SweepFailed("cancelled")
             reply = client.request("sweep", sweep_id=started["sweep_id"])
             if reply["state"] == "done":
@@ -62,6 +73,22 @@ def run_sweep(client: ControlClient, working_distances_um: list[float], timeout_
             time.sleep(POLL_S)
     except (ServiceUnavailable, CommandError) as error:
         raise SweepFailed(f"the image server: {error}") from None
+
+
+def cancel_sweep(client: ControlClient, sweep_id: str, wait_s: float,
+                 stopping: Callable[[], bool] = lambda: False) -> None:
+    """Tell the image server to stop sweep ``sweep_id`` after the scan in progress, and
+    wait (at most ``wait_s``, not once ``stopping()``) until it has: the image server
+    takes one sweep at a time. Not being heard is logged: the sweep then runs to its
+    end, as it did before it could be cancelled."""
+    try:
+        reply = client.request("cancel_sweep", sweep_id=sweep_id)
+        deadline = time.monotonic() + wait_s
+        while reply["state"] == "scanning" and time.monotonic() < deadline and not stopping():
+            time.sleep(POLL_S)
+            reply = client.request("sweep", sweep_id=sweep_id)
+    except (ServiceUnavailable, CommandError) as error:
+        log.info("could not cancel focus sweep %s: %s", sweep_id, error)
 
 
 def _spanning(first, last):
@@ -83,6 +110,10 @@ class TiltTracker:
         self._teach_for: str | None = None  # the reference whose taught-pose sweep is due
         self._thread = threading.Thread(target=self._run, name="tilt-tracker", daemon=True)
         self.busy = False
+        # A tilt move (``tilted``): how many so far, and when the last one settles.
+        self._tilt_moves = 0
+        self._tilt_settles_at_ns = 0
+        self._tilt_waited_for = 0  # the tilt moves whose settling the sweeps have waited for
 
     def client(self) -> ControlClient:
         if self._client is None:
@@ -104,6 +135,29 @@ class TiltTracker:
         self._teach_for = reference_id
         self.wake()
         return dict(self.core.tilt_teach)
+
+    def tilted(self, settles_at_ns: int | None = None) -> bool:
+        """The sample was tilted (a run's tilt move), arriving at ``settles_at_ns``
+        (Unix ns, the stage's clock; None: now): the tracking sweep in progress shows
+        poses in between, which the controller would not act on, so it is cancelled and
+        the next one starts once the tilt has settled. True if the tilts were being
+        measured (tracking, not teaching)."""
+        self._tilt_settles_at_ns = max(self._tilt_settles_at_ns, int(settles_at_ns or time.time_ns()))
+        self._tilt_moves += 1
+        self.wake()
+        return self.core.measure_tilts and self._teach_for is None
+
+    def _wait_for_tilt(self) -> int:
+        """Wait until the last tilt move has settled (at most :data:`MAX_TILT_WAIT_S`, in
+        case the stage's clock is not this one); the tilt moves so far."""
+        while True:
+            moves = self._tilt_moves
+            if moves == self._tilt_waited_for:
+                return moves
+            wait_s = min((self._tilt_settles_at_ns - time.time_ns()) / 1e9, MAX_TILT_WAIT_S)
+            if wait_s <= 0 or self._stop.wait(wait_s) or moves == self._tilt_moves:
+                self._tilt_waited_for = moves
+                return moves
 
     def teach_cancel(self) -> None:
         """A reference taught without tilts replaces one whose sweep was still scanning."""
@@ -139,7 +193,7 @@ class TiltTracker:
         try:
             while True:
                 sweep, reply = run_sweep(self.client(), core.next_sweep(), self.timeout_s, cancelled=replaced,
-                                         progress=progress)
+                                         progress=progress, stopping=self._stop.is_set)
                 taught = core.teach_tilt(sweep, reply["working_distances_um"], reply["pixel_size_nm"],
                                          reference_id=reference_id)
                 if taught is not None:
@@ -170,13 +224,20 @@ class TiltTracker:
 
     def _track(self) -> None:
         core = self.core
+        moves = self._wait_for_tilt()
+
+        def tilted_since() -> bool:
+            return self._tilt_moves != moves
+
         try:
             plan = core.next_sweep()
-            cancelled = (lambda: self._stop.is_set() or not core.measure_tilts or self._teach_for is not None)
+            cancelled = (lambda: self._stop.is_set() or not core.measure_tilts or self._teach_for is not None
+                         or tilted_since())
             earlier: list = []  # the same view's sweeps before this one, while they are pooled
             first, took_s = None, 0.0
             while True:
-                sweep, reply = run_sweep(self.client(), plan, self.timeout_s, cancelled=cancelled)
+                sweep, reply = run_sweep(self.client(), plan, self.timeout_s, cancelled=cancelled,
+                                         stopping=self._stop.is_set)
                 first = first or reply
                 took_s += reply.get("took_s") or 0.0
                 if not core.measure_tilts:
@@ -193,11 +254,20 @@ class TiltTracker:
                 source_interval_s=_spanning(first.get("source_interval_s"), reply.get("source_interval_s")),
                 took_s=took_s or None, earlier=earlier, sweep_depth_map=depths)
             core.tilt_error = None if result["confidence"] > 0 else f"tilts not measured: {result['reason']}"
+        except SweepFailed as error:
+            if tilted_since() and not self._stop.is_set():
+                log.info("focus sweep cancelled: the sample was tilted while it scanned")
+                return  # the next sweep starts once the tilt has settled
+            self._track_failed(error)
         except Exception as error:  # noqa: BLE001 - say why, wait, try again; never die
-            if core.measure_tilts:
-                core.tilt_error = f"tilt measurement failed: {error}"
-                log.warning("%s", core.tilt_error)
-            self._stop.wait(1.0)
+            self._track_failed(error)
+
+    def _track_failed(self, error: Exception) -> None:
+        """Say why (while tilts are measured), wait, and let the loop try again."""
+        if self.core.measure_tilts:
+            self.core.tilt_error = f"tilt measurement failed: {error}"
+            log.warning("%s", self.core.tilt_error)
+        self._stop.wait(1.0)
 
     def stop(self) -> None:
         self._stop.set()

@@ -123,3 +123,14 @@ def sweep(server: ImageServer, request: protocol.SweepRequest) -> protocol.Sweep
         return protocol.SweepReply.model_validate(server.sweeps.result(request.sweep_id))
     except KeyError as error:
         raise CommandError("no_such_sweep", str(error.args[0])) from None
+
+
+@handlers.handles(protocol.CANCEL_SWEEP)
+def cancel_sweep(server: ImageServer, request: protocol.SweepRequest) -> protocol.SweepReply:
+    """Stop a sweep whose frames will not be used, after the scan in progress."""
+    if server.sweeps is None:
+        raise CommandError("not_supported", f"focus sweeps need a source that can focus, not {server.source.name}")
+    try:
+        return protocol.SweepReply.model_validate(server.sweeps.cancel(request.sweep_id))
+    except KeyError as error:
+        raise CommandError("no_such_sweep", str(error.args[0])) from None

@@ -4,7 +4,9 @@ a series of working distances, in a thread of its own, while the frame stream go
 A sweep takes several scans; the control socket must stay responsive meanwhile, so a
 sweep is started (``start_sweep``), runs in the background, and its frames are fetched
 when it is done (``sweep``). One sweep at a time; the last one's result is kept until
-the next starts. No sockets here: ``session()`` opens a focus session on the source
+the next starts. A sweep whose frames will not be used (the sample was tilted while it
+scanned, the run ended) is cancelled (``cancel_sweep``): it stops after the scan in
+progress (its state then says ``failed``, "cancelled"), and the next may start. No sockets here: ``session()`` opens a focus session on the source
 (:func:`services.imageserver.sources.focus_session`), whose ``scan(offset_um)``
 acquires one frame.
 """
@@ -61,7 +63,8 @@ class FocusSweeps:
         distances = check_working_distances(working_distances_um)
         with self._lock:
             if self._thread is not None and self._thread.is_alive():
-                raise RuntimeError(f"sweep {self._state['sweep_id']} is still scanning")
+                raise RuntimeError(f"sweep {self._state['sweep_id']} is still "
+                                   f"{'finishing its last scan' if self._cancel.is_set() else 'scanning'}")
             self._cancel.clear()
             self._state = {"sweep_id": uuid.uuid4().hex[:10], "state": "scanning", "scanned": 0,
                            "frames": len(distances), "working_distances_um": distances, "started_at": time.monotonic()}
@@ -107,6 +110,18 @@ class FocusSweeps:
                 raise KeyError(f"no sweep {sweep_id!r} (the last one was "
                                f"{self._state.get('sweep_id') if self._state else 'none'})")
             return {key: value for key, value in self._state.items() if key != "started_at"}
+
+    def cancel(self, sweep_id) -> dict:
+        """Stop sweep ``sweep_id`` after the scan in progress (it ends ``failed``,
+        "cancelled"); a sweep already ended is left as it is. Returns its state without
+        frames; KeyError if it is not the last sweep."""
+        with self._lock:
+            if not self._state or sweep_id != self._state["sweep_id"]:
+                raise KeyError(f"no sweep {sweep_id!r} (the last one was "
+                               f"{self._state.get('sweep_id') if self._state else 'none'})")
+            if self._state["state"] == "scanning":
+                self._cancel.set()
+            return {key: value for key, value in self._state.items() if key not in ("started_at", "frames_b64")}
 
     def close(self) -> None:
         self._cancel.set()

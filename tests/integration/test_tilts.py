@@ -86,7 +86,10 @@ def test_servoes_all_five_degrees_of_freedom_through_the_api(system):
     record = lab.wait(run["run_id"], timeout=400)
     assert record["state"] == "converged", record["reason"]
     records = record["trajectory"]
-    assert any(r.get("tilt_action") == "moved" for r in records), "the tilts were servoed"
+    tilt_moves = [r for r in records if r.get("tilt_action") == "moved"]
+    assert tilt_moves, "the tilts were servoed"
+    # Each tilt move restarted the estimator's sweeps (the one scanning was cancelled).
+    assert all(r.get("tilt_sweeps_restarted") for r in tilt_moves)
     assert any("angles_deg" in r for r in records)
     truth = record["truth"]
     print("5-DOF run:", record["iterations"], "iterations, truth", truth)

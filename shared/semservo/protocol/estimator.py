@@ -106,6 +106,17 @@ class MeasureReply(CommandReply):
     tilts: bool
 
 
+class TiltedRequest(CommandRequest):
+    settles_at_ns: int | None = Field(None, ge=0, le=2**63 - 1,
+                                      description="when the tilt move arrives (Unix ns, the stage's settled_at_ns; "
+                                                  "null: now)")
+
+
+class TiltedReply(CommandReply):
+    restarted: bool = Field(description="the tilts were being measured: the sweep in progress (if any) is cancelled, "
+                                        "and the next starts once the tilt has settled")
+
+
 class ReferenceImageRequest(CommandRequest):
     id: str | None = Field(None, max_length=64, description="only if it is still this reference")
 
@@ -125,5 +136,8 @@ REPORT = COMMANDS.add("report", NoArguments, Report, "the reference, what is mea
 MEASURE = COMMANDS.add("measure", MeasureRequest, MeasureReply,
                        "what to measure per frame (a run without the rotation DOF skips it; a run with the tilts "
                        "starts the tilt tracker: `no_tilt_reference` without a taught sweep)")
+TILTED = COMMANDS.add("tilted", TiltedRequest, TiltedReply,
+                      "the sample was tilted (a run's tilt move): the focus sweep in progress, whose frames show "
+                      "poses in between, is cancelled and the next starts once the tilt has settled")
 REFERENCE_IMAGE = COMMANDS.add("reference_image", ReferenceImageRequest, ReferenceImage,
                                "the taught reference's pixels (`no_reference`)", timeout_s=5.0)

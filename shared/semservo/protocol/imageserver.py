@@ -97,6 +97,9 @@ SCAN_ONCE = COMMANDS.add("scan_once", ScanOnceRequest, ScanOnceReply,
 START_SWEEP = COMMANDS.add("start_sweep", StartSweepRequest, SweepStarted,
                            "scan the field at each working distance, in the background (any source that can focus; "
                            "`busy` while one runs)")
+CANCEL_SWEEP = COMMANDS.add("cancel_sweep", SweepRequest, SweepReply,
+                            "stop a sweep after the scan in progress: it ends `failed` (cancelled), and the next may "
+                            "start (`no_such_sweep`)", timeout_s=5.0)
 SWEEP = COMMANDS.add("sweep", SweepRequest, SweepReply, "a sweep's state; its frames once done (`no_such_sweep`)",
                      timeout_s=10.0)
 

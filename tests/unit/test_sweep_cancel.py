@@ -1,0 +1,132 @@
+"""A tilt move cancels the focus sweep in progress: its frames show poses in between,
+which the controller would hold as stale, so the image server stops it after the scan in
+progress (``cancel_sweep``) and the estimator's tracker starts the next one once the tilt
+has settled (``tilted``). Real threads, the image server's sweeps and the estimator's
+tracker; the control socket between them replaced by direct calls."""
+
+from __future__ import annotations
+
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from semservo.errors import CommandError
+from semservo.instruments import AcquiredImage
+from services.estimator.tilts import TiltTracker
+from services.imageserver.sweep import FocusSweeps
+from tests.integration.helpers import wait_for
+
+
+class GatedScans:
+    """A focus session's scan that takes a frame only when let through (``open``), or at
+    once after ``free_run``: the test decides where each sweep is."""
+
+    def __init__(self):
+        self.scanned: list[float] = []
+        self.entered = threading.Semaphore(0)
+        self.gate = threading.Semaphore(0)
+        self.free_run = threading.Event()
+
+    def __call__(self, working_distance_um: float) -> AcquiredImage:
+        self.entered.release()
+        while not self.free_run.is_set() and not self.gate.acquire(timeout=0.01):
+            pass
+        self.scanned.append(working_distance_um)
+        now = time.time_ns()
+        return AcquiredImage(pixels=np.zeros((8, 8), np.uint8), acquired_at_ns=now, scan_started_at_ns=now,
+                             pixel_size_nm=70.0)
+
+
+def test_a_cancelled_sweep_stops_after_its_scan_in_progress_and_the_next_may_start():
+    scans = GatedScans()
+    sweeps = FocusSweeps(scans)
+    try:
+        started = sweeps.start([-2.0, -1.0, 0.0, 1.0, 2.0])
+        assert scans.entered.acquire(timeout=5)  # scanning its first frame
+        assert sweeps.cancel(started["sweep_id"])["state"] == "scanning", "the scan in progress is finished"
+        with pytest.raises(RuntimeError, match="finishing its last scan"):
+            sweeps.start([-1.0, 0.0, 1.0])
+        scans.gate.release()
+        ended = wait_for(lambda: (r := sweeps.result(started["sweep_id"]))["state"] != "scanning" and r, 5,
+                         "the cancelled sweep to end")
+        assert ended["state"] == "failed" and "cancelled" in ended["error"]
+        assert scans.scanned == [-2.0], "no frame after the one in progress"
+        scans.free_run.set()
+        following = sweeps.start([-1.0, 0.0, 1.0])
+        done = wait_for(lambda: (r := sweeps.result(following["sweep_id"]))["state"] != "scanning" and r, 5,
+                        "the next sweep")
+        assert done["state"] == "done"
+        # Cancelling a sweep that has ended leaves it as it ended; an unknown one is said so.
+        assert sweeps.cancel(following["sweep_id"])["state"] == "done"
+        assert sweeps.result(following["sweep_id"])["state"] == "done"
+        with pytest.raises(KeyError, match="no sweep"):
+            sweeps.cancel(started["sweep_id"])
+    finally:
+        scans.free_run.set()
+        sweeps.close()
+
+
+class ImageServerCalls:
+    """The image server's sweep commands, called directly (as its handlers do), each
+    call noted with when it was made."""
+
+    def __init__(self, sweeps: FocusSweeps):
+        self.sweeps = sweeps
+        self.calls: list[tuple[str, int]] = []
+
+    def request(self, name: str, **arguments):
+        self.calls.append((name, time.time_ns()))
+        try:
+            if name == "start_sweep":
+                return self.sweeps.start(arguments["working_distances_um"])
+            if name == "cancel_sweep":
+                return self.sweeps.cancel(arguments["sweep_id"])
+            return self.sweeps.result(arguments["sweep_id"])
+        except RuntimeError as error:
+            raise CommandError("busy", str(error)) from None
+
+    def close(self) -> None:
+        pass
+
+    def named(self, name: str) -> list[int]:
+        return [at for called, at in self.calls if called == name]
+
+
+def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_until_the_tilt_has_settled():
+    scans = GatedScans()
+    sweeps = FocusSweeps(scans)
+    server = ImageServerCalls(sweeps)
+    measured = []
+    core = SimpleNamespace(
+        measure_tilts=True, tilt_error=None, next_sweep=lambda: [-2.0, -1.0, 0.0, 1.0, 2.0],
+        sweep_depths=lambda sweep, distances, pixel_nm: len(sweep), sweep_again=lambda depths, *_: False,
+        tilt_from_sweep=lambda sweep, *_, **kw: measured.append(kw["scan_started_at_ns"]) or {"confidence": 1.0})
+    tracker = TiltTracker(core, lambda: server, timeout_s=30)
+    tracker.start()
+    try:
+        tracker.wake()
+        assert scans.entered.acquire(timeout=5)  # the first tracking sweep scans its first frame
+        settles_at = time.time_ns() + 300_000_000
+        assert tracker.tilted(settles_at) is True
+        wait_for(lambda: server.named("cancel_sweep"), 5, "the tracker to cancel its sweep")
+        scans.gate.release()  # the scan in progress ends; no further frame of that sweep
+        wait_for(lambda: len(server.named("start_sweep")) >= 2, 10, "the next sweep")
+        first_start, second_start = server.named("start_sweep")[:2]
+        assert server.named("cancel_sweep") and first_start < server.named("cancel_sweep")[0] < second_start
+        assert second_start >= settles_at, "the next sweep starts once the tilt has settled"
+        assert scans.scanned == [-2.0], "the cancelled sweep scanned no frame after the tilt move"
+        assert measured == [] and core.tilt_error is None, "a cancelled sweep is neither reported nor an error"
+        # The sweep after the tilt runs to its end and is measured.
+        scans.free_run.set()
+        wait_for(lambda: measured, 10, "the sweep after the tilt measured")
+        assert measured[0] >= settles_at
+        # Not measuring the tilts (a run without them, or teaching): nothing to restart.
+        core.measure_tilts = False
+        assert tracker.tilted() is False
+    finally:
+        scans.free_run.set()
+        tracker.stop()
+        sweeps.close()
