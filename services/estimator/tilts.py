@@ -16,11 +16,16 @@ meanwhile, and its control socket keeps answering. The tracker runs two kinds of
   is followed by another of the same plan, their depths pooled, before the tilts are
   reported (:meth:`~services.estimator.core.EstimatorCore.sweep_again`). Every motion
   estimate carries the latest tilt measurement; the controller acts on each one once.
+  After each of its tilt moves the controller says so (``tilted``): the sweep in
+  progress, whose frames show poses in between, is cancelled on the image server, and
+  the next starts once the tilt has settled and the view, which the tilt's pivot
+  shifts, has stopped moving (:meth:`TiltTracker.tilted`).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from typing import Callable
@@ -40,6 +45,15 @@ CANCEL_WAIT_S = 30.0
 #: At most this long (s) the next sweep waits for a tilt move to settle (a goniometer
 #: settles in well under a second; more would be a clock out of step).
 MAX_TILT_WAIT_S = 5.0
+
+#: After a tilt move, the next sweep waits for two consecutive frames whose content is
+#: this close (px): the view no longer moved between them (a kernel is 32 px; the last
+#: trims of x, y, a pixel or less, change a tenth of its edge or less).
+STILL_PX = 1.0
+#: ... but for at most this many frames, or this many seconds (a scene that keeps moving,
+#: or frames that stopped, does not hold the tilts up for ever).
+STILL_WAIT_FRAMES = 8
+STILL_WAIT_S = 30.0
 
 
 class SweepFailed(RuntimeError):
@@ -149,15 +163,42 @@ class TiltTracker:
 
     def _wait_for_tilt(self) -> int:
         """Wait until the last tilt move has settled (at most :data:`MAX_TILT_WAIT_S`, in
-        case the stage's clock is not this one); the tilt moves so far."""
+        case the stage's clock is not this one) and the view has stopped moving after it
+        (:meth:`_wait_for_still_view`); the tilt moves so far."""
         while True:
             moves = self._tilt_moves
             if moves == self._tilt_waited_for:
                 return moves
-            wait_s = min((self._tilt_settles_at_ns - time.time_ns()) / 1e9, MAX_TILT_WAIT_S)
-            if wait_s <= 0 or self._stop.wait(wait_s) or moves == self._tilt_moves:
+            settles_at_ns = self._tilt_settles_at_ns
+            wait_s = min((settles_at_ns - time.time_ns()) / 1e9, MAX_TILT_WAIT_S)
+            if wait_s > 0 and self._stop.wait(wait_s):
+                return moves
+            if moves == self._tilt_moves:
+                self._wait_for_still_view(settles_at_ns, lambda: moves != self._tilt_moves)
+            if moves == self._tilt_moves or self._stop.is_set():
                 self._tilt_waited_for = moves
                 return moves
+
+    def _wait_for_still_view(self, after_ns: int, interrupted: Callable[[], bool]) -> bool:
+        """Wait until two consecutive frames scanned after ``after_ns`` show the content
+        within :data:`STILL_PX` of each other (at most :data:`STILL_WAIT_FRAMES` frames or
+        :data:`STILL_WAIT_S`). A tilt about the pivot below the surface shifts the view,
+        tens of pixels at a few degrees, and the run's x, y take that out over the next
+        frames; a sweep scanned meanwhile would see its kernels' content move between its
+        frames (no clear focus peaks: the tilts not measured, and the sweep lost). Whether
+        the view was seen still."""
+        seen: list[tuple[int, float, float]] = []  # (seq, dx, dy) of the frames since
+        deadline = time.monotonic() + STILL_WAIT_S
+        while (len(seen) <= STILL_WAIT_FRAMES and time.monotonic() < deadline and self.core.measure_tilts
+               and not interrupted() and not self._stop.is_set()):
+            estimate = self.core.last_estimate
+            if estimate is not None and (not seen or estimate.seq != seen[-1][0]) and estimate.confidence > 0 \
+                    and (estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns) >= after_ns:
+                seen.append((estimate.seq, estimate.dx_px, estimate.dy_px))
+                if len(seen) >= 2 and math.hypot(seen[-1][1] - seen[-2][1], seen[-1][2] - seen[-2][2]) <= STILL_PX:
+                    return True
+            self._stop.wait(POLL_S)
+        return False
 
     def teach_cancel(self) -> None:
         """A reference taught without tilts replaces one whose sweep was still scanning."""

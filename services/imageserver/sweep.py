@@ -50,6 +50,10 @@ def check_working_distances(values) -> list[float]:
     return checked
 
 
+class SweepCancelled(Exception):
+    """The sweep was cancelled (``cancel_sweep``, or the server stopping)."""
+
+
 class FocusSweeps:
     def __init__(self, session: Callable[[], ContextManager[ScanAt]] | ScanAt):
         # A plain scan function is a session of its own (tests, sources without a stream).
@@ -79,7 +83,7 @@ class FocusSweeps:
             with self.session() as scan:
                 for distance in distances:
                     if self._cancel.is_set():
-                        raise RuntimeError("cancelled")
+                        raise SweepCancelled("cancelled")
                     images.append(scan(distance))
                     state["scanned"] = len(images)
             shapes = {image.pixels.shape for image in images}
@@ -97,6 +101,9 @@ class FocusSweeps:
                                       if first.source_interval_s and last.source_interval_s else None),
                 "took_s": time.monotonic() - state["started_at"],
             }
+        except SweepCancelled:
+            log.info("focus sweep %s cancelled after %d of %d frames", state["sweep_id"], len(images), len(distances))
+            result = {"state": "failed", "error": "cancelled"}
         except Exception as error:  # noqa: BLE001 - a failed sweep says why; the stream goes on
             log.warning("focus sweep %s failed: %s", state["sweep_id"], error)
             result = {"state": "failed", "error": f"{type(error).__name__}: {error}"}

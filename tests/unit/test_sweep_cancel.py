@@ -95,28 +95,51 @@ class ImageServerCalls:
         return [at for called, at in self.calls if called == name]
 
 
-def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_until_the_tilt_has_settled():
+class Frames:
+    """The estimator's frame estimates, one every 20 ms (``core.last_estimate``): the view
+    moving by ``step_px`` a frame until ``still_from_ns``, then held."""
+
+    def __init__(self, core, still_from_ns: int, step_px: float = 10.0):
+        self.core, self.still_from_ns, self.step_px = core, still_from_ns, step_px
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+
+    def run(self) -> None:
+        seq, dx = 0, 0.0
+        while not self.stop.wait(0.02):
+            now = time.time_ns()
+            seq += 1
+            dx += self.step_px if now < self.still_from_ns else 0.0
+            self.core.last_estimate = SimpleNamespace(seq=seq, dx_px=dx, dy_px=0.0, confidence=1.0,
+                                                      frame_scan_started_at_ns=now - 20_000_000,
+                                                      frame_acquired_at_ns=now)
+
+
+def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_for_the_tilt_and_the_view_to_settle():
     scans = GatedScans()
     sweeps = FocusSweeps(scans)
     server = ImageServerCalls(sweeps)
     measured = []
     core = SimpleNamespace(
-        measure_tilts=True, tilt_error=None, next_sweep=lambda: [-2.0, -1.0, 0.0, 1.0, 2.0],
+        measure_tilts=True, tilt_error=None, last_estimate=None, next_sweep=lambda: [-2.0, -1.0, 0.0, 1.0, 2.0],
         sweep_depths=lambda sweep, distances, pixel_nm: len(sweep), sweep_again=lambda depths, *_: False,
         tilt_from_sweep=lambda sweep, *_, **kw: measured.append(kw["scan_started_at_ns"]) or {"confidence": 1.0})
     tracker = TiltTracker(core, lambda: server, timeout_s=30)
+    settles_at = time.time_ns() + 300_000_000
+    # The tilt's pivot shifts the view; x, y take it out until 0.3 s after the tilt settled.
+    frames = Frames(core, still_from_ns=settles_at + 300_000_000)
+    frames.thread.start()
     tracker.start()
     try:
         tracker.wake()
         assert scans.entered.acquire(timeout=5)  # the first tracking sweep scans its first frame
-        settles_at = time.time_ns() + 300_000_000
         assert tracker.tilted(settles_at) is True
         wait_for(lambda: server.named("cancel_sweep"), 5, "the tracker to cancel its sweep")
         scans.gate.release()  # the scan in progress ends; no further frame of that sweep
         wait_for(lambda: len(server.named("start_sweep")) >= 2, 10, "the next sweep")
         first_start, second_start = server.named("start_sweep")[:2]
         assert server.named("cancel_sweep") and first_start < server.named("cancel_sweep")[0] < second_start
-        assert second_start >= settles_at, "the next sweep starts once the tilt has settled"
+        assert second_start >= frames.still_from_ns, "the next sweep starts once the tilt and the view have settled"
         assert scans.scanned == [-2.0], "the cancelled sweep scanned no frame after the tilt move"
         assert measured == [] and core.tilt_error is None, "a cancelled sweep is neither reported nor an error"
         # The sweep after the tilt runs to its end and is measured.
@@ -128,5 +151,25 @@ def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_until_the_til
         assert tracker.tilted() is False
     finally:
         scans.free_run.set()
+        frames.stop.set()
         tracker.stop()
         sweeps.close()
+
+
+def test_a_view_that_keeps_moving_holds_the_next_sweep_up_for_a_few_frames_only(monkeypatch):
+    from services.estimator import tilts
+
+    monkeypatch.setattr(tilts, "STILL_WAIT_S", 600.0)  # only the frames' bound ends the wait
+    core = SimpleNamespace(measure_tilts=True, last_estimate=None)
+    tracker = TiltTracker(core, lambda: None)
+    frames = Frames(core, still_from_ns=time.time_ns() + 10**12)  # never still
+    frames.thread.start()
+    try:
+        wait_for(lambda: core.last_estimate, 5, "frames")
+        first = core.last_estimate.seq
+        assert tracker._wait_for_still_view(time.time_ns(), lambda: False) is False
+        assert core.last_estimate.seq - first >= tilts.STILL_WAIT_FRAMES
+        frames.step_px = 0.0
+        assert tracker._wait_for_still_view(time.time_ns(), lambda: False) is True
+    finally:
+        frames.stop.set()
