@@ -156,21 +156,26 @@ class TiltTracker:
         poses in between, which the controller would not act on, so it is cancelled and
         the next one starts once the tilt has settled. True if the tilts were being
         measured (tracking, not teaching)."""
-        self._tilt_settles_at_ns = max(self._tilt_settles_at_ns, int(settles_at_ns or time.time_ns()))
+        now_ns = time.time_ns()
+        # The latest move's arrival, within MAX_TILT_WAIT_S from now: a time far ahead (a
+        # clock out of step, a bad request) holds this sweep up that long at most, and
+        # not the sweeps after the next move.
+        self._tilt_settles_at_ns = min(int(settles_at_ns or now_ns), now_ns + int(MAX_TILT_WAIT_S * 1e9))
         self._tilt_moves += 1
         self.wake()
         return self.core.measure_tilts and self._teach_for is None
 
     def _wait_for_tilt(self) -> int:
-        """Wait until the last tilt move has settled (at most :data:`MAX_TILT_WAIT_S`, in
-        case the stage's clock is not this one) and the view has stopped moving after it
+        """Wait until the last tilt move has settled (at most :data:`MAX_TILT_WAIT_S` after
+        it was told, in case the stage's clock is not this one) and the view has stopped
+        moving after it
         (:meth:`_wait_for_still_view`); the tilt moves so far."""
         while True:
             moves = self._tilt_moves
             if moves == self._tilt_waited_for:
                 return moves
             settles_at_ns = self._tilt_settles_at_ns
-            wait_s = min((settles_at_ns - time.time_ns()) / 1e9, MAX_TILT_WAIT_S)
+            wait_s = (settles_at_ns - time.time_ns()) / 1e9
             if wait_s > 0 and self._stop.wait(wait_s):
                 return moves
             if moves == self._tilt_moves:

@@ -6,7 +6,8 @@ sweep is started (``start_sweep``), runs in the background, and its frames are f
 when it is done (``sweep``). One sweep at a time; the last one's result is kept until
 the next starts. A sweep whose frames will not be used (the sample was tilted while it
 scanned, the run ended) is cancelled (``cancel_sweep``): it stops after the scan in
-progress (its state then says ``failed``, "cancelled"), and the next may start. No sockets here: ``session()`` opens a focus session on the source
+progress (its state then says ``failed``, "cancelled"), and the next may start. No
+sockets here: ``session()`` opens a focus session on the source
 (:func:`services.imageserver.sources.focus_session`), whose ``scan(offset_um)``
 acquires one frame.
 """

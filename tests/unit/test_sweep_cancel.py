@@ -115,7 +115,9 @@ class Frames:
                                                       frame_acquired_at_ns=now)
 
 
-def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_for_the_tilt_and_the_view_to_settle():
+def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_for_the_tilt_and_the_view_to_settle(monkeypatch):
+    from services.estimator import tilts
+
     scans = GatedScans()
     sweeps = FocusSweeps(scans)
     server = ImageServerCalls(sweeps)
@@ -146,6 +148,12 @@ def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_for_the_tilt_
         scans.free_run.set()
         wait_for(lambda: measured, 10, "the sweep after the tilt measured")
         assert measured[0] >= settles_at
+        # A tilt said to arrive in the far future (a clock out of step, a bad request)
+        # holds the next sweep up for a bounded time only.
+        monkeypatch.setattr(tilts, "MAX_TILT_WAIT_S", 0.3)
+        starts = len(server.named("start_sweep"))
+        assert tracker.tilted(2**63 - 1) is True
+        wait_for(lambda: len(server.named("start_sweep")) > starts, 10, "the sweep after a tilt far in the future")
         # Not measuring the tilts (a run without them, or teaching): nothing to restart.
         core.measure_tilts = False
         assert tracker.tilted() is False
