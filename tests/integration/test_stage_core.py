@@ -182,6 +182,8 @@ class FakeEstimator:
                 "last_estimate": None if self.estimated_seq is None else {"seq": self.estimated_seq}})
         if command is estimator_protocol.MEASURE:
             return estimator_protocol.MeasureReply(rotation=bool(request.rotation), tilts=bool(request.tilts))
+        if command is estimator_protocol.TILTED:
+            return estimator_protocol.TiltedReply(restarted=True)
         raise AssertionError(f"unexpected {command.name}")
 
 
@@ -640,6 +642,10 @@ def test_the_tilts_are_servoed_once_per_fresh_sweep_and_saturated(turning_stage,
     assert first["tilt_action"] == "moved" and first["saturated"]
     assert first["turn_deg"]["tilt_x_deg"] == pytest.approx(-2.0) and 0 < first["turn_deg"]["tilt_y_deg"] < 2.0
     assert world.goniometer.targets()["tilt_x_deg"] == pytest.approx(-2.0)
+    # The estimator is told of the tilt move and when it arrives: the sweep it is scanning
+    # is stale, and the next starts once the tilt has settled.
+    assert ("tilted", {"settles_at_ns": first["command_settled_at_ns"]}) in estimator.asked
+    assert first["tilt_sweeps_restarted"] is True
     # The same sweep again does not move the tilts twice; a sweep scanned during the
     # tilt move is held.
     later = time.time_ns()
@@ -655,6 +661,29 @@ def test_the_tilts_are_servoed_once_per_fresh_sweep_and_saturated(turning_stage,
                                       settled + 1))
     assert done["tilt_action"] == "within tolerance" and core.state == "converged", core.reason
     assert ("measure", {"rotation": None, "tilts": None}) in estimator.asked, "the estimator is told the run ended"
+
+
+def test_an_estimator_that_does_not_hear_of_a_tilt_move_costs_time_not_the_run(turning_stage, tmp_path):
+    """Telling the estimator of a tilt move only saves the sweep it is scanning: an
+    estimator that does not answer it leaves the run servoing (that sweep is then held
+    as stale when it comes), recorded as not restarted."""
+    from semservo.errors import ServiceUnavailable
+
+    stage, _ = turning_stage
+
+    class Deaf(TiltingEstimator):
+        def call(self, command, request=None, /, **fields):
+            if command is estimator_protocol.TILTED:
+                raise ServiceUnavailable("the estimator service does not answer")
+            return super().call(command, request, **fields)
+
+    core = ControllerCore(LocalStage(stage), estimator=Deaf(), runs_dir=tmp_path)
+    core.start(RunSettings(dofs=["x", "y", "alpha", "beta"], converge_frames=1, max_turn_deg=2.0), "ref")
+    now = time.time_ns()
+    moved = core.on_estimate(with_tilt(estimate(1, 0.0, 0.0, scan_started_at_ns=now), 1, 3.0, -1.0, now))
+    assert moved["tilt_action"] == "moved" and moved["tilt_sweeps_restarted"] is False
+    assert core.state == "servoing"
+    core.stop("test done")
 
 
 def test_a_tilt_run_without_a_taught_sweep_is_refused(turning_stage, tmp_path):
