@@ -100,15 +100,29 @@ def scan_once(server: ImageServer, request: protocol.ScanOnceRequest) -> protoco
         source_interval_s=list(image.source_interval_s) if image.source_interval_s else None)
 
 
+def _focus_sweeps(server: ImageServer) -> FocusSweeps:
+    """The server's focus sweeps; ``not_supported`` for a source that cannot focus."""
+    if server.sweeps is None:
+        raise CommandError("not_supported", f"focus sweeps need a source that can focus; the {server.source.name} "
+                                            "source cannot")
+    return server.sweeps
+
+
+def _sweep_reply(state) -> protocol.SweepReply:
+    """A sweep's state as the reply; ``no_such_sweep`` for one that is not the last."""
+    try:
+        return protocol.SweepReply.model_validate(state())
+    except KeyError as error:
+        raise CommandError("no_such_sweep", str(error.args[0])) from None
+
+
 @handlers.handles(protocol.START_SWEEP)
 def start_sweep(server: ImageServer, request: protocol.StartSweepRequest) -> protocol.SweepStarted:
     """Scan the field at each working distance (um offsets from the focus now, larger
     deeper) in the background; fetch the frames with ``sweep``."""
-    if server.sweeps is None:
-        raise CommandError("not_supported", f"focus sweeps need a source that can focus; the {server.source.name} "
-                                            "source cannot")
+    sweeps = _focus_sweeps(server)
     try:
-        return protocol.SweepStarted.model_validate(server.sweeps.start(request.working_distances_um))
+        return protocol.SweepStarted.model_validate(sweeps.start(request.working_distances_um))
     except ValueError as error:
         raise BadRequest(str(error)) from None
     except RuntimeError as error:
@@ -117,20 +131,12 @@ def start_sweep(server: ImageServer, request: protocol.StartSweepRequest) -> pro
 
 @handlers.handles(protocol.SWEEP)
 def sweep(server: ImageServer, request: protocol.SweepRequest) -> protocol.SweepReply:
-    if server.sweeps is None:
-        raise CommandError("not_supported", f"focus sweeps need a source that can focus, not {server.source.name}")
-    try:
-        return protocol.SweepReply.model_validate(server.sweeps.result(request.sweep_id))
-    except KeyError as error:
-        raise CommandError("no_such_sweep", str(error.args[0])) from None
+    sweeps = _focus_sweeps(server)
+    return _sweep_reply(lambda: sweeps.result(request.sweep_id))
 
 
 @handlers.handles(protocol.CANCEL_SWEEP)
 def cancel_sweep(server: ImageServer, request: protocol.SweepRequest) -> protocol.SweepReply:
     """Stop a sweep whose frames will not be used, after the scan in progress."""
-    if server.sweeps is None:
-        raise CommandError("not_supported", f"focus sweeps need a source that can focus, not {server.source.name}")
-    try:
-        return protocol.SweepReply.model_validate(server.sweeps.cancel(request.sweep_id))
-    except KeyError as error:
-        raise CommandError("no_such_sweep", str(error.args[0])) from None
+    sweeps = _focus_sweeps(server)
+    return _sweep_reply(lambda: sweeps.cancel(request.sweep_id))

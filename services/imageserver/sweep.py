@@ -111,25 +111,27 @@ class FocusSweeps:
         with self._lock:
             state.update(result)
 
+    def _last(self, sweep_id) -> dict:
+        """The state of sweep ``sweep_id`` (hold the lock); KeyError if it is not the last."""
+        if not self._state or sweep_id != self._state["sweep_id"]:
+            raise KeyError(f"no sweep {sweep_id!r} (the last one was "
+                           f"{self._state.get('sweep_id') if self._state else 'none'})")
+        return self._state
+
     def result(self, sweep_id) -> dict:
         """The sweep's state; its frames (base64, raw pixels) once done."""
         with self._lock:
-            if not self._state or sweep_id != self._state["sweep_id"]:
-                raise KeyError(f"no sweep {sweep_id!r} (the last one was "
-                               f"{self._state.get('sweep_id') if self._state else 'none'})")
-            return {key: value for key, value in self._state.items() if key != "started_at"}
+            return {key: value for key, value in self._last(sweep_id).items() if key != "started_at"}
 
     def cancel(self, sweep_id) -> dict:
         """Stop sweep ``sweep_id`` after the scan in progress (it ends ``failed``,
         "cancelled"); a sweep already ended is left as it is. Returns its state without
         frames; KeyError if it is not the last sweep."""
         with self._lock:
-            if not self._state or sweep_id != self._state["sweep_id"]:
-                raise KeyError(f"no sweep {sweep_id!r} (the last one was "
-                               f"{self._state.get('sweep_id') if self._state else 'none'})")
-            if self._state["state"] == "scanning":
+            state = self._last(sweep_id)
+            if state["state"] == "scanning":
                 self._cancel.set()
-            return {key: value for key, value in self._state.items() if key not in ("started_at", "frames_b64")}
+            return {key: value for key, value in state.items() if key not in ("started_at", "frames_b64")}
 
     def close(self) -> None:
         self._cancel.set()

@@ -32,8 +32,9 @@ class GatedScans:
 
     def __call__(self, working_distance_um: float) -> AcquiredImage:
         self.entered.release()
-        while not self.free_run.is_set() and not self.gate.acquire(timeout=0.01):
-            pass
+        while not self.free_run.wait(0.01):
+            if self.gate.acquire(blocking=False):
+                break
         self.scanned.append(working_distance_um)
         now = time.time_ns()
         return AcquiredImage(pixels=np.zeros((8, 8), np.uint8), acquired_at_ns=now, scan_started_at_ns=now,
@@ -89,7 +90,7 @@ class ImageServerCalls:
             raise CommandError("busy", str(error)) from None
 
     def close(self) -> None:
-        pass
+        """No socket to close: the calls are direct."""
 
     def named(self, name: str) -> list[int]:
         return [at for called, at in self.calls if called == name]
