@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import threading
 import time
 import uuid
 from collections import Counter, deque
@@ -14,12 +15,21 @@ import numpy as np
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
 from semservo.estimation.raster import SCAN_AVERAGED_FROM_S, scan_lasted_s
-from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
-                                      plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, undoes_foreshortening,
-                                      wants_another_sweep)
+from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, check_sweep, content_shifts, depth_map,
+                                      egi_tilt_between, plan_sweep, pool_depths, pooled_tilt, undo_foreshortening,
+                                      undoes_foreshortening, wants_another_sweep)
+from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
 from semservo.wire import Frame
+
+
+#: The live frames' content positions kept for steadying focus sweeps
+#: (:meth:`EstimatorCore.sweep_content_shifts`): minutes of frames at any usual rate.
+CONTENT_TRACK_FRAMES = 4096
+#: Only frames measured at least this confidently enter the track (the controller's
+#: default line for acting on an estimate).
+CONTENT_TRACK_MIN_CONFIDENCE = 0.5
 
 
 class TeachError(CommandError):
@@ -138,6 +148,8 @@ class TeachPool:
     reference_id: str
     depth_maps: list[np.ndarray] = field(default_factory=list)
     steps: list[float] = field(default_factory=list)
+    #: How far each sweep's content moved while it scanned (px; None: not steadied).
+    content_moved_px: list[float | None] = field(default_factory=list)
     estimate: TiltEstimate | None = None
 
 
@@ -173,6 +185,14 @@ class EstimatorCore:
         #: What the reference looks like (the taught image; for a mask, the live frame it
         #: was drawn on): the gateway and the dashboard show it.
         self.reference_pixels: np.ndarray | None = None
+        #: Where the live frames' content was against the reference, and when (the middle
+        #: of each scan, ns; dx, dy px): a sweep's frames are moved back by it
+        #: (:meth:`sweep_content_shifts`). Appended by the frame thread, read by the tracker's.
+        self.content_track: deque[tuple[int, float, float]] = deque(maxlen=CONTENT_TRACK_FRAMES)
+        self._track_lock = threading.Lock()
+        #: How far the last sweep's content moved while it scanned (px), None when it could
+        #: not be steadied (:meth:`sweep_depths`).
+        self.last_sweep_moved_px: float | None = None
 
     # -- tilts (focus sweeps) ----------------------------------------------------
     @property
@@ -209,11 +229,38 @@ class EstimatorCore:
         return plan_sweep(settings.centre_um, settings.depth_of_field_um, field_um,
                           max_tilt_deg=settings.max_tilt_deg).tolist()
 
-    def sweep_depths(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None
-                     ) -> np.ndarray:
+    def sweep_depths(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None,
+                     frame_times_ns: list[int] | None = None) -> np.ndarray:
         """A sweep's kernel depths (:func:`semservo.estimation.tilt.depth_map`; NaN where
-        no clear peak), refused as :meth:`_tilt_of` refuses input that is not a sweep."""
-        return self._tilt_of(sweep, working_distances, pixel_size_nm)[1]
+        no clear peak); TeachError for input that is not a sweep. With ``frame_times_ns``
+        (the middle of each frame's scan, as the image server tells it), the frames are
+        first moved back by how far their content moved meanwhile, read off the live
+        frames (:meth:`sweep_content_shifts`); ``last_sweep_moved_px`` says how far, or
+        None when the live frames did not cover the sweep (it is then read as scanned)."""
+        if pixel_size_nm is None:
+            raise TeachError("the sweep's frames carry no pixel size: tilts cannot be measured")
+        kernel = self.tilt_settings.kernel_px
+        try:
+            check_sweep(sweep, working_distances, pixel_size_nm / 1000, kernel)
+        except ValueError as error:
+            raise TeachError(f"focus sweep: {error}") from None
+        shifts = self.sweep_content_shifts(frame_times_ns) if frame_times_ns is not None else None
+        if shifts is not None and np.abs(shifts).max() >= min(np.shape(sweep)[1:]) / 4:
+            shifts = None  # not the same view: read as scanned, its kernels' content changed anyway
+        self.counters["sweeps_steadied" if shifts is not None else "sweeps_not_steadied"] += 1
+        self.last_sweep_moved_px = float(np.hypot(*np.ptp(shifts, axis=0))) if shifts is not None else None
+        return depth_map(sweep, working_distances, kernel, pixel_size_nm / 1000, shifts)
+
+    def sweep_content_shifts(self, frame_times_ns: list[int]) -> np.ndarray | None:
+        """How far each frame of a sweep had its content moved from the sweep's middle
+        frame (frames x 2, px), from the live frames' shifts against this reference
+        around the same times (:func:`semservo.estimation.tilt.content_shifts`); None
+        when they do not cover the sweep (no reference, no confident frames then)."""
+        with self._track_lock:
+            track = np.array(self.content_track, dtype=np.float64).reshape(-1, 3)
+        if len(track) < 2:
+            return None
+        return content_shifts(np.asarray(frame_times_ns, dtype=np.float64), track[:, 0], track[:, 1], track[:, 2])
 
     def sweep_again(self, depth_maps: list[np.ndarray], working_distances: list[float],
                     pixel_size_nm: float | None) -> bool:
@@ -246,18 +293,8 @@ class EstimatorCore:
         step = (working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)
         return pooled_tilt(depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000, float(step))
 
-    def _tilt_of(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None):
-        if pixel_size_nm is None:
-            raise TeachError("the sweep's frames carry no pixel size: tilts cannot be measured")
-        kernel = self.tilt_settings.kernel_px
-        try:
-            estimate = estimate_tilt(sweep, working_distances, pixel_size_nm / 1000, kernel=kernel)
-        except ValueError as error:
-            raise TeachError(f"focus sweep: {error}") from None
-        return estimate, depth_map(sweep, working_distances, kernel, pixel_size_nm / 1000)
-
     def teach_tilt(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None,
-                   reference_id: str | None = None) -> dict | None:
+                   reference_id: str | None = None, frame_times_ns: list[int] | None = None) -> dict | None:
         """One focus sweep of the taught pose (with the reference image just taught,
         ``reference_id`` when given), pooled with the ones before it for this reference
         (:func:`semservo.estimation.tilt.pooled_tilt`). Returns the reference's
@@ -271,11 +308,12 @@ class EstimatorCore:
             raise TeachError("teach an image before its tilt sweep")
         if reference_id is not None and reference_id != self.reference.id:
             raise TeachError(f"reference {reference_id} was replaced by {self.reference.id} during its focus sweep")
-        depths = self.sweep_depths(sweep, working_distances, pixel_size_nm)
+        depths = self.sweep_depths(sweep, working_distances, pixel_size_nm, frame_times_ns)
         pool = self.teach_pool
         if pool is None or pool.reference_id != self.reference.id:
             pool = TeachPool(self.reference.id)
         pool.depth_maps.append(depths)
+        pool.content_moved_px.append(self.last_sweep_moved_px)
         pool.steps.append((working_distances[-1] - working_distances[0]) / (len(working_distances) - 1))
         pool.estimate = pooled_tilt(pool.depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000,
                                     float(np.mean(pool.steps)))
@@ -295,25 +333,28 @@ class EstimatorCore:
             "alpha_deg": estimate.alpha_deg, "beta_deg": estimate.beta_deg, "centre_um": estimate.centre_depth,
             "kernels_used": estimate.kernels_used, "frames": len(sweep), "sweeps": estimate.sweeps,
             "alpha_uncertainty_deg": estimate.alpha_uncertainty_deg,
-            "beta_uncertainty_deg": estimate.beta_uncertainty_deg}
+            "beta_uncertainty_deg": estimate.beta_uncertainty_deg,
+            "content_moved_px": [None if moved is None else round(moved, 3) for moved in pool.content_moved_px]}
         return self.reference.describe()
 
     def tilt_from_sweep(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None, *,
                         scan_started_at_ns: int | None = None, source_interval_s=None, took_s: float | None = None,
-                        earlier: list[np.ndarray] | None = None, sweep_depth_map: np.ndarray | None = None) -> dict:
+                        earlier: list[np.ndarray] | None = None, sweep_depth_map: np.ndarray | None = None,
+                        frame_times_ns: list[int] | None = None) -> dict:
         """The tilts of a sweep against the taught one's: alpha and beta (degrees, the
         convention of :mod:`semservo.estimation.tilt`) with a confidence (0: not measured, the
         reason given). With ``method="egi"`` the rotation between the two EGIs.
         ``earlier``: the kernel depths of earlier sweeps of the same view on the same
         working distances (:meth:`sweep_depths`), pooled with this one's
         (:func:`semservo.estimation.tilt.pooled_tilt`); ``sweep_depth_map``: this sweep's, when
-        made already (the tracker made it to decide whether to sweep again)."""
+        made already (the tracker made it to decide whether to sweep again), else made
+        here, steadied with ``frame_times_ns`` (:meth:`sweep_depths`)."""
         reference = self.tilt_reference
         if reference is None or self.reference is None or reference.reference_id != self.reference.id:
             raise NoTiltReference("no tilt reference: teach with tilts=true first (a focus sweep at the taught pose)")
         started = time.perf_counter()
         this = sweep_depth_map if sweep_depth_map is not None else self.sweep_depths(sweep, working_distances,
-                                                                                     pixel_size_nm)
+                                                                                     pixel_size_nm, frame_times_ns)
         maps = [*(earlier or []), this]
         estimate, depths = self.pooled_estimate(maps, working_distances, pixel_size_nm), pool_depths(maps)
         if self.tilt_settings.method == "egi":
@@ -336,6 +377,7 @@ class EstimatorCore:
             "beta_uncertainty_deg": estimate.beta_uncertainty_deg,
             "working_distances_um": [float(value) for value in working_distances],
             "scan_started_at_ns": scan_started_at_ns, "source_interval_s": source_interval_s, "sweep_s": took_s,
+            "content_moved_px": self.last_sweep_moved_px,
             "estimation_ms": (time.perf_counter() - started) * 1e3,
             # A small depth map for the dashboard: kernel depths from the centre (um), null where unclear.
             "depth_map_um": [[None if not np.isfinite(v) else round(float(v - estimate.centre_depth), 3)
@@ -355,8 +397,10 @@ class EstimatorCore:
             raise TeachError(str(error)) from None
         # Only now, with the new estimator built, is the old reference replaced.
         self.estimator = estimator
-        # A new reference needs its own sweep.
+        # A new reference needs its own sweep, and its own track of the content.
         self.tilt_reference, self.last_tilt, self.tilt_teach, self.teach_pool = None, None, None, None
+        with self._track_lock:
+            self.content_track.clear()
         self.reference_pixels = np.array(pixels if shown is None else shown)
         self.reference = Reference(
             id=uuid.uuid4().hex[:12], kind=kind, shape=pixels.shape, pixel_size_nm=pixel_size_nm,
@@ -482,6 +526,8 @@ class EstimatorCore:
         self.reference_pixels = None
         self.tilt_reference, self.last_tilt, self.measure_tilts, self.tilt_teach = None, None, False, None
         self.teach_pool = None
+        with self._track_lock:
+            self.content_track.clear()
         return {"cleared": had}
 
     # -- per frame ------------------------------------------------------------
@@ -524,6 +570,10 @@ class EstimatorCore:
         )
         self.counters["estimates"] += 1
         self.last_estimate = estimate
+        if estimate.confidence >= CONTENT_TRACK_MIN_CONFIDENCE and np.isfinite([motion.dx, motion.dy]).all():
+            with self._track_lock:
+                self.content_track.append((scan_middle_ns(frame.header.scan_started_at_ns, frame.header.acquired_at_ns),
+                                           float(motion.dx), float(motion.dy)))
         return estimate
 
     def _scanned_slowly(self, frame: Frame) -> bool:

@@ -241,7 +241,7 @@ class TiltTracker:
                 sweep, reply = run_sweep(self.client(), core.next_sweep(), self.timeout_s, cancelled=replaced,
                                          progress=progress, stopping=self._stop.is_set)
                 taught = core.teach_tilt(sweep, reply["working_distances_um"], reply["pixel_size_nm"],
-                                         reference_id=reference_id)
+                                         reference_id=reference_id, frame_times_ns=reply.get("frame_times_ns"))
                 if taught is not None:
                     break
                 pinned = core.teach_pool.estimate
@@ -289,7 +289,7 @@ class TiltTracker:
                 if not core.measure_tilts:
                     return
                 distances, pixel_nm = reply["working_distances_um"], reply["pixel_size_nm"]
-                depths = core.sweep_depths(sweep, distances, pixel_nm)
+                depths = core.sweep_depths(sweep, distances, pixel_nm, reply.get("frame_times_ns"))
                 if not core.sweep_again([*earlier, depths], distances, pixel_nm):
                     break
                 earlier.append(depths)

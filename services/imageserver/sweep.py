@@ -25,7 +25,7 @@ from typing import Callable, ContextManager
 
 import numpy as np
 
-from semservo.instruments import AcquiredImage
+from semservo.instruments import AcquiredImage, scan_middle_ns
 
 log = logging.getLogger("imageserver.sweep")
 
@@ -98,6 +98,7 @@ class FocusSweeps:
                 "pixel_size_nm": first.pixel_size_nm, "magnification": first.magnification,
                 "scan_started_at_ns": first.scan_started_at_ns or first.acquired_at_ns,
                 "acquired_at_ns": last.acquired_at_ns,
+                "frame_times_ns": [scan_middle_ns(image.scan_started_at_ns, image.acquired_at_ns) for image in images],
                 "source_interval_s": ([first.source_interval_s[0], last.source_interval_s[1]]
                                       if first.source_interval_s and last.source_interval_s else None),
                 "took_s": time.monotonic() - state["started_at"],

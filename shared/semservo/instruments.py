@@ -58,6 +58,15 @@ class AcquiredImage(ImageMetadata):
         return {key: getattr(self, key) for key in ACQUISITION_FIELDS if getattr(self, key) is not None}
 
 
+def scan_middle_ns(scan_started_at_ns: int | None, acquired_at_ns: int) -> int:
+    """When a frame's content was seen, on average: the middle of its scan, or its
+    acquisition time where the scan's start is unknown (then every frame of the source
+    is late by the same scan time, and differences between frames still hold)."""
+    if scan_started_at_ns is None or scan_started_at_ns > acquired_at_ns:
+        return int(acquired_at_ns)
+    return (int(scan_started_at_ns) + int(acquired_at_ns)) // 2
+
+
 def capabilities(source: Any) -> set[str]:
     """What an image source can do beyond acquiring frames (``scan_settings``,
     ``focus``, ``scan_once``): from its ``capabilities()``, none when it has none."""

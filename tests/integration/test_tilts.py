@@ -73,6 +73,10 @@ def test_a_teach_with_tilts_answers_at_once_and_reports_its_sweeps_progress(syst
                     seen.add(now.tilt_teach.scanned), 120, "the taught pose's sweep")
     assert done.tilt_teach.state == "done" and done.tilt["frames"] == done.tilt_teach.frames >= 7
     assert len(seen) >= 2, "the scans were counted as they came"
+    # Every sweep was steadied: the lab drifts while it scans, and the estimator moved each
+    # frame back by how far the live frames between them had seen the content move.
+    moved = done.tilt["content_moved_px"]
+    assert len(moved) == done.tilt["sweeps"] and all(isinstance(each, float) and each > 0 for each in moved), moved
 
 
 def test_servoes_all_five_degrees_of_freedom_through_the_api(system):

@@ -181,8 +181,8 @@ def test_a_focus_sweep_scans_each_working_distance_in_the_background():
 
     def scan(working_distance_um: float) -> AcquiredImage:
         scanned.append(working_distance_um)
-        return AcquiredImage(pixels=np.full((8, 8), len(scanned), np.uint8), acquired_at_ns=len(scanned),
-                             scan_started_at_ns=len(scanned), source_interval_s=(len(scanned), len(scanned) + 0.5),
+        return AcquiredImage(pixels=np.full((8, 8), len(scanned), np.uint8), acquired_at_ns=100 * len(scanned) + 60,
+                             scan_started_at_ns=100 * len(scanned), source_interval_s=(len(scanned), len(scanned) + 0.5),
                              pixel_size_nm=70.0)
 
     sweeps = FocusSweeps(scan)
@@ -195,6 +195,7 @@ def test_a_focus_sweep_scans_each_working_distance_in_the_background():
     assert result["state"] == "done" and scanned == [-1.0, 0.0, 1.0]
     frames = decode_sweep(result)
     assert frames.shape == (3, 8, 8) and frames[2, 0, 0] == 3 and result["source_interval_s"] == [1, 3.5]
+    assert result["frame_times_ns"] == [130, 230, 330]  # the middle of each frame's scan
     with pytest.raises(KeyError):
         sweeps.result("nope")
     for bad in ([0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 1.0, 3.0], [0.0, float("nan"), 1.0], "0,1,2", [0, True, 2]):

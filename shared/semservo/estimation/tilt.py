@@ -370,17 +370,10 @@ def fit_plane(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.nd
     return coefficients, used, rms
 
 
-def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32) -> TiltEstimate:
-    """The two tilts from a focus sweep: frames of the same field at the working
-    distances ``working_distances`` (evenly spaced, increasing, same unit as
-    ``pixel_size``: e.g. um and um per pixel).
-
-    ValueError for input that cannot be a sweep (under 3 frames, a length mismatch,
-    unevenly spaced or non-finite distances, non-finite pixels, kernels that do not fit).
-    A sweep that cannot tell the tilts (too few kernels with a clear focus peak: a
-    flat, featureless scene, or a sweep that misses focus) gives confidence 0 and the
-    reason, never a made-up angle (the angles are NaN).
-    """
+def check_sweep(sweep, working_distances, pixel_size: float, kernel: int = 32) -> None:
+    """ValueError, saying what is wrong, for input that cannot be a focus sweep: under 3
+    frames, a length mismatch, unevenly spaced or non-finite distances, non-finite pixels,
+    a pixel size that is not a positive number, kernels that do not fit."""
     sweep = np.asarray(sweep)
     working_distances = np.asarray(working_distances, dtype=np.float64)
     if sweep.ndim != 3 or sweep.dtype.kind not in "uif":
@@ -398,8 +391,24 @@ def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32)
         raise ValueError(f"pixel_size must be a positive number, got {pixel_size!r}")
     if kernel < 4 or min(sweep.shape[1:]) < 2 * kernel:
         raise ValueError(f"{kernel} px kernels do not fit a {sweep.shape[2]} x {sweep.shape[1]} image twice")
-    depths = depth_map(sweep, working_distances, kernel, pixel_size)
-    return tilt_from_depths(depths, kernel, pixel_size, float(steps.mean()))
+
+
+def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32,
+                  content_shifts_px=None) -> TiltEstimate:
+    """The two tilts from a focus sweep: frames of the same field at the working
+    distances ``working_distances`` (evenly spaced, increasing, same unit as
+    ``pixel_size``: e.g. um and um per pixel). ``content_shifts_px``: how far each
+    frame's content had moved while the sweep scanned (:func:`depth_map`).
+
+    ValueError for input that cannot be a sweep (:func:`check_sweep`). A sweep that
+    cannot tell the tilts (too few kernels with a clear focus peak: a flat, featureless
+    scene, or a sweep that misses focus) gives confidence 0 and the reason, never a
+    made-up angle (the angles are NaN).
+    """
+    check_sweep(sweep, working_distances, pixel_size, kernel)
+    working_distances = np.asarray(working_distances, dtype=np.float64)
+    depths = depth_map(sweep, working_distances, kernel, pixel_size, content_shifts_px)
+    return tilt_from_depths(depths, kernel, pixel_size, float(np.diff(working_distances).mean()))
 
 
 def texture_offsets(sweep: np.ndarray, curves: FocusCurves, kernel: int,
@@ -622,19 +631,116 @@ EGI_CAP_DEG = 35.0
 EGI_GRID = 141
 
 
-def depth_map(sweep, working_distances, kernel: int = 32, pixel_size: float | None = None) -> np.ndarray:
+def depth_map(sweep, working_distances, kernel: int = 32, pixel_size: float | None = None,
+              content_shifts_px=None) -> np.ndarray:
     """Each kernel's depth at its centre (NaN where it has no clear focus peak): eq. 13
     without the noise's share and the peak fit (:func:`noise_free_focus_curves`,
     :func:`clear_focus_peaks`), the first step of both methods; with ``pixel_size`` (the
     sweep's unit per pixel), each depth is moved from where the kernel's texture lies to
-    the kernel's centre (:func:`texture_offsets`, :func:`depths_at_kernel_centres`)."""
+    the kernel's centre (:func:`texture_offsets`, :func:`depths_at_kernel_centres`).
+
+    ``content_shifts_px`` (frames x 2: how far each frame's content had moved, right and
+    down, from the sweep's middle frame; :func:`content_shifts`): the frames are first
+    moved back (:func:`steady_sweep`), and kernels at the border that would be read
+    partly from mirrored pixels (:data:`MIRRORED_KERNEL_FRACTION`) are left out."""
+    if content_shifts_px is not None:
+        sweep = steady_sweep(sweep, content_shifts_px)
     sweep = np.asarray(sweep)
     working_distances = np.asarray(working_distances, dtype=np.float64)
     curves = noise_free_focus_curves(sweep, kernel)
     depths = clear_focus_peaks(curves, working_distances)
+    if content_shifts_px is not None:
+        depths = np.where(mirrored_kernels(content_shifts_px, sweep.shape[1:], kernel), np.nan, depths)
     if pixel_size is None:
         return depths
     return depths_at_kernel_centres(depths, texture_offsets(sweep, curves, kernel), kernel, pixel_size)
+
+
+# --------------------------------------------------------------------------------------
+# A sweep whose content moved while it scanned
+
+#: Of a frame moved back (:func:`steady_sweep`), a kernel that would take more than this
+#: fraction of its width or height from the mirrored margin is left out of the depths.
+MIRRORED_KERNEL_FRACTION = 0.125
+def content_shifts(frame_times, track_times, track_dx_px, track_dy_px) -> np.ndarray | None:
+    """How far each frame of a sweep had its content moved (frames x 2: right and down,
+    px) from the sweep's middle frame, read off a track of the same view's content
+    position over time: the live frames' shifts against the reference, at the middle of
+    their scans (``track_*``), interpolated linearly to the middle of each sweep frame's
+    scan (``frame_times``, the same clock). None when the track does not cover the sweep
+    (fewer than two points, or a frame more than the track's typical spacing before its
+    first point or after its last).
+
+    Why: a sweep takes seconds to minutes, and drift (or the stage's x, y moves) carries
+    its content across the kernels meanwhile. Texture entering and leaving a kernel
+    changes its focus curve in time, which moves its peak: the fake lab's drift of
+    2.5 nm/s over a 28 s sweep (1 px) read the hole's tilts 0.08 degree off in the same
+    direction in every sweep, which pooling does not narrow. Measured on the live frames
+    (sharp, at the nominal focus), the moves are known to a few hundredths of a pixel;
+    measured on the sweep's own frames they are not (blurred frames register 0.2-0.45 px
+    off)."""
+    frame_times = np.asarray(frame_times, dtype=np.float64)
+    times, first = np.unique(np.asarray(track_times, dtype=np.float64), return_index=True)
+    if frame_times.ndim != 1 or frame_times.size == 0 or times.size < 2 or not np.isfinite(frame_times).all():
+        return None
+    spacing = float(np.median(np.diff(times)))
+    if frame_times.min() < times[0] - spacing or frame_times.max() > times[-1] + spacing:
+        return None
+    dx = np.interp(frame_times, times, np.asarray(track_dx_px, dtype=np.float64)[first])
+    dy = np.interp(frame_times, times, np.asarray(track_dy_px, dtype=np.float64)[first])
+    middle = frame_times.size // 2
+    return np.column_stack([dx - dx[middle], dy - dy[middle]])
+
+
+def steady_sweep(sweep, content_shifts_px) -> np.ndarray:
+    """The sweep with each frame moved back by its content's move (:func:`content_shifts`),
+    as float32: a phase ramp over the frame's mirror-symmetric extension (the frame and its
+    mirror images, twice its size: periodic without a jump at the wrap, so the ramp rings
+    nowhere), which moves it by fractions of a pixel without smoothing it (interpolation
+    would blur each frame by its own fraction, and the focus measure with it)."""
+    frames = np.asarray(sweep)
+    shifts = np.asarray(content_shifts_px, dtype=np.float64)
+    if frames.ndim != 3 or shifts.shape != (frames.shape[0], 2) or not np.isfinite(shifts).all():
+        raise ValueError(f"content shifts must be finite, one (dx, dy) per frame: {shifts.shape} for "
+                         f"{frames.shape[0] if frames.ndim == 3 else '?'} frames")
+    rows, cols = frames.shape[1:]
+    if np.abs(shifts).max(initial=0.0) >= min(rows, cols) / 2:
+        raise ValueError("content shifts of half the frame or more: not the same view")
+    # Half the frame mirrored on each side: the extension [mirror, frame, mirror] is
+    # (frame, its mirror) turned, periodic over twice the frame and continuous at the wrap.
+    pad = ((rows // 2, rows - rows // 2), (cols // 2, cols - cols // 2))
+    shape = (2 * rows, 2 * cols)
+    along_rows, along_cols = np.fft.fftfreq(shape[0])[:, None], np.fft.rfftfreq(shape[1])[None, :]
+    steadied = np.empty(frames.shape, np.float32)
+    for index, (frame, (dx, dy)) in enumerate(zip(frames, shifts)):
+        if dx == 0 and dy == 0:
+            steadied[index] = frame
+            continue
+        extended = np.pad(np.asarray(frame, dtype=np.float32), pad, mode="symmetric")
+        ramp = np.exp(2j * np.pi * (along_rows * dy + along_cols * dx)).astype(np.complex64)
+        moved = np.fft.irfft2(np.fft.rfft2(extended) * ramp, s=shape)
+        steadied[index] = moved[pad[0][0]:pad[0][0] + rows, pad[1][0]:pad[1][0] + cols]
+    return steadied
+
+
+def mirrored_kernels(content_shifts_px, shape: tuple[int, int], kernel: int) -> np.ndarray:
+    """Which kernels (kernel rows x cols) of a sweep moved back by ``content_shifts_px``
+    (:func:`steady_sweep`) would take more than ``MIRRORED_KERNEL_FRACTION`` of their
+    width or height from the mirrored margin in some frame: content that moved right
+    is moved back left, and the frame's right edge is then mirrored pixels."""
+    shifts = np.asarray(content_shifts_px, dtype=np.float64)
+    rows, cols = shape
+    kernel_rows, kernel_cols = rows // kernel, cols // kernel
+
+    def along(length: int, count: int, moves: np.ndarray) -> np.ndarray:
+        starts = np.arange(count) * kernel
+        low = max(-float(moves.min(initial=0.0)), 0.0)  # content moved up/left: mirrored at the start
+        high = max(float(moves.max(initial=0.0)), 0.0)  # moved down/right: mirrored at the end
+        from_low = np.clip(low - starts, 0, kernel)
+        from_high = np.clip(starts + kernel - (length - high), 0, kernel)
+        return np.maximum(from_low, from_high) > MIRRORED_KERNEL_FRACTION * kernel
+
+    return along(rows, kernel_rows, shifts[:, 1])[:, None] | along(cols, kernel_cols, shifts[:, 0])[None, :]
 
 
 def kernel_normals(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.ndarray, np.ndarray]:

@@ -75,7 +75,10 @@ class Reference(CommandReply):
     polygon: list[list[float]] | None = None
     tilt: dict[str, Any] | None = Field(None, description="the taught pose's sweeps: alpha_deg, beta_deg of its plane, "
                                                           "centre_um, kernels_used, frames (of each sweep), sweeps "
-                                                          "(pooled), alpha_uncertainty_deg, beta_uncertainty_deg")
+                                                          "(pooled), alpha_uncertainty_deg, beta_uncertainty_deg, "
+                                                          "content_moved_px (per sweep, how far its content moved "
+                                                          "while it scanned, its frames moved back by it; null: not "
+                                                          "steadied)")
     tilt_teach: TiltTeach | None = None
 
 

@@ -82,6 +82,9 @@ class SweepReply(CommandReply):
     magnification: float | None = None
     scan_started_at_ns: int | None = None
     acquired_at_ns: int | None = None
+    frame_times_ns: list[int] | None = Field(None, description="done: the middle of each frame's scan (its acquisition "
+                                                                "time where the scan's start is unknown), the clock of "
+                                                                "the frames' headers")
     source_interval_s: list[float] | None = None
     took_s: float | None = None
 
