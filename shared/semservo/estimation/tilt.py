@@ -662,6 +662,9 @@ def depth_map(sweep, working_distances, kernel: int = 32, pixel_size: float | No
 #: Of a frame moved back (:func:`steady_sweep`), a kernel that would take more than this
 #: fraction of its width or height from the mirrored margin is left out of the depths.
 MIRRORED_KERNEL_FRACTION = 0.125
+#: The mirrored margin around a frame moved back (:func:`steady_sweep`), beyond its
+#: largest move: it fades to the frame's mean over this width.
+STEADY_MARGIN_PX = 24
 def content_shifts(frame_times, track_times, track_dx_px, track_dy_px) -> np.ndarray | None:
     """How far each frame of a sweep had its content moved (frames x 2: right and down,
     px) from the sweep's middle frame, read off a track of the same view's content
@@ -694,10 +697,12 @@ def content_shifts(frame_times, track_times, track_dx_px, track_dy_px) -> np.nda
 
 def steady_sweep(sweep, content_shifts_px) -> np.ndarray:
     """The sweep with each frame moved back by its content's move (:func:`content_shifts`),
-    as float32: a phase ramp over the frame's mirror-symmetric extension (the frame and its
-    mirror images, twice its size: periodic without a jump at the wrap, so the ramp rings
-    nowhere), which moves it by fractions of a pixel without smoothing it (interpolation
-    would blur each frame by its own fraction, and the focus measure with it)."""
+    as float32: a phase ramp over the frame padded with its mirror image, which moves it
+    by fractions of a pixel without smoothing it (interpolation would blur each frame by
+    its own fraction, and the focus measure with it). The mirrored margin fades to the
+    frame's mean (a raised cosine over ``STEADY_MARGIN_PX`` and the largest move), so
+    that the padded frame is continuous where the transform wraps it round and the ramp
+    does not ring; the frame's own pixels are not weighted."""
     frames = np.asarray(sweep)
     shifts = np.asarray(content_shifts_px, dtype=np.float64)
     if frames.ndim != 3 or shifts.shape != (frames.shape[0], 2) or not np.isfinite(shifts).all():
@@ -706,21 +711,52 @@ def steady_sweep(sweep, content_shifts_px) -> np.ndarray:
     rows, cols = frames.shape[1:]
     if np.abs(shifts).max(initial=0.0) >= min(rows, cols) / 2:
         raise ValueError("content shifts of half the frame or more: not the same view")
-    # Half the frame mirrored on each side: the extension [mirror, frame, mirror] is
-    # (frame, its mirror) turned, periodic over twice the frame and continuous at the wrap.
-    pad = ((rows // 2, rows - rows // 2), (cols // 2, cols - cols // 2))
-    shape = (2 * rows, 2 * cols)
-    along_rows, along_cols = np.fft.fftfreq(shape[0])[:, None], np.fft.rfftfreq(shape[1])[None, :]
+    margin = int(np.ceil(np.abs(shifts).max(initial=0.0))) + STEADY_MARGIN_PX
+    shape = (_fast_length(rows + 2 * margin), _fast_length(cols + 2 * margin))
+    top, left = (shape[0] - rows) // 2, (shape[1] - cols) // 2
+    pad = ((top, shape[0] - rows - top), (left, shape[1] - cols - left))
+    fade = _fade(shape[0], *pad[0])[:, None] * _fade(shape[1], *pad[1])[None, :]
+    along_rows, along_cols = np.fft.fftfreq(shape[0]), np.fft.rfftfreq(shape[1])
     steadied = np.empty(frames.shape, np.float32)
     for index, (frame, (dx, dy)) in enumerate(zip(frames, shifts)):
         if dx == 0 and dy == 0:
             steadied[index] = frame
             continue
-        extended = np.pad(np.asarray(frame, dtype=np.float32), pad, mode="symmetric")
-        ramp = np.exp(2j * np.pi * (along_rows * dy + along_cols * dx)).astype(np.complex64)
-        moved = np.fft.irfft2(np.fft.rfft2(extended) * ramp, s=shape)
-        steadied[index] = moved[pad[0][0]:pad[0][0] + rows, pad[1][0]:pad[1][0] + cols]
+        pixels = np.asarray(frame, dtype=np.float32)
+        mean = np.float32(pixels.mean())
+        padded = mean + fade * (np.pad(pixels, pad, mode="symmetric") - mean)
+        # The ramp exp(2 pi i (f_y dy + f_x dx)) as the product of its two separable halves.
+        ramp = (np.exp(2j * np.pi * along_rows * dy).astype(np.complex64)[:, None]
+                * np.exp(2j * np.pi * along_cols * dx).astype(np.complex64)[None, :])
+        moved = np.fft.irfft2(np.fft.rfft2(padded) * ramp, s=shape)
+        steadied[index] = moved[top:top + rows, left:left + cols]
     return steadied
+
+
+def _fast_length(length: int) -> int:
+    """The smallest length of at least ``length`` with no prime factor above 5 (quick to
+    transform)."""
+    best, twos = None, 1
+    while twos < 2 * length:
+        threes = twos
+        while threes < 2 * length:
+            fives = threes
+            while fives < length:
+                fives *= 5
+            best = fives if best is None else min(best, fives)
+            threes *= 3
+        twos *= 2
+    return best
+
+
+def _fade(length: int, before: int, after: int) -> np.ndarray:
+    """1 over the frame, a raised cosine down towards 0 over the margins before and after it."""
+    weight = np.ones(length, np.float32)
+    if before:
+        weight[:before] = 0.5 * (1 - np.cos(np.pi * (np.arange(before) + 0.5) / before))
+    if after:
+        weight[length - after:] = 0.5 * (1 + np.cos(np.pi * (np.arange(after) + 0.5) / after))
+    return weight
 
 
 def mirrored_kernels(content_shifts_px, shape: tuple[int, int], kernel: int) -> np.ndarray:
