@@ -60,6 +60,15 @@ def test_the_moves_are_read_off_the_live_frames_from_the_sweeps_middle_frame():
     assert content_shifts([29.0, 29.9, 30.0], track_times, track_times, track_times)[2, 0] == pytest.approx(0.0)
     assert content_shifts([28.0, 29.0, 31.5], track_times, track_times, track_times) is None
     assert content_shifts([0.5, 1.0], [1.0], [0.0], [0.0]) is None  # one live frame is no track
+    # One wrong live estimate (a repeated pattern read a period off) is not followed; a
+    # stage's step is.
+    wrong = 0.1 * track_times
+    wrong[12] += 25.0
+    # (Read as its neighbour there: a frame's drift, 0.1 px, off, not 25.)
+    assert content_shifts([10.5, 12.0, 14.5], track_times, wrong, 0 * track_times) == pytest.approx(
+        np.array([[-0.15, 0.0], [0.0, 0.0], [0.25, 0.0]]), abs=0.11)
+    step = np.where(track_times < 12, 0.0, 8.0)
+    assert content_shifts([10.0, 11.0, 14.0], track_times, step, step)[2] == pytest.approx([8.0, 8.0])
 
 
 def test_border_kernels_are_left_out_where_mirrored_pixels_would_fill_an_eighth_of_them():

@@ -681,7 +681,8 @@ def content_shifts(frame_times, track_times, track_dx_px, track_dy_px) -> np.nda
     direction in every sweep, which pooling does not narrow. Measured on the live frames
     (sharp, at the nominal focus), the moves are known to a few hundredths of a pixel;
     measured on the sweep's own frames they are not (blurred frames register 0.2-0.45 px
-    off)."""
+    off). Each live shift is first taken as the median of it and its neighbours', so that
+    one wrong estimate is not followed."""
     frame_times = np.asarray(frame_times, dtype=np.float64)
     times, first = np.unique(np.asarray(track_times, dtype=np.float64), return_index=True)
     if frame_times.ndim != 1 or frame_times.size == 0 or times.size < 2 or not np.isfinite(frame_times).all():
@@ -689,10 +690,21 @@ def content_shifts(frame_times, track_times, track_dx_px, track_dy_px) -> np.nda
     spacing = float(np.median(np.diff(times)))
     if frame_times.min() < times[0] - spacing or frame_times.max() > times[-1] + spacing:
         return None
-    dx = np.interp(frame_times, times, np.asarray(track_dx_px, dtype=np.float64)[first])
-    dy = np.interp(frame_times, times, np.asarray(track_dy_px, dtype=np.float64)[first])
+    dx = np.interp(frame_times, times, _median_of_three(np.asarray(track_dx_px, dtype=np.float64)[first]))
+    dy = np.interp(frame_times, times, _median_of_three(np.asarray(track_dy_px, dtype=np.float64)[first]))
     middle = frame_times.size // 2
     return np.column_stack([dx - dx[middle], dy - dy[middle]])
+
+
+def _median_of_three(values: np.ndarray) -> np.ndarray:
+    """Each value replaced by the median of it and its two neighbours (the ends kept): one
+    wrong live estimate (a repeated pattern read a period off) is not followed, while a
+    drift or a stage's step is, a frame late at most."""
+    if values.size < 3:
+        return values
+    smoothed = values.copy()
+    smoothed[1:-1] = np.median(np.stack([values[:-2], values[1:-1], values[2:]]), axis=0)
+    return smoothed
 
 
 def steady_sweep(sweep, content_shifts_px) -> np.ndarray:
