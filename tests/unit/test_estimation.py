@@ -357,9 +357,12 @@ def test_the_estimator_needs_no_private_call_before_any_public_one(frame):
     """Every public method works on a fresh estimator (the angle's refinement used to be
     public but worked only after a private call had halved the frame)."""
     public = [name for name in dir(MotionEstimator) if not name.startswith("_")]
-    assert set(public) == {"estimate", "min_confidence"}
+    assert set(public) == {"estimate", "min_confidence", "prepare_rows"}
     motion = MotionEstimator(frame[:256, :256]).estimate(rotated(frame[:256, :256], 2.0))
     assert motion.rotation_deg == pytest.approx(2.0, abs=0.05)
+    fresh = MotionEstimator(frame[:256, :256])
+    fresh.prepare_rows(64)  # ahead of the partial frame it is for, on a fresh estimator
+    assert fresh.estimate(rotated(frame[:256, :256], 2.0), first_row=64).rotation_deg == pytest.approx(2.0, abs=0.05)
 
 
 def test_frames_far_below_6_db_are_filtered_by_default_and_clean_ones_are_not(frame):

@@ -33,6 +33,10 @@ class Motion:
     #: How well the image itself pins the angle down (1 when rotation is not measured);
     #: ``confidence`` is never above it. See :func:`confidence_from_sharpness`.
     rotation_confidence: float = 1.0
+    #: The first of the frame's rows the estimate was measured on (0: the whole frame; a
+    #: partial frame leaves out the rows scanned while the stage still moved, see
+    #: :meth:`MotionEstimator.estimate`).
+    first_row: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -45,6 +49,7 @@ class Motion:
             "psr": self.psr,
             "filtered": self.filtered,
             "rotation_confidence": self.rotation_confidence,
+            "first_row": self.first_row,
         }
 
 

@@ -9,14 +9,15 @@ convention and confidence: :mod:`semservo.estimation`.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
 
-from semservo.estimation.common import Motion, as_image
-from semservo.estimation.masks import mask_reference
-from semservo.estimation.raster import ScanReference, scan_averaged_shift
+from semservo.estimation.common import MIN_SIZE, Motion, as_image
+from semservo.estimation.masks import mask_reference, polygon_mask
+from semservo.estimation.raster import BAND_ROWS, ScanReference, scan_averaged_shift
 from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search, kept_near
 from semservo.estimation.rotation import (
     ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_distinct,
@@ -199,6 +200,15 @@ class MotionEstimator:
         if precision not in ("full", "fast"):
             raise ValueError(f"precision must be 'full' or 'fast', not {precision!r}")
         reference = as_image(reference, "reference")
+        # What a partial frame's estimator (:meth:`_rows_estimator`) is made from: the
+        # reference as given, the mask as a boolean array, and the other settings.
+        self._settings = dict(window=window, snr_threshold_db=snr_threshold_db, band=band, fft_effort=fft_effort,
+                              angles=angles, mask_band=mask_band, precision=precision)
+        self._given_reference = reference
+        self._mask_region = None if mask is None else (
+            mask.astype(bool) if isinstance(mask, np.ndarray) and mask.ndim == 2 else polygon_mask(reference.shape, mask))
+        self._rows_estimators: dict[tuple[int, bool], MotionEstimator] = {}
+        self._rows_lock = threading.Lock()
         if mask is not None:
             reference = mask_reference(reference, mask)
             rotation = False
@@ -224,13 +234,21 @@ class MotionEstimator:
                                                       self._reference_half_noise, filtered)
             for filtered in (False, True)}
 
-    def estimate(self, image, *, rotation: bool | None = None, scan_averaged: bool | None = None) -> Motion:
+    def estimate(self, image, *, rotation: bool | None = None, scan_averaged: bool | None = None,
+                 first_row: int = 0) -> Motion:
         """Motion of ``image`` against the reference. ValueError for bad input.
 
         ``rotation=False`` skips the rotation measurement of an estimator made with
         rotation (a third of the time, when nothing can turn); None: as made.
         ``scan_averaged=False`` skips the scan-averaged refinement of an estimator made
         with it (a frame scanned too fast for it to matter); None: as made.
+
+        ``first_row`` > 0 measures a partial frame: only the rows from ``first_row`` on
+        (rounded up to a whole band of :data:`~.raster.BAND_ROWS`, the returned Motion's
+        ``first_row``), against the reference's same rows, as when the rows above were
+        scanned while the stage still moved; the turn and shift are still about the
+        frame's centre. The estimator for those rows is made once and kept (one per
+        band). ValueError when fewer than :data:`~.common.MIN_SIZE` rows would be left.
 
         Translation (``precision="full"``, the default):
 
@@ -264,6 +282,8 @@ class MotionEstimator:
         """
         if scan_averaged and not self.scan_averaged:
             raise ValueError("this estimator was made without scan averaging (scan_averaged=False)")
+        if first_row:
+            return self._estimate_rows(image, int(first_row), rotation, scan_averaged)
         image, statistics = self._check(image)
         motion = self._estimate(image, statistics, rotation)
         if self.scan_averaged and scan_averaged is not False and motion.confidence >= self.min_confidence:
@@ -271,6 +291,48 @@ class MotionEstimator:
             if refined is not None:
                 return replace(motion, dx=refined.dx, dy=refined.dy)
         return motion
+
+    def _estimate_rows(self, image, first_row: int, rotation: bool | None, scan_averaged: bool | None) -> Motion:
+        """:meth:`estimate` on the rows from ``first_row`` (rounded up to a band)."""
+        rows = -(-first_row // BAND_ROWS) * BAND_ROWS
+        if first_row < 0 or self.shape[0] - rows < MIN_SIZE:
+            raise ValueError(f"first_row {first_row}: a partial frame needs at least {MIN_SIZE} of the "
+                             f"{self.shape[0]} rows from a band's start")
+        array = np.asarray(image)
+        if array.shape != self.shape:
+            raise ValueError(f"image is {array.shape[1] if array.ndim == 2 else array.shape} x "
+                             f"{array.shape[0]}, the reference is {self.shape[1]} x {self.shape[0]}")
+        turns = self.rotation and rotation is not False
+        motion = self._rows_estimator(rows, turns).estimate(array[rows:], scan_averaged=scan_averaged)
+        # The rows' estimator turns about their own centre, ``rows / 2`` below the
+        # frame's: the same motion about the frame's centre moves by (R - I) times that.
+        theta = np.radians(motion.rotation_deg)
+        below = rows / 2.0
+        dx = motion.dx - np.sin(theta) * below
+        dy = motion.dy - (np.cos(theta) - 1.0) * below
+        return replace(motion, dx=float(dx), dy=float(dy), first_row=rows)
+
+    def prepare_rows(self, first_row: int, rotation: bool | None = None) -> None:
+        """Make now what a partial frame from ``first_row`` will be measured with (the
+        reference's rows from its band on: FFT plans, spectra, the turn's references), so
+        that its estimate takes no longer than a whole frame's. Safe to call from another
+        thread while this estimator measures frames (e.g. while the frame is scanned); a
+        no-op for rows that cannot be a partial frame."""
+        rows = -(-int(first_row) // BAND_ROWS) * BAND_ROWS
+        if 0 < rows and self.shape[0] - rows >= MIN_SIZE:
+            self._rows_estimator(rows, self.rotation and rotation is not False)
+
+    def _rows_estimator(self, rows: int, rotation: bool) -> "MotionEstimator":
+        """The estimator of the reference's rows from ``rows`` on (with the turn's
+        references or not), made once; one lock, so a frame waits for one being made."""
+        with self._rows_lock:
+            made = self._rows_estimators.get((rows, rotation))
+            if made is None:
+                mask = None if self._mask_region is None else self._mask_region[rows:]
+                made = MotionEstimator(self._given_reference[rows:], rotation=rotation, mask=mask,
+                                       scan_averaged=self.scan_averaged, **self._settings)
+                self._rows_estimators[(rows, rotation)] = made
+            return made
 
     def _estimate(self, image: np.ndarray, statistics: FrameStatistics, rotation: bool | None) -> Motion:
         mean = float(statistics.mean)

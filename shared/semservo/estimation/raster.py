@@ -54,6 +54,7 @@ Pure functions on arrays; :class:`semservo.estimation.MotionEstimator` calls the
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import cv2
@@ -96,6 +97,34 @@ BAND_UNCERTAINTY_PX = 0.5
 #: counts (a replay at 100 frames/s and more, where the loop keeps its p99 under 10 ms).
 #: SEM frames at high magnification take 0.1-10 s.
 SCAN_AVERAGED_FROM_S = 0.025
+
+
+#: A partial frame (the rows of a scan scanned after a move settled) is measured, and
+#: acted on, when it holds at least this fraction of the scan's rows: half a frame still
+#: shares half the field with the reference, and a move written soon after a frame lands
+#: early in the next scan, leaving most of it (a 50 ms decision and 10-30 ms of settling:
+#: 80-85 % of a 0.3-0.46 s scan).
+PARTIAL_FRAME_FROM = 0.5
+
+
+def rows_scanned_after(rows: int, scan_start: float, scan_end: float, after: float, *,
+                       min_fraction: float = PARTIAL_FRAME_FROM) -> int | None:
+    """The first row, at the start of a band of :data:`BAND_ROWS`, of a frame scanned
+    from ``scan_start`` to ``scan_end`` (rows at a constant pace, one clock for all three
+    times) whose rows were all scanned at or after ``after``: the partial frame of a scan
+    that a move settled in. 0 when the whole scan began after it; None when the scan ended
+    before it, its times are unknown or out of order, or fewer than ``min_fraction`` of
+    the rows are left."""
+    if scan_start is None or scan_end is None or not scan_end > scan_start or rows <= 0:
+        return None
+    if after <= scan_start:
+        return 0
+    if after >= scan_end:
+        return None
+    line = (scan_end - scan_start) / rows
+    first = math.ceil((after - scan_start) / line - 1e-9)
+    first = -(-first // BAND_ROWS) * BAND_ROWS
+    return first if rows - first >= min_fraction * rows else None
 
 
 def scan_lasted_s(shape: tuple[int, int], *, source_interval_s: tuple[float, float] | None = None,
