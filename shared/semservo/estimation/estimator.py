@@ -9,6 +9,7 @@ convention and confidence: :mod:`semservo.estimation`.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import replace
 from typing import NamedTuple
@@ -59,6 +60,11 @@ SHARED_SCAN_STEP_DEG = 1.5
 #: The least weight the windows over the shared scene may keep, as a fraction of the
 #: fixed window's: a view moved (or turned) so far that they keep less shares too little.
 MIN_OVERLAP = 0.1
+#: A mask whose reference (the image it was drawn on) measures within this many pixels
+#: of it is anchored to that image (``MotionEstimator``'s ``mask``): drawn or thresholded
+#: on the object where it stands, its sub-pixel offset is the mask's, not a wish to move
+#: the object by it. A mask farther off is a target somewhere else, taken as drawn.
+MASK_ANCHORED_WITHIN_PX = 0.5
 #: Views moved by more than this fraction of the frame's side (along rows or columns)
 #: have their turn refined again under windows over the scene both images share
 #: (``MotionEstimator._refine_on_overlap``).
@@ -150,7 +156,13 @@ class MotionEstimator:
         low frequencies (Gaussian, ``mask_band`` cycles/pixel) and rotation is not
         estimated (``rotation_deg`` is 0). A mask cannot tell apart repeated copies of a
         similar shape in the field (the paper's observed limitation): the strongest
-        match wins, and ``confidence`` drops when several match equally.
+        match wins, and ``confidence`` drops when several match equally. A mask drawn on
+        the reference's own object (its image measured against the mask within
+        :data:`MASK_ANCHORED_WITHIN_PX`) is anchored to it: that sub-pixel offset (a
+        threshold's edges are not where the correlation puts a shaded, edge-brightened
+        object) is taken off every estimate (``mask_offset``), so the target is where
+        the reference was, as in the paper's case 6; a mask drawn elsewhere is the target
+        as drawn.
     window : apodization, see :func:`apodization_window`.
     snr_threshold_db : frames whose SNR is below this are filtered (section II-D).
     band : the highest spatial frequency (cycles/pixel) the sub-pixel fit uses.
@@ -233,6 +245,13 @@ class MotionEstimator:
             filtered: self._half.band_signal_fraction(self._half.fit_reference_conjugate, self._half.moved_window(0, 0),
                                                       self._reference_half_noise, filtered)
             for filtered in (False, True)}
+        #: The offset (dx, dy px) taken off every estimate: a mask's own against the
+        #: reference it was drawn on (``mask`` above), else (0, 0).
+        self.mask_offset = (0.0, 0.0)
+        if mask is not None:
+            own = self._estimate(*self._check(self._given_reference), False)
+            if own.confidence >= self.min_confidence and math.hypot(own.dx, own.dy) <= MASK_ANCHORED_WITHIN_PX:
+                self.mask_offset = (float(own.dx), float(own.dy))
 
     def estimate(self, image, *, rotation: bool | None = None, scan_averaged: bool | None = None,
                  first_row: int = 0) -> Motion:
@@ -286,6 +305,8 @@ class MotionEstimator:
             return self._estimate_rows(image, int(first_row), rotation, scan_averaged)
         image, statistics = self._check(image)
         motion = self._estimate(image, statistics, rotation)
+        if self.mask_offset != (0.0, 0.0):
+            motion = replace(motion, dx=motion.dx - self.mask_offset[0], dy=motion.dy - self.mask_offset[1])
         if self.scan_averaged and scan_averaged is not False and motion.confidence >= self.min_confidence:
             refined = scan_averaged_shift(self._scan_reference, image, motion.dx, motion.dy, motion.rotation_deg)
             if refined is not None:
