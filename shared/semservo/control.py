@@ -31,6 +31,8 @@ from typing import Sequence
 
 import numpy as np
 
+from semservo.estimation.raster import PARTIAL_FRAME_FROM
+
 #: Degrees of freedom this law can drive, in the order of the error vector.
 DEGREES_OF_FREEDOM = ("x", "y", "rotation")
 
@@ -317,7 +319,8 @@ class ControlLaw:
 
     def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
              sampling_time_s: float, *, fresh: bool = True, confident: bool = True,
-             frame_interval_s: tuple[float, float] | None = None, now_s: float | None = None) -> LawStep:
+             frame_interval_s: tuple[float, float] | None = None, now_s: float | None = None,
+             scan_time_s: float | None = None) -> LawStep:
         """Error, cost, gain, camera velocity (eq. 30-36) and the stage displacement
         (eq. 37): ``move`` has "x_um", "y_um", "rotation_deg" for the chosen DOFs. The
         keywords are :meth:`PositionLaw.step`'s, so a caller treats both laws alike: a
@@ -600,6 +603,9 @@ class PositionLaw:
       between: the law neither moves nor learns on it;
     * the estimate (dx, dy px; rotation degrees) and the frame's pixel size (nm);
       ``sampling_time_s`` is accepted (the paper's law needs it) and unused;
+    * with ``partial_frames``, a frame may be the rows of a scan that were scanned after the
+      last move had settled (at least :data:`~semservo.estimation.raster.PARTIAL_FRAME_FROM` of them): then
+      ``frame_interval_s`` spans those rows and ``scan_time_s`` is the whole scan's time;
     * ``frame_interval_s``: when the frame's scan started and ended, and ``now_s``: when
       the move will be written (default: the frame's end), in seconds on one clock (the
       image source's when it has one; the same clock for :meth:`applied`). Without them
@@ -669,6 +675,10 @@ class PositionLaw:
     #: Converged when the error now plus this many of its standard deviations is within
     #: tolerance.
     margin: float = 1.0
+    #: The caller acts on a scan's rows scanned after a move settled (a partial frame,
+    #: above), so the next frame measured after a move is the rest of the scan the move
+    #: lands in, not the scan after it: the law aims for that frame's time.
+    partial_frames: bool = False
     #: True after a step that put the target within tolerance.
     converged: bool = False
     state: np.ndarray | None = field(default=None, repr=False)  # [p, v, k, e] per DOF
@@ -981,7 +991,8 @@ class PositionLaw:
 
     def step(self, dx_px: float, dy_px: float, rotation_deg: float, pixel_size_nm: float,
              sampling_time_s: float | None = None, *, fresh: bool = True, confident: bool = True,
-             frame_interval_s: tuple[float, float] | None = None, now_s: float | None = None) -> LawStep:
+             frame_interval_s: tuple[float, float] | None = None, now_s: float | None = None,
+             scan_time_s: float | None = None) -> LawStep:
         """One frame in, the move out (see the class for what the caller provides)."""
         if not fresh or not confident:
             return LawStep.idle()
@@ -994,6 +1005,8 @@ class PositionLaw:
         middle = None if frame_interval_s is None else (frame_interval_s[0] + frame_interval_s[1]) / 2
         now = now_s if now_s is not None else (frame_interval_s[1] if frame_interval_s else None)
         frame_time = (frame_interval_s[1] - frame_interval_s[0]) if frame_interval_s else 0.0
+        if scan_time_s:  # the rows of a scan after a move settled: the scan's own time is the period
+            frame_time = scan_time_s
         self._see_frame(middle, frame_time)
         if self.state is None:
             self._start(units)
@@ -1011,9 +1024,14 @@ class PositionLaw:
         if self._pending is not None or not self._at_rest:  # the first frame at this pose
             self._at_rest = [(middle, units[~self._rotation])]
         self._pending, self._measured_middle = None, middle
-        # Where the target is now, and at the middle of the next fresh frame (a move's
-        # scan is not fresh: one and a half frames on).
+        # Where the target is now, and at the middle of the next fresh frame: the rest of
+        # the scan the move lands in (partial frames, when enough of it is left), else the
+        # scan after it (one and a half frames on).
         next_frame = None if now is None else now + 1.5 * frame_time
+        if self.partial_frames and now is not None and frame_interval_s is not None and frame_time > 0:
+            landing_scan_ends = frame_interval_s[1] + frame_time
+            if landing_scan_ends - now >= PARTIAL_FRAME_FROM * frame_time:
+                next_frame = (now + landing_scan_ends) / 2
         position, spread = self._forecast(now)
         aim, aim_spread = self._forecast(next_frame)
         # Where the last move's creep takes the content if nothing moves (a move stops it).
@@ -1150,7 +1168,8 @@ def make_law(name: str, dofs: Sequence[str] = ("x", "y"), *, camera_to_stage: Ca
              model_uncertainty: float = 0.15, noise_px: float = 0.03, tolerance_px: float = 0.1,
              tolerance_deg: float = 0.05,
              max_move_um: float = 10.0, max_moves: int = 1, max_turn_deg: float = 5.0,
-             creep_per_decade: float = PositionLaw.creep_per_decade) -> ControlLaw | PositionLaw:
+             creep_per_decade: float = PositionLaw.creep_per_decade,
+             partial_frames: bool = False) -> ControlLaw | PositionLaw:
     """The planar law a run's settings name (``law``: one of :data:`LAWS`). Both take
     ``step(dx_px, dy_px, rotation_deg, pixel_size_nm, sampling_time_s)`` on the frames the
     caller acts on and ``applied(move)`` after the stage's reply; each ignores what it
@@ -1162,5 +1181,6 @@ def make_law(name: str, dofs: Sequence[str] = ("x", "y"), *, camera_to_stage: Ca
     if name == "position":
         return PositionLaw(tuple(dofs), camera_to_stage, model_uncertainty=model_uncertainty, noise_px=noise_px,
                            tolerance_px=tolerance_px, tolerance_deg=tolerance_deg, max_move_um=max_move_um,
-                           max_moves=max_moves, max_turn_deg=max_turn_deg, creep_per_decade=creep_per_decade)
+                           max_moves=max_moves, max_turn_deg=max_turn_deg, creep_per_decade=creep_per_decade,
+                           partial_frames=partial_frames)
     raise ValueError(f"unknown law {name!r}; laws: {', '.join(LAWS)}")
