@@ -49,7 +49,7 @@ from semservo.protocol import stage as stage_protocol
 from semservo.protocol.controller import ControllerState, ControllerStatus, RunSettings
 from services.controller.run import (
     IterationRecord, Run, Tilts, Verdict, admit, decide, foreshortening_changed, gate, judge, law_step, measure,
-    sampling_time, tilt_step,
+    sampling_time, tilt_step, uses_partial_frames,
 )
 from services.controller.split import BEAM_AXIS, BeamAxes, split
 
@@ -163,7 +163,8 @@ class ControllerCore:
                          max_move_um=settings.max_move_um, max_moves=settings.moves_per_frame,
                          max_turn_deg=settings.max_turn_deg,
                          # A driver in physical units closes its own loop: no creep to follow.
-                         creep_per_decade=0.0 if stage_state.kind == "physical" else PositionLaw.creep_per_decade),
+                         creep_per_decade=0.0 if stage_state.kind == "physical" else PositionLaw.creep_per_decade,
+                         partial_frames=uses_partial_frames(settings)),
             tilts=Tilts(make_tilt_law(settings.law, tilt_dofs, camera_to_stage=self.camera, gain=gain), settled_ns=now_ns)
             if tilt_dofs else None,
             last_command_ns=now_ns, recent=deque(),
@@ -246,6 +247,17 @@ class ControllerCore:
             log.warning("could not tell the estimator of the tilt move: %s", error)
             return False
 
+    def _estimator_moved(self, run: Run, settles_at_ns: int | None) -> None:
+        """Tell the estimator when the move settles, for a run that acts on partial frames:
+        the frame scanning then is measured on its rows after it. Not being heard costs
+        only time (that frame is then measured whole, stale, and the next one is used)."""
+        if self.estimator is None or not settles_at_ns or not uses_partial_frames(run.settings):
+            return
+        try:
+            self.estimator.call(estimator_protocol.MOVED, settles_at_ns=settles_at_ns)
+        except (CommandError, ServiceUnavailable) as error:
+            log.warning("could not tell the estimator of the move: %s", error)
+
     def _estimator_account(self) -> str:
         """Why estimates stopped, in words, from what the estimator says of itself."""
         if self.estimator is None:
@@ -281,6 +293,7 @@ class ControllerCore:
         finished_ns = time.time_ns()
         run.outcome = {"state": state, "reason": reason, "finished_at_ns": finished_ns,
                        "iterations": run.iterations, "fresh_frames": run.fresh_frames,
+                       "partial_frames": run.partial_frames,
                        **_time_to_target(run, state, finished_ns), **({"recovered": True} if recovered else {})}
         run.stage_log = []
         if not stage_reachable:  # asking a dead stage again only delays the end (the gateway asks later)
@@ -433,6 +446,7 @@ class ControllerCore:
             self._record(record, "stage unreachable")
             self._finish("failed", f"the stage service is unreachable: {error}", stage_reachable=False)
             return False
+        self._estimator_moved(run, record.command_settled_at_ns)
         return True
 
     def tick(self) -> float:

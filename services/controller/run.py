@@ -6,8 +6,9 @@ the run (and the estimate) that returns what it decided, so each is tested alone
 1. :func:`admit`: is the estimate against this run's reference? (one or two in flight
    from before a teach are let pass; a third in a row ends the run: taught again)
 2. :func:`gate`: may it move the stage? The frames must carry a pixel size, and the
-   estimate must be **fresh** (its frame scanned wholly after the last move settled: a
-   frame scanned during a move shows both positions) and **confident**.
+   estimate must be **fresh** (what it measured scanned wholly after the last move
+   settled: a frame scanned during a move shows both positions; a partial frame, the
+   rows after the move, is fresh) and **confident**.
 3. :func:`law_step`: the law's step on the fresh, confident estimate (the paper's eq.
    30-37, or the position law's Kalman step, which also judges its own convergence).
    :func:`measure`: the error convergence is judged on (the mean of the last
@@ -77,8 +78,9 @@ class IterationRecord:
     frame_acquired_at_ns: int
     frame_published_at_ns: int
     estimate_published_at_ns: int
-    frame_source_interval_s: tuple[float, float] | None
+    frame_source_interval_s: tuple[float, float] | None  # of the rows measured (a partial frame's after the move)
     action: str = ""
+    first_row: int = 0  # a partial frame's first row measured (0: the whole frame)
     t_ns: int = 0
     iteration: int = 0
     error_px: float | None = None
@@ -126,7 +128,8 @@ class IterationRecord:
                    frame_acquired_at_ns=estimate.frame_acquired_at_ns,
                    frame_published_at_ns=estimate.frame_published_at_ns,
                    estimate_published_at_ns=estimate.published_at_ns,
-                   frame_source_interval_s=estimate.frame_source_interval_s)
+                   frame_source_interval_s=estimate.rows_source_interval_s or estimate.frame_source_interval_s,
+                   first_row=estimate.first_row)
 
     def to_json(self) -> dict:
         """The record as JSON fields; a field never set is left out."""
@@ -226,6 +229,7 @@ class Run:
     rising: int = 0  # moves in a row with the cost above diverge_factor x its minimum
     held_stale: int = 0
     fresh_frames: int = 0  # fresh, confident estimates used
+    partial_frames: int = 0  # of them, partial frames (the rows of a scan after a move settled)
     recent: deque = field(default_factory=deque)  # the last converge_frames fresh (dx, dy, rotation)
     progress: Progress = field(default_factory=Progress)
     beam: object | None = None  # the stage's beam shift (services.controller.split.BeamAxes), when a run may use it
@@ -240,7 +244,8 @@ class Run:
                 "started_at_ns": self.started_at_ns, "stage_at_start": self.stage_at_start,
                 "iterations": self.iterations, "records": self.records, "outcome": self.outcome,
                 "stage_log": self.stage_log, "min_cost": None if math.isinf(self.min_cost) else self.min_cost,
-                "held_stale": self.held_stale, "fresh_frames": self.fresh_frames, "path": self.path}
+                "held_stale": self.held_stale, "fresh_frames": self.fresh_frames,
+                "partial_frames": self.partial_frames, "path": self.path}
 
     def header(self) -> dict:
         """What a controller started after this one dies needs to finish the run."""
@@ -305,8 +310,7 @@ def gate(run: Run, estimate: MotionEstimate) -> Verdict | None:
         return Verdict("held: pixel size unknown", "failed",
                        "the frames carry no pixel size (their files or source do not say): set "
                        "SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM (or the magnification) and start again")
-    scan_started = estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
-    if scan_started < run.last_command_ns:
+    if seen_from_ns(estimate) < run.last_command_ns:
         run.held_stale += 1
         return Verdict("held: stale (scanned during the last move)")
     if estimate.confidence < run.settings.min_confidence:
@@ -317,6 +321,19 @@ def gate(run: Run, estimate: MotionEstimate) -> Verdict | None:
         return Verdict("held: low confidence")
     run.low_confidence = 0
     return None
+
+
+def uses_partial_frames(settings: RunSettings) -> bool:
+    """Whether a run acts on partial frames (the rows after a move): as its settings say,
+    by default with the position law (the paper's velocity law gains nothing from more
+    frequent frames: its displacement is its velocity times the sampling time)."""
+    return settings.law == "position" if settings.partial_frames is None else settings.partial_frames
+
+
+def seen_from_ns(estimate: MotionEstimate) -> int:
+    """When the scan of what the estimate measured began: the frame's, or a partial
+    frame's first measured row's (its rows after a move settled)."""
+    return estimate.rows_scanned_from_ns or estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
 
 
 def within_tolerance(run: Run, dx_px: float, dy_px: float, rotation_deg: float) -> bool:
@@ -363,6 +380,7 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
     (-0.07, +0.10), (-0.37, +0.41) px average to 0.07 px)."""
     settings = run.settings
     run.fresh_frames += 1
+    run.partial_frames += bool(estimate.first_row)
     run.recent.append((estimate.dx_px, estimate.dy_px, estimate.rotation_deg))
     while len(run.recent) > settings.converge_frames:
         run.recent.popleft()
@@ -425,7 +443,7 @@ def sampling_time(run: Run, estimate: MotionEstimate) -> float:
     source's clock when it has one (the fake lab's simulated time), else the frames'
     acquisition times. The first iteration takes two scan durations: a fresh frame
     comes every second scan."""
-    interval = estimate.frame_source_interval_s
+    interval = estimate.rows_source_interval_s or estimate.frame_source_interval_s
     end_s = interval[1] if interval else None
     if end_s is not None and run.last_source_end_s is not None:
         return max(end_s - run.last_source_end_s, 1e-3)
@@ -445,11 +463,12 @@ def law_step(run: Run, estimate: MotionEstimate, sampling_time_s: float, now_ns:
     if not run.law.dofs:
         return LawStep.idle()
     started_ns = estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
+    scan_time_s = (estimate.frame_acquired_at_ns - started_ns) / 1e9 if estimate.first_row else None
     try:
         return run.law.step(estimate.dx_px, estimate.dy_px, estimate.rotation_deg, estimate.pixel_size_nm,
                             sampling_time_s, fresh=True, confident=True,
-                            frame_interval_s=(started_ns / 1e9, estimate.frame_acquired_at_ns / 1e9),
-                            now_s=now_ns / 1e9)
+                            frame_interval_s=(seen_from_ns(estimate) / 1e9, estimate.frame_acquired_at_ns / 1e9),
+                            now_s=now_ns / 1e9, scan_time_s=scan_time_s)
     except UnexpectedResponse as error:
         return Verdict("held: unexpected response", "failed", f"the stage did not move as commanded: {error}")
 

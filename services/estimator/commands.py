@@ -106,6 +106,11 @@ def tilted(estimator: Estimator, request: protocol.TiltedRequest) -> protocol.Ti
     return protocol.TiltedReply(restarted=restarted)
 
 
+@handlers.handles(protocol.MOVED)
+def moved(estimator: Estimator, request: protocol.MovedRequest) -> protocol.MovedReply:
+    return protocol.MovedReply.model_validate(estimator.core.moved(request.settles_at_ns))
+
+
 @handlers.handles(protocol.REFERENCE_IMAGE)
 def reference_image(estimator: Estimator, request: protocol.ReferenceImageRequest) -> protocol.ReferenceImage:
     core = estimator.core

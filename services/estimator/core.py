@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import logging
 import threading
 import time
 import uuid
@@ -14,7 +15,8 @@ import numpy as np
 
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
-from semservo.estimation.raster import SCAN_AVERAGED_FROM_S, scan_lasted_s
+from semservo.estimation.common import MIN_SIZE
+from semservo.estimation.raster import BAND_ROWS, SCAN_AVERAGED_FROM_S, rows_scanned_after, scan_lasted_s
 from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, check_sweep, content_shifts, depth_map,
                                       egi_tilt_between, plan_sweep, pool_depths, pooled_tilt, undo_foreshortening,
                                       undoes_foreshortening, wants_another_sweep)
@@ -22,6 +24,8 @@ from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
 from semservo.wire import Frame
+
+log = logging.getLogger("estimator")
 
 
 #: The live frames' content positions kept for steadying focus sweeps
@@ -153,6 +157,15 @@ class TeachPool:
     estimate: TiltEstimate | None = None
 
 
+def _prepare_rows(estimator: MotionEstimator, bands: list[int], rotation: bool) -> None:
+    """Make the partial frames' estimators of ``bands`` (a thread of its own)."""
+    try:
+        for band in bands:
+            estimator.prepare_rows(band, rotation)
+    except Exception:  # noqa: BLE001 - a frame that needs it makes it itself, and says why if it cannot
+        log.exception("preparing the partial frames' estimators failed")
+
+
 class EstimatorCore:
     def __init__(self, *, rotation: bool = True, precision: str = "full", fft_effort: str = "FFTW_MEASURE",
                  counters: Counter | None = None, tilt: TiltSettings | None = None, scan_averaged: bool = True):
@@ -193,6 +206,9 @@ class EstimatorCore:
         #: How far the last sweep's content moved while it scanned (px), None when it could
         #: not be steadied (:meth:`sweep_depths`).
         self.last_sweep_moved_px: float | None = None
+        #: When the last move a run told of (:meth:`moved`) has settled (Unix ns): the frame
+        #: whose scan spans it is measured on its rows scanned after it (a partial frame).
+        self.moved_settles_at_ns: int | None = None
 
     # -- tilts (focus sweeps) ----------------------------------------------------
     @property
@@ -519,6 +535,41 @@ class EstimatorCore:
             self.last_tilt = None  # the first sweep of a run is the wide one
         return {"rotation": self.measure_rotation, "tilts": self.measure_tilts}
 
+    def moved(self, settles_at_ns: int) -> dict:
+        """A run moved the stage, settling at ``settles_at_ns``: the frame whose scan spans
+        that time is measured on its rows scanned after it, when they are enough
+        (:func:`semservo.estimation.raster.rows_scanned_after`) and its source times its
+        scans; the run acts on that partial frame a scan sooner than on the next whole one."""
+        self.moved_settles_at_ns = int(settles_at_ns)
+        estimator = self.estimator
+        if estimator is None:
+            return {"partial_from_ns": None}
+        # What that frame will be measured with is made while it scans (in a thread: the
+        # first partial frame of a run at a new band costs 0.1-0.6 s to prepare, more than
+        # the loop's latency): the band the next scan's timing predicts, and its neighbours.
+        predicted = self._predicted_first_row(self.moved_settles_at_ns)
+        if predicted:
+            rotation = self.measure_rotation and estimator.rotation
+            bands = [row for row in (predicted - BAND_ROWS, predicted, predicted + BAND_ROWS) if row > 0]
+            threading.Thread(target=_prepare_rows, args=(estimator, bands, rotation), daemon=True,
+                             name="estimator-rows").start()
+        return {"partial_from_ns": self.moved_settles_at_ns}
+
+    def _predicted_first_row(self, settles_at_ns: int) -> int | None:
+        """The first row of the next scan scanned after ``settles_at_ns``, from the last
+        frames' timing (the next scan starts after the same gap and lasts as long)."""
+        if not self.recent or self.recent[-1].header.scan_started_at_ns is None:
+            return None
+        last = self.recent[-1].header
+        lasted = last.acquired_at_ns - last.scan_started_at_ns
+        gap = 0
+        if len(self.recent) > 1:
+            gap = max(last.scan_started_at_ns - self.recent[-2].header.acquired_at_ns, 0)
+        start = last.acquired_at_ns + gap
+        if start > settles_at_ns:  # the scan after the last one began after the move: the one in progress
+            start = last.scan_started_at_ns
+        return rows_scanned_after(last.shape[0], start, start + lasted, settles_at_ns)
+
     def clear(self) -> dict:
         had = self.reference is not None
         self.estimator = None
@@ -552,10 +603,28 @@ class EstimatorCore:
             # the log-polar angle reads as degrees of turn (14 at 15 degrees of tilt).
             pixels = undo_foreshortening(pixels, tilt["alpha_deg"], tilt["beta_deg"])
         averaged = self.estimator.scan_averaged and self._scanned_slowly(frame)
-        motion = self.estimator.estimate(pixels, rotation=self.measure_rotation and self.estimator.rotation,
-                                         scan_averaged=averaged)
+        rotation = self.measure_rotation and self.estimator.rotation
+        first_row = self._first_row_after_move(frame)
+        try:
+            motion = self.estimator.estimate(pixels, rotation=rotation, scan_averaged=averaged, first_row=first_row)
+        except ValueError as error:  # rows the estimator cannot measure (a mask all one level there)
+            if not first_row:
+                raise
+            self.counters["partial_frames_refused"] += 1
+            log.info("frame %d: its rows after the move cannot be measured (%s); measured whole", frame.header.seq, error)
+            motion = self.estimator.estimate(pixels, rotation=rotation, scan_averaged=averaged)
         elapsed_ms = (time.perf_counter() - started) * 1e3
         now = time.time_ns()
+        header = frame.header
+        rows = {}
+        if motion.first_row:
+            fraction = motion.first_row / header.shape[0]
+            rows_from_ns = header.scan_started_at_ns + round(fraction * (header.acquired_at_ns - header.scan_started_at_ns))
+            source = header.source_interval_s
+            rows = {"first_row": motion.first_row, "rows_scanned_from_ns": rows_from_ns,
+                    "rows_source_interval_s": None if source is None else
+                    (source[0] + fraction * (source[1] - source[0]), source[1])}
+            self.counters["partial_frames"] += 1
         estimate = MotionEstimate(
             seq=frame.header.seq, reference_id=self.reference.id,
             dx_px=motion.dx, dy_px=motion.dy, rotation_deg=motion.rotation_deg,
@@ -566,15 +635,27 @@ class EstimatorCore:
             frame_source_interval_s=frame.header.source_interval_s,
             published_at_ns=now, estimation_ms=elapsed_ms, scan_averaged=averaged,
             latency_ms=(now - frame.header.published_at_ns) / 1e6,
-            **self._tilt_fields(latest),
+            **rows, **self._tilt_fields(latest),
         )
         self.counters["estimates"] += 1
         self.last_estimate = estimate
         if estimate.confidence >= CONTENT_TRACK_MIN_CONFIDENCE and np.isfinite([motion.dx, motion.dy]).all():
+            seen_from = rows.get("rows_scanned_from_ns", frame.header.scan_started_at_ns)
             with self._track_lock:
-                self.content_track.append((scan_middle_ns(frame.header.scan_started_at_ns, frame.header.acquired_at_ns),
+                self.content_track.append((scan_middle_ns(seen_from, frame.header.acquired_at_ns),
                                            float(motion.dx), float(motion.dy)))
         return estimate
+
+    def _first_row_after_move(self, frame: Frame) -> int:
+        """The first row of ``frame`` to measure: after the move a run told of, when its
+        scan spans the move's settling and enough rows are left (a partial frame); else 0
+        (the whole frame, stale or not). Only for a source that times its scans (its
+        ``source_interval_s``: a scan generator's own start and end, not a file's times)."""
+        header, after = frame.header, self.moved_settles_at_ns
+        if after is None or header.scan_started_at_ns is None or header.source_interval_s is None:
+            return 0
+        first_row = rows_scanned_after(header.shape[0], header.scan_started_at_ns, header.acquired_at_ns, after)
+        return first_row if first_row and header.shape[0] - first_row >= MIN_SIZE else 0
 
     def _scanned_slowly(self, frame: Frame) -> bool:
         """Whether ``frame``'s scan lasted long enough for the scan-averaged shift

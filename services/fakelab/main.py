@@ -88,7 +88,10 @@ class ScanServer:
             try:
                 scan_started_at_ns = time.time_ns()
                 pixels, start, end = self.world.scan(settings)
-                acquired_at_ns = time.time_ns()
+                # When the scan ended (the header's acquired_at_ns), not when the simulator
+                # had drawn it: a real scan generator has no render time, and a frame's rows
+                # are timed from its start and end (a partial frame after a move).
+                acquired_at_ns = scan_started_at_ns + round((end - start) / self.world.speedup * 1e9)
             except Exception as error:  # noqa: BLE001 - the SEM must keep scanning, and say why one failed
                 log.exception("a scan failed")
                 self.counters["scans_failed"] += 1

@@ -656,8 +656,10 @@ def command_demo(args: argparse.Namespace) -> int:
               "waiting ...", flush=True)
         timeout = args.timeout if args.timeout is not None else (DEMO_TIMEOUT_5DOF_S if tilts else DEMO_TIMEOUT_S)
         result = lab.wait(run_id, timeout=timeout, stop_on_timeout=True)
-        print(f"4. {result.state} after {result.iterations} iterations ({result.fresh_frames or 0} fresh frames) "
-              f"in {result.duration_s or 0:.1f} s{' (' + result.reason + ')' if result.reason else ''}")
+        partial = int((result.outcome or {}).get("partial_frames") or 0)
+        of_them = f", {partial} of them partial: a scan's rows after a move" if partial else ""
+        print(f"4. {result.state} after {result.iterations} iterations ({result.fresh_frames or 0} fresh frames"
+              f"{of_them}) in {result.duration_s or 0:.1f} s{' (' + result.reason + ')' if result.reason else ''}")
         if result.final_error_px is not None:
             judged = ("the position law's estimate" if args.law == "position"
                       else "the mean of the last fresh frames")

@@ -153,6 +153,13 @@ class MotionEstimate(_Message):
     scan_averaged: bool = Field(False, description="the shift was averaged over the scan's bands of rows "
                                                    "(semservo.estimation.raster)")
     latency_ms: float = Field(description="frame published -> estimate published")
+    first_row: int = Field(0, ge=0, description="a partial frame: the first of the frame's rows measured (0: the "
+                                                "whole frame); the rows above were scanned while the stage still "
+                                                "moved (the estimator's `moved`)")
+    rows_scanned_from_ns: int | None = Field(None, ge=0, description="a partial frame: when its first measured row's "
+                                                                      "scan began (Unix ns)")
+    rows_source_interval_s: tuple[float, float] | None = Field(
+        None, description="a partial frame: when its measured rows were scanned, on the source's clock")
     # The latest tilt measurement (focus sweep) against the reference, while tilts are
     # measured: alpha about x, beta about y (degrees, :mod:`semservo.estimation.tilt`'s convention).
     alpha_deg: float | None = None

@@ -3,6 +3,7 @@ hardware, teaches, displaces the stage, positions back and reports."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -22,7 +23,8 @@ def test_the_demo_starts_the_system_positions_and_reports(ports, monkeypatch, tm
     assert done.returncode == 0, done.stdout + done.stderr
     out = done.stdout
     assert "starting one on simulated hardware" in out
-    assert re.search(r"4\. converged after \d+ iterations \(\d+ fresh frames\) in [\d.]+ s", out), out
+    assert re.search(r"4\. converged after \d+ iterations \(\d+ fresh frames(, \d+ of them partial[^)]*)?\) "
+                     r"in [\d.]+ s", out), out
     true_px = float(re.search(r"true final error \(simulator\) ([\d.]+) px", out).group(1))
     assert true_px < 0.5
     # What convergence was judged on, said beside the truth (a truth above the tolerance
@@ -32,6 +34,28 @@ def test_the_demo_starts_the_system_positions_and_reports(ports, monkeypatch, tm
         assert "the run stops when its *estimate* is within it" in out
     report = Path(re.search(r"report \(error, cost, voltages per iteration\): (\S+)", out).group(1))
     assert report.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_at_the_microscope_s_own_pace_the_demo_acts_on_the_rows_after_each_move(ports, monkeypatch, tmp_path):
+    """At the real frame rate (0.46 s a scan) a move written after a frame lands early
+    in the next scan: the run measures that scan's rows after the move settled (a partial
+    frame) instead of waiting for the scan after it, and says so."""
+    runs = tmp_path / "runs"
+    monkeypatch.setenv("SEMSERVO_CONTROLLER__RUNS_DIR", str(runs))
+    monkeypatch.setenv("SEMSERVO_GATEWAY__DATABASE", str(runs / "semservo.sqlite"))
+    done = subprocess.run([sys.executable, "-m", "semservo", "demo", "--speedup", "1"],
+                          capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stdout + done.stderr
+    partial = re.search(r"4\. converged after \d+ iterations \((\d+) fresh frames, (\d+) of them partial", done.stdout)
+    assert partial, done.stdout
+    record = json.loads(next(runs.glob("*.json")).read_text())
+    used = [r for r in record["records"] if r.get("first_row")]
+    assert len(used) == int(partial.group(2)) >= 1
+    for r in used:  # measured on its rows after the move: scanned after the last command settled
+        assert r["action"] in ("moved", "within tolerance") or r["action"].startswith("held: ")
+        assert r["action"] != "held: stale (scanned during the last move)"
+    true_px = float(re.search(r"true final error \(simulator\) ([\d.]+) px", done.stdout).group(1))
+    assert true_px < 0.2
 
 
 def test_the_five_degree_of_freedom_demo(ports, monkeypatch, tmp_path):

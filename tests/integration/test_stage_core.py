@@ -184,6 +184,8 @@ class FakeEstimator:
             return estimator_protocol.MeasureReply(rotation=bool(request.rotation), tilts=bool(request.tilts))
         if command is estimator_protocol.TILTED:
             return estimator_protocol.TiltedReply(restarted=True)
+        if command is estimator_protocol.MOVED:
+            return estimator_protocol.MovedReply(partial_from_ns=request.settles_at_ns)
         raise AssertionError(f"unexpected {command.name}")
 
 
@@ -226,8 +228,17 @@ def test_a_frame_scanned_while_the_stage_settles_is_stale(link, tmp_path):
         during = core.on_estimate(estimate(2, 15.0, -7.0, scan_started_at_ns=moved["command_written_at_ns"] + 10**8))
         assert during["action"].startswith("held: stale")
         settling.clock.now += 1.0  # the rate limit's clock
-        after = core.on_estimate(estimate(3, 15.0, -7.0, scan_started_at_ns=moved["command_settled_at_ns"] + 1))
-        assert after["action"] == "moved"
+        # A partial frame of a scan that began during the move: its rows after it settled are fresh.
+        scan_began = moved["command_written_at_ns"] + 2 * 10**8
+        rows = estimate(3, 15.0, -7.0, scan_started_at_ns=scan_began).model_copy(update={
+            "first_row": 288, "rows_scanned_from_ns": moved["command_settled_at_ns"] + 1,
+            "rows_source_interval_s": (3 * 0.5 + 0.25, 3 * 0.5 + 0.45)})
+        partial = core.on_estimate(rows)
+        assert partial["action"] == "moved" and partial["first_row"] == 288
+        assert tuple(partial["frame_source_interval_s"]) == (1.75, 1.95), "the record keeps the rows' scan, for the truth"
+        settling.clock.now += 1.0
+        after = core.on_estimate(estimate(4, 15.0, -7.0, scan_started_at_ns=partial["command_settled_at_ns"] + 1))
+        assert not after["action"].startswith("held: stale") and after["first_row"] == 0
 
 
 def test_controller_converges_and_stop_stops_the_stage(stage, tmp_path):
@@ -646,6 +657,8 @@ def test_the_tilts_are_servoed_once_per_fresh_sweep_and_saturated(turning_stage,
     # is stale, and the next starts once the tilt has settled.
     assert ("tilted", {"settles_at_ns": first["command_settled_at_ns"]}) in estimator.asked
     assert first["tilt_sweeps_restarted"] is True
+    # And of the move's settling, for the frame it lands in: measured on its rows after it.
+    assert ("moved", {"settles_at_ns": first["command_settled_at_ns"]}) in estimator.asked
     # The same sweep again does not move the tilts twice; a sweep scanned during the
     # tilt move is held.
     later = time.time_ns()

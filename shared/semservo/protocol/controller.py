@@ -81,6 +81,12 @@ class RunSettings(BaseModel):
                               "displacement beyond max_move_um is made on one frame as up to this many commands of "
                               "at most max_move_um each, each written once the last has settled (1: one per frame; "
                               "the paper's law makes one)")
+    partial_frames: bool | None = Field(
+        None, description="act on a partial frame: the rows of the scan a move lands in that were scanned after it "
+                          "settled (at least half of them), a scan sooner than the next whole frame (null: the law's "
+                          "default, on for the position law, off for the paper's, whose velocity law is no faster "
+                          "for more frequent frames). Needs a source that times its scans (the simulated SEM, a "
+                          "scan generator's adapter); others give whole frames")
     beam_shift_within_um: float = Field(
         0.0, ge=0, le=1000, description="once the error is at most this many um, the beam shift (beam_x, beam_y) makes "
                                         "the moves while it has room, the stage the rest: the beam makes the last "

@@ -120,6 +120,16 @@ class TiltedReply(CommandReply):
                                         "and the next starts once the tilt has settled")
 
 
+class MovedRequest(CommandRequest):
+    settles_at_ns: int = Field(ge=0, le=2**63 - 1, description="when the move has settled (Unix ns, the stage's "
+                                                               "settled_at_ns)")
+
+
+class MovedReply(CommandReply):
+    partial_from_ns: int | None = Field(description="frames whose scan spans this time are measured on the rows "
+                                                    "scanned after it (null: no reference, nothing to measure)")
+
+
 class ReferenceImageRequest(CommandRequest):
     id: str | None = Field(None, max_length=64, description="only if it is still this reference")
 
@@ -142,5 +152,10 @@ MEASURE = COMMANDS.add("measure", MeasureRequest, MeasureReply,
 TILTED = COMMANDS.add("tilted", TiltedRequest, TiltedReply,
                       "the sample was tilted (a run's tilt move): the focus sweep in progress, whose frames show "
                       "poses in between, is cancelled and the next starts once the tilt has settled")
+MOVED = COMMANDS.add("moved", MovedRequest, MovedReply,
+                     "the stage moved (a run's move), settling at settles_at_ns: the frame whose scan spans that "
+                     "time is measured on its rows scanned after it (a partial frame, `first_row` in its estimate), "
+                     "when they are at least half of them and its source times its scans (`source_interval_s`); "
+                     "a run acts on it a scan sooner than on the next whole frame")
 REFERENCE_IMAGE = COMMANDS.add("reference_image", ReferenceImageRequest, ReferenceImage,
                                "the taught reference's pixels (`no_reference`)", timeout_s=5.0)
