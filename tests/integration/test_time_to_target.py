@@ -60,10 +60,15 @@ def test_the_experiment_keeps_each_trial_and_resumes(tmp_path, monkeypatch):
                      baseline=False, offsets=("0.5 px",))
     first = reproduce.experiment_time_to_target(True, quiet, **arguments)
     rows = first["rows"]
-    assert len(rows) == 4 and len(checkpoint.read_text().splitlines()) == 4  # 2 laws x 2 stage models
-    assert {(r["law"], r["stage_model"]) for r in rows} == {(law, model) for law in ("position", "paper")
-                                                             for model in ("calibrated", "uncalibrated")}
+    # 2 laws x 2 stage models on each law's own frames, and each law on the other frames
+    # with the calibrated model.
+    assert len(rows) == 6 and len(checkpoint.read_text().splitlines()) == 6
+    assert {(r["law"], r["stage_model"], r["frames"]) for r in rows} == {
+        ("position", "calibrated", "partial"), ("position", "uncalibrated", "partial"),
+        ("position", "calibrated", "whole"), ("paper", "calibrated", "whole"), ("paper", "uncalibrated", "whole"),
+        ("paper", "calibrated", "partial")}
     assert all(r["outcome"] == "converged" for r in rows if r["law"] == "position")
+    assert all(r["partial_frames_used"] == 0 for r in rows if r["frames"] == "whole")
     # Run again: every trial comes from the checkpoint, none is run.
     monkeypatch.setattr(reproduce, "time_trial", lambda job: pytest.fail(f"re-ran {job['key']}"))
     again = reproduce.experiment_time_to_target(True, quiet, **arguments)

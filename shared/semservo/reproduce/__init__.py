@@ -259,6 +259,13 @@ def experiment_replay2013(quick: bool, progress: Callable[[int], Progress]) -> d
 TIME_OFFSETS = (0.05, 0.15, 0.30, "0.5 px")
 #: The laws side by side, and the photometric baseline (its measurement, the paper's law).
 TIME_LAWS = (("position", "semservo"), ("paper", "semservo"), ("paper", "photometric"))
+#: What each law acts on by default (the controller's ``partial_frames``): the position
+#: law on partial frames (the rows of the scan a move lands in, scanned after it settled),
+#: the paper's law on whole fresh frames (its velocity law moves v t per frame, so more
+#: frequent frames do not bring it sooner). Each law is also run the other way (calibrated
+#: model), so the comparison takes each at its best.
+LAW_FRAMES = {"position": "partial", "paper": "whole"}
+OTHER_FRAMES = {"partial": "whole", "whole": "partial"}
 
 
 #: The paper's law runs with these stage models (the position law with all of them), the
@@ -298,23 +305,30 @@ def time_to_target_trials(quick: bool, *, trials: int | None = None, cases=None,
                     else:
                         chosen = [m for m in models if law == "position" or m == "calibrated"
                                   or (m in PAPER_LAW_MODELS and trial < PAPER_UNCALIBRATED_TRIALS)]
-                    for model in chosen:
-                        key = f"{case}|{offset}|{trial}|{law}|{method}|{model}"
+                    default = LAW_FRAMES[law] if method == "semservo" else "whole"
+                    runs = [(model, default) for model in chosen]
+                    if method == "semservo" and "calibrated" in chosen:
+                        runs.append(("calibrated", OTHER_FRAMES[default]))
+                    for model, frames in runs:
+                        key = f"{case}|{offset}|{trial}|{law}|{method}|{model}|{frames}"
                         jobs.append({"key": key, "case": case, "offset": offset, "trial": trial, "law": law,
-                                     "method": method, "stage_model": model, "start_um": start, "seed": 600 + trial})
+                                     "method": method, "stage_model": model, "frames": frames, "start_um": start,
+                                     "seed": 600 + trial})
     return jobs
 
 
 def time_trial(job: dict, taught: loop.Taught | None = None) -> dict:
     """One ``time_to_target`` trial (module level: worker processes call it)."""
-    settings = loop.TimedSettings(time_budget_s=TIME_BUDGET_S)
+    frames = job.get("frames", "whole")
+    settings = loop.TimedSettings(time_budget_s=TIME_BUDGET_S, partial_frames=frames == "partial")
     result = loop.run_timed_trial(job["case"], job["law"], tuple(job["start_um"]), seed=job["seed"],
                                   stage_model=job["stage_model"], method=job["method"], settings=settings,
                                   taught=taught)
     keep = ("outcome", "reason", "fresh_frames", "frames_scanned", "seconds", "iterations", "true_error_px",
             "overshoot_px", "frame_time_s", "pixel_um")
     summary = {key: job[key] for key in ("key", "case", "offset", "trial", "law", "method", "stage_model")}
-    summary.update({key: result[key] for key in keep})
+    summary.update({key: result[key] for key in keep}, frames=frames,
+                   partial_frames_used=sum(1 for record in result["records"] if record.get("first_row")))
     if job["trial"] == 0 and job["stage_model"] == "calibrated":
         summary["trace"] = [(round(t, 3), round(error, 4), fresh) for t, error, fresh in result["trace"]]
     return summary
@@ -381,15 +395,17 @@ def experiment_time_to_target(quick: bool, progress: Callable[[int], Progress], 
 
 def experiment_hold(quick: bool, progress: Callable[[int], Progress]) -> dict:
     """Hold after arrival: the position law converges from 5 % of the field under the
-    ``unstable`` preset, then holds for 10 simulated minutes (1 in a quick run); the true
-    error of every fresh frame while holding and the corrections made."""
+    ``unstable`` preset (on partial frames, its default), then holds for 10 simulated
+    minutes (1 in a quick run); the true error of every fresh frame while holding and the
+    corrections made."""
     minutes = 1.0 if quick else 10.0
     runs = []
     bar = progress(2)
     for seed, angle in ((700, 0.4), (701, 2.5)):
         radius = 0.05 * field_um("unstable")
         result = loop.run_timed_trial("unstable", "position", (radius * math.cos(angle), radius * math.sin(angle)),
-                                      seed=seed, settings=loop.TimedSettings(hold_s=60.0 * minutes))
+                                      seed=seed, settings=loop.TimedSettings(hold_s=60.0 * minutes,
+                                                                             partial_frames=True))
         frames = [(t, error) for t, error, fresh in result["trace"] if fresh]
         runs.append({key: result.get(key) for key in ("outcome", "reason", "fresh_frames", "seconds", "true_error_px",
                                                       "hold_s", "hold_corrections", "hold_worst_true_px",

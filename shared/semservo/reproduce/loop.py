@@ -37,6 +37,7 @@ from semservo.control import (
     planar_limit_um, saturate_planar,
 )
 from semservo.config import StageSettings
+from semservo.estimation.raster import rows_scanned_after
 from semservo.reproduce import methods
 from semservo.simulation.sem import ScanSettings
 from semservo.simulation.world import HOME_VOLTAGE, PRESETS, World
@@ -344,6 +345,11 @@ class TimedSettings:
     #: after teaching, and its errors of one sign from the 7 Hz vibration's phase at
     #: ×5000 repeated in all of them.
     start_jitter_s: float = 1.0
+    #: Act on partial frames (semservo's measurement only): the rows of the scan a move
+    #: lands in that were scanned after it settled, when they are at least
+    #: :data:`semservo.estimation.raster.PARTIAL_FRAME_FROM` of the scan, instead of waiting for
+    #: the next whole scan (the estimator service's ``partial_frames``).
+    partial_frames: bool = False
     #: Keep servoing this long after converging (0: stop there), counting the corrections.
     hold_s: float = 0.0
     integral_time_s: float | None = 10.0  # the paper's law, as in run_trial
@@ -356,7 +362,7 @@ def _law_for(name: str, model: str, settings: TimedSettings, noise_px: float):
                     model_uncertainty=MODEL_UNCERTAINTY["uncalibrated" if model == "uncalibrated" else "calibrated"],
                     noise_px=noise_px,
                     tolerance_px=settings.tolerance_px, max_move_um=settings.max_move_um,
-                    max_moves=settings.max_moves)
+                    max_moves=settings.max_moves, partial_frames=settings.partial_frames)
 
 
 @dataclass(frozen=True)
@@ -432,6 +438,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     jitter = np.random.default_rng([seed, *(int(round(value * 1e3)) % 2**32 for value in start_um)])
     started = lab.clock.t + settings.start_after_s + jitter.uniform(0.0, settings.start_jitter_s)
     frame_time = lab.settings.frame_time_s
+    line_time = lab.settings.line_time_s
     pixel_nm = lab.pixel_um * 1000
 
     towards = np.array(start_um) / max(float(np.hypot(*start_um)), 1e-12)
@@ -460,10 +467,16 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         interval = (t, t + frame_time)
         t = interval[1]
         scanned += 1
+        first_row = 0
         if interval[0] < settled_at:  # scanned while the last move landed: a pose in between
-            trace.append((interval[1] - started, true_error_px(interval), False))
-            continue
+            first_row = rows_scanned_after(lab.settings.rows, interval[0], interval[1], settled_at)
+            if not settings.partial_frames or method != "semservo" or first_row is None:
+                trace.append((interval[1] - started, true_error_px(interval), False))
+                continue
         frame, interval = lab.scan_at(interval[0])
+        scan_time = interval[1] - interval[0]
+        if first_row:  # the rows scanned after the move settled
+            interval = (interval[0] + first_row * line_time, interval[1])
         fresh_used += 1
         truth = true_error_px(interval)
         trace.append((interval[1] - started, truth, True))
@@ -471,8 +484,9 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
             hold_worst_px = max(hold_worst_px, truth)
             if interval[1] - converged_at >= settings.hold_s:
                 break
-        measured = measure(frame)
+        measured = measure(frame, first_row) if first_row else measure(frame)
         record = {"t_s": interval[1] - started, "fresh": fresh_used, "scanned": scanned, "ok": measured.ok,
+                  "first_row": first_row,
                   "true_error_px": truth, "true_stage_error_px": [float(value) for value in true_vector[0]]}
         if not measured.ok:
             lost += 1
@@ -509,7 +523,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         last_end = interval[1]
         try:
             step = controller.step(measured.dx, measured.dy, 0.0, pixel_nm, sampling, frame_interval_s=interval,
-                                   now_s=interval[1] + settings.latency_s)
+                                   now_s=interval[1] + settings.latency_s, scan_time_s=scan_time)
         except UnexpectedResponse as error:
             outcome, reason = "failed", str(error)
             record["action"] = "held: unexpected response"

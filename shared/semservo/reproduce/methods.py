@@ -68,8 +68,8 @@ def _normalised(image: np.ndarray, halvings: int) -> np.ndarray:
 def semservo_method(reference: np.ndarray, rotation: bool = False, mask=None, scan_averaged: bool = False) -> Callable:
     estimator = MotionEstimator(reference, rotation=rotation, mask=mask, scan_averaged=scan_averaged)
 
-    def measure(current: np.ndarray) -> Measured:
-        motion = estimator.estimate(current)
+    def measure(current: np.ndarray, first_row: int = 0) -> Measured:
+        motion = estimator.estimate(current, first_row=first_row)
         ok = motion.confidence >= 0.5
         return Measured(motion.dx, motion.dy, motion.rotation_deg, ok, "" if ok else "low confidence")
     return measure
@@ -208,9 +208,9 @@ def make(name: str, reference: np.ndarray, *, rotation: bool = False, mask=None,
     else:
         raise ValueError(f"unknown method {name!r}; methods: {', '.join(METHODS)}")
 
-    def timed(current: np.ndarray) -> Measured:
+    def timed(current: np.ndarray, first_row: int = 0) -> Measured:
         started = time.perf_counter()
-        result = inner(current)
+        result = inner(current, first_row) if first_row else inner(current)
         return Measured(result.dx, result.dy, result.rotation_deg, result.ok, result.reason,
                         (time.perf_counter() - started) * 1e3)
     return timed
