@@ -112,9 +112,11 @@ class Stack:
         """Move by ``offset_um`` in chunks the stage accepts (its step limit)."""
         steps = int(np.ceil(np.abs(offset_um).max() / chunk_um))
         for _ in range(steps):
-            self.stage.request("move", targets={"x": float(offset_um[0] / steps), "y": float(offset_um[1] / steps)},
-                               relative=True)
-            time.sleep(0.05)
+            reply = self.stage.request("move", targets={"x": float(offset_um[0] / steps),
+                                                        "y": float(offset_um[1] / steps)}, relative=True)
+            # The next chunk once the stage's rate limit allows it (at the lab's own pace, 1 x,
+            # a chunk of volts takes tens of milliseconds).
+            time.sleep(max(0.05, ((reply.get("ready_at_ns") or 0) - time.time_ns()) / 1e9))
 
 
 def png_b64(pixels: np.ndarray) -> str:
@@ -186,10 +188,10 @@ def resting_interval(records: list[dict]) -> tuple[float, float]:
 
 
 def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path, run_settings: dict,
-               sample: Path | None = None) -> dict:
+               sample: Path | None = None, speedup: float = SPEEDUP) -> dict:
     preset = PRESETS[name]
-    env = {"SEMSERVO_FAKELAB__PRESET": name, "SEMSERVO_FAKELAB__SPEEDUP": str(SPEEDUP),
-           "SEMSERVO_STAGE__MAX_RATE_V_PER_S": str(stage_rate_for(SPEEDUP)), "SEMSERVO_IMAGESERVER__FPS": "100",
+    env = {"SEMSERVO_FAKELAB__PRESET": name, "SEMSERVO_FAKELAB__SPEEDUP": str(speedup),
+           "SEMSERVO_STAGE__MAX_RATE_V_PER_S": str(stage_rate_for(speedup)), "SEMSERVO_IMAGESERVER__FPS": "100",
            "SEMSERVO_IMAGESERVER__SOURCE": "sim", "SEMSERVO_CONTROLLER__RUNS_DIR": str(out / "runs")}
     if sample is not None:
         env.update(sample_environment(sample, name))
@@ -244,6 +246,8 @@ def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path, run_
                 "trial": trial, "run_id": started["run_id"], "state": status["state"], "reason": status["reason"],
                 "offset_um": offset.tolist(), "iterations": record["outcome"]["iterations"] if record.get("outcome") else None,
                 "sim_time_s": intervals[-1][1] - intervals[0][0] if intervals else None,
+                "fresh_frames": record["outcome"].get("fresh_frames") if record.get("outcome") else None,
+                "partial_frames": sum(1 for r in record["records"] if r.get("first_row")),
                 "true_error_um": (final - taught).tolist(), "pixel_um": pixel_um,
                 "true_error_last3_um": (last3 - taught).tolist(), "estimate_error_px": estimate_errors,
                 "true_error_later_um": (later - taught).tolist(),
@@ -324,6 +328,10 @@ def summarize(result: dict) -> dict:
         "success": f"{len(ok)}/{len(trials)}",
         "iterations": float(np.mean([t["iterations"] for t in ok])) if ok else None,
         "sim_time_s": float(np.mean([t["sim_time_s"] for t in ok if t["sim_time_s"]])) if ok else None,
+        "sim_time_median_s": float(np.median([t["sim_time_s"] for t in ok if t["sim_time_s"]])) if ok else None,
+        "fresh_frames": float(np.median([t["fresh_frames"] for t in ok if t.get("fresh_frames") is not None]))
+        if ok and any(t.get("fresh_frames") is not None for t in ok) else None,
+        "partial_frames": int(sum(t.get("partial_frames", 0) for t in trials)),
         "error_px_mean": errors_px.mean(axis=0).tolist() if ok else None,
         "error_px_std": errors_px.std(axis=0).tolist() if ok else None,
         "error_px_max": errors_px.max(axis=0).tolist() if ok else None,
@@ -395,6 +403,12 @@ def main(argv: list[str] | None = None) -> int:
                              "writes positioning-sample-images.json")
     parser.add_argument("--sample-preset", default="optimal", choices=sorted(PRESETS),
                         help="with --sample-images: the optics, dwell and scale (default optimal, x1200)")
+    parser.add_argument("--speedup", type=float, default=SPEEDUP,
+                        help=f"the fake lab's clock against the wall's (default {SPEEDUP}; 1: the microscope's own "
+                             "pace, where a move lands early in the next scan and the position law acts on that "
+                             "scan's rows after it, a partial frame; at 20 x the services' latency is a whole scan)")
+    parser.add_argument("--partial-frames", choices=["default", "on", "off"], default="default",
+                        help="the runs' partial_frames (default: the law's choice)")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -403,22 +417,30 @@ def main(argv: list[str] | None = None) -> int:
                     "law": args.law}
     if args.converge_frames:
         run_settings["converge_frames"] = args.converge_frames
+    if args.partial_frames != "default":
+        run_settings["partial_frames"] = args.partial_frames == "on"
     results = []
     name = "positioning" if args.law == "position" else "positioning-paper-law"
+    if args.speedup != SPEEDUP:
+        name += f"-speedup-{args.speedup:g}"
+    if args.partial_frames != "default":
+        name += f"-partial-{args.partial_frames}"
     if args.sample_images:
         name += "-sample-images"
         for picture in args.sample_images:
             if picture == "scene":  # the preset's own scene, the same settings: the row to compare with
                 say(f"{args.sample_preset}: its own scene, {PRESETS[args.sample_preset].description}")
-                results.append(run_preset(args.sample_preset, args.trials, rng, args.out, run_settings))
+                results.append(run_preset(args.sample_preset, args.trials, rng, args.out, run_settings,
+                                          speedup=args.speedup))
                 continue
             image = find_picture(picture)
             say(f"{image.name}: the real picture as the sample, {args.sample_preset} optics")
-            results.append(run_preset(args.sample_preset, args.trials, rng, args.out, run_settings, sample=image))
+            results.append(run_preset(args.sample_preset, args.trials, rng, args.out, run_settings, sample=image,
+                                      speedup=args.speedup))
     else:
         for preset in args.presets:
             say(f"{preset}: {PRESETS[preset].description}")
-            results.append(run_preset(preset, args.trials, rng, args.out, run_settings))
+            results.append(run_preset(preset, args.trials, rng, args.out, run_settings, speedup=args.speedup))
     loop = None if args.no_throughput or args.sample_images else throughput(args.out)
 
     say("\nPositioning from random starts up to 1/4 of the field (true final error from the simulator)")
@@ -437,6 +459,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{px[0]:.3f}, {px[1]:.3f} ({pxs[0]:.3f}, {pxs[1]:.3f})  {um[0]:.4f}, {um[1]:.4f} ({ums[0]:.4f}, {ums[1]:.4f})  "
             f"{'%.2f, %.2f' % paper if paper else '-':>13s}  "
             f"{summary['error_px_max'][0]:.3f}, {summary['error_px_max'][1]:.3f}"
+            f"  sim s median {summary['sim_time_median_s']:.2f}, fresh frames median {summary['fresh_frames']}, "
+            f"partial frames {summary['partial_frames']}"
             + (f"  estimate - truth, last frames: mean {summary['estimate_error_px']['mean'][0]:.3f}, "
                f"{summary['estimate_error_px']['mean'][1]:.3f}, max {summary['estimate_error_px']['max'][0]:.3f}, "
                f"{summary['estimate_error_px']['max'][1]:.3f} px" if summary["estimate_error_px"] else ""))
