@@ -81,6 +81,7 @@ class IterationRecord:
     frame_source_interval_s: tuple[float, float] | None  # of the rows measured (a partial frame's after the move)
     action: str = ""
     first_row: int = 0  # a partial frame's first row measured (0: the whole frame)
+    rows_scanned_from_ns: int | None = None  # and when that row's scan began
     t_ns: int = 0
     iteration: int = 0
     error_px: float | None = None
@@ -129,7 +130,7 @@ class IterationRecord:
                    frame_published_at_ns=estimate.frame_published_at_ns,
                    estimate_published_at_ns=estimate.published_at_ns,
                    frame_source_interval_s=estimate.rows_source_interval_s or estimate.frame_source_interval_s,
-                   first_row=estimate.first_row)
+                   first_row=estimate.first_row, rows_scanned_from_ns=estimate.rows_scanned_from_ns)
 
     def to_json(self) -> dict:
         """The record as JSON fields; a field never set is left out."""

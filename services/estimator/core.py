@@ -16,10 +16,11 @@ import numpy as np
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
 from semservo.estimation.common import MIN_SIZE
-from semservo.estimation.raster import BAND_ROWS, SCAN_AVERAGED_FROM_S, rows_scanned_after, scan_lasted_s
+from semservo.estimation.raster import (BAND_ROWS, PARTIAL_FRAME_FROM, SCAN_AVERAGED_FROM_S, rows_scanned_after,
+                                       scan_lasted_s)
 from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, check_sweep, content_shifts, depth_map,
-                                      egi_tilt_between, plan_sweep, pool_depths, pooled_tilt, undo_foreshortening,
-                                      undoes_foreshortening, wants_another_sweep)
+                                      egi_tilt_between, plan_sweep, pool_depths, pooled_tilt, rows_seen_square_on,
+                                      undo_foreshortening, undoes_foreshortening, wants_another_sweep)
 from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
@@ -34,6 +35,10 @@ CONTENT_TRACK_FRAMES = 4096
 #: Only frames measured at least this confidently enter the track (the controller's
 #: default line for acting on an estimate).
 CONTENT_TRACK_MIN_CONFIDENCE = 0.5
+#: A partial frame's rows begin at least this long after the move settled (ns): the
+#: stage's clock and the scan generator's are two computers' under NTP (a millisecond or
+#: so apart on a LAN), and a row is 0.6-0.9 ms at the paper's dwell times.
+PARTIAL_FRAME_MARGIN_NS = 2_000_000
 
 
 class TeachError(CommandError):
@@ -159,11 +164,14 @@ class TeachPool:
 
 def _prepare_rows(estimator: MotionEstimator, bands: list[int], rotation: bool) -> None:
     """Make the partial frames' estimators of ``bands`` (a thread of its own)."""
-    try:
-        for band in bands:
+    for band in bands:
+        try:
             estimator.prepare_rows(band, rotation)
-    except Exception:  # noqa: BLE001 - a frame that needs it makes it itself, and says why if it cannot
-        log.exception("preparing the partial frames' estimators failed")
+        except ValueError as error:  # rows an anchored mask cannot measure: those frames are used whole
+            log.debug("no partial frames from row %d: %s", band, error)
+        except Exception:  # noqa: BLE001 - a frame that needs it makes it itself, and says why if it cannot
+            log.exception("preparing the partial frames' estimators failed")
+            return
 
 
 class EstimatorCore:
@@ -598,13 +606,17 @@ class EstimatorCore:
         pixels = frame.pixels
         # One snapshot: the tracker's thread may measure the next sweep meanwhile.
         latest, tilt = (self.last_tilt, self.undone_tilt) if self.measure_tilts else (None, None)
+        first_row = self._first_row_after_move(frame)
         if tilt and undoes_foreshortening(tilt.get("alpha_deg"), tilt.get("beta_deg")):
             # Seen square on, as the reference was: a tilted view is foreshortened, which
             # the log-polar angle reads as degrees of turn (14 at 15 degrees of tilt).
             pixels = undo_foreshortening(pixels, tilt["alpha_deg"], tilt["beta_deg"])
+            if first_row:  # the resampling reaches rows up: only those it reads from the rows after the move
+                first_row = rows_seen_square_on(first_row, pixels.shape, tilt["alpha_deg"], tilt["beta_deg"])
+                if pixels.shape[0] - first_row < max(PARTIAL_FRAME_FROM * pixels.shape[0], MIN_SIZE):
+                    first_row = 0
         averaged = self.estimator.scan_averaged and self._scanned_slowly(frame)
         rotation = self.measure_rotation and self.estimator.rotation
-        first_row = self._first_row_after_move(frame)
         try:
             motion = self.estimator.estimate(pixels, rotation=rotation, scan_averaged=averaged, first_row=first_row)
         except ValueError as error:  # rows the estimator cannot measure (a mask all one level there)
@@ -654,7 +666,8 @@ class EstimatorCore:
         header, after = frame.header, self.moved_settles_at_ns
         if after is None or header.scan_started_at_ns is None or header.source_interval_s is None:
             return 0
-        first_row = rows_scanned_after(header.shape[0], header.scan_started_at_ns, header.acquired_at_ns, after)
+        first_row = rows_scanned_after(header.shape[0], header.scan_started_at_ns, header.acquired_at_ns,
+                                       after + PARTIAL_FRAME_MARGIN_NS)
         return first_row if first_row and header.shape[0] - first_row >= MIN_SIZE else 0
 
     def _scanned_slowly(self, frame: Frame) -> bool:

@@ -51,9 +51,13 @@ def test_at_the_microscope_s_own_pace_the_demo_acts_on_the_rows_after_each_move(
     record = json.loads(next(runs.glob("*.json")).read_text())
     used = [r for r in record["records"] if r.get("first_row")]
     assert len(used) == int(partial.group(2)) >= 1
-    for r in used:  # measured on its rows after the move: scanned after the last command settled
-        assert r["action"] in ("moved", "within tolerance") or r["action"].startswith("held: ")
-        assert r["action"] != "held: stale (scanned during the last move)"
+    settled_ns = 0
+    for r in record["records"]:
+        if r.get("first_row"):  # its rows measured were scanned after the last move had settled
+            assert r["rows_scanned_from_ns"] >= settled_ns > 0 and not r["action"].startswith("held: stale")
+            assert r["frame_acquired_at_ns"] > settled_ns, "the frame itself spanned the move"
+        if r["action"] == "moved":
+            settled_ns = max(settled_ns, r["command_settled_at_ns"])
     true_px = float(re.search(r"true final error \(simulator\) ([\d.]+) px", done.stdout).group(1))
     assert true_px < 0.2
 

@@ -87,6 +87,49 @@ def shaded_part(offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     return (40 + 120 * inside + halo).astype(np.float32)
 
 
+def test_a_partial_frame_against_a_mask_is_anchored_row_by_row_or_not_measured():
+    """Cut at a row, a mask's correlation with the image moves (here by about 0.6 px):
+    each band of an anchored mask is anchored to the image's same rows; a mask taken as
+    drawn is measured on whole frames only."""
+    image = shaded_part()
+    anchored = MotionEstimator(image, mask=image > 100, fft_effort="FFTW_ESTIMATE")
+    for first_row in (64, 96, 128):
+        at_rest = anchored.estimate(image, first_row=first_row)
+        assert abs(at_rest.dx) < 1e-3 and abs(at_rest.dy) < 1e-3
+        moved = anchored.estimate(shaded_part((2.5, -1.5)), first_row=first_row)
+        assert abs(moved.dx - 2.5) < 0.1 and abs(moved.dy + 1.5) < 0.1
+    as_drawn = MotionEstimator(image, mask=np.roll(image > 100, 4, axis=1), fft_effort="FFTW_ESTIMATE")
+    with pytest.raises(ValueError, match="whole frames"):
+        as_drawn.estimate(image, first_row=64)
+    as_drawn.prepare_rows(64)  # nothing to prepare: no error
+
+
+def test_row_estimators_are_kept_for_the_last_few_bands_only():
+    from semservo.estimation.estimator import ROW_ESTIMATORS_KEPT
+
+    scene = texture(700)
+    estimator = MotionEstimator(view(scene), rotation=False, fft_effort="FFTW_ESTIMATE")
+    for band in range(1, ROW_ESTIMATORS_KEPT + 4):
+        estimator.prepare_rows(band * BAND_ROWS)
+    assert len(estimator._rows_estimators) == ROW_ESTIMATORS_KEPT
+    assert (BAND_ROWS, False) not in estimator._rows_estimators, "the least recently used went first"
+
+
+@pytest.mark.parametrize("alpha, beta", [(5.0, 5.0), (15.0, 15.0), (-15.0, 15.0), (15.0, -3.0), (0.3, 0.1)])
+def test_a_frame_seen_square_on_reads_only_rows_after_the_move_from_the_row_said(alpha, beta):
+    """Undoing a tilt's foreshortening resamples rows from above: the partial frame starts
+    where no row scanned before the move reaches."""
+    from semservo.estimation.tilt import rows_seen_square_on, undo_foreshortening
+
+    for first_row in (64, 128, 256, 300):
+        before = np.zeros((512, 512), np.float32)
+        before[:first_row] = 1000.0  # scanned while the stage still moved
+        reached = np.nonzero(np.abs(undo_foreshortening(before, alpha, beta)).max(axis=1) > 1e-3)[0]
+        safe = rows_seen_square_on(first_row, (512, 512), alpha, beta)
+        assert first_row <= safe and safe > reached.max()
+        assert safe - reached.max() <= 4, "and not much later"
+
+
 def test_a_mask_drawn_on_the_reference_s_object_is_anchored_to_it_and_one_drawn_elsewhere_is_not():
     image = shaded_part()
     threshold = image > 100
@@ -129,8 +172,10 @@ def test_the_estimator_measures_the_frame_a_move_settled_in_on_its_rows_after_it
     core.moved(4 * lasted + 100_000_000)
     untimed = core.process(timed_frame(landed, 4, 4 * lasted, lasted, timed=False))
     assert untimed.first_row == 0, "a source that does not time its scans gives whole frames"
-    late = core.process(timed_frame(landed, 5, 5 * lasted - 400_000_000, lasted))
-    assert late.first_row == 0, "under half its rows after the move: whole (and stale)"
+    core.moved(5 * lasted + 300_000_000)
+    late = core.process(timed_frame(landed, 5, 5 * lasted, lasted))
+    assert late.first_row == 0 and late.rows_scanned_from_ns is None, \
+        "under half its rows after the move: whole (and stale, its scan began before the move settled)"
 
 
 def make_run(**settings) -> Run:
@@ -187,3 +232,26 @@ def test_in_the_simulated_lab_partial_frames_bring_the_position_law_to_the_targe
     assert any(record.get("first_row") for record in partial["records"])
     assert not any(record.get("first_row") for record in whole["records"])
     assert partial["frames_scanned"] < whole["frames_scanned"] and partial["seconds"] < whole["seconds"]
+
+
+def test_the_estimator_uses_a_mask_taken_as_drawn_whole_and_an_anchored_one_partly():
+    lasted = 256_000_000  # 256 rows, a row per millisecond
+    for corners, anchored in (([[80, 60], [170, 60], [170, 200], [80, 200]], True),
+                              ([[84, 60], [174, 60], [174, 200], [84, 200]], False)):
+        core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+        core.process(timed_frame(shaded_part(), 0, 0, lasted))
+        core.teach_mask(polygon=corners)
+        assert core.estimator.mask_anchored is anchored
+        core.moved(lasted + 40_000_000)
+        landed = shaded_part((2.0, 1.0))
+        landed[:40] = shaded_part((0.5, 0.0))[:40]  # the stage still moving
+        estimate = core.process(timed_frame(landed, 1, lasted, lasted))
+        if anchored:
+            # The cut moves over the object with it: a pixel's move reads a tenth of a pixel
+            # off (as a stage's gain off by a tenth would); the target itself reads zero.
+            assert estimate.first_row == 64 and abs(estimate.dx_px - 2.0) < 0.15 and abs(estimate.dy_px - 1.0) < 0.15
+            core.moved(2 * lasted + 40_000_000)
+            at_rest = core.process(timed_frame(shaded_part(), 2, 2 * lasted, lasted))
+            assert at_rest.first_row == 64 and abs(at_rest.dx_px) < 0.01 and abs(at_rest.dy_px) < 0.01
+        else:
+            assert estimate.first_row == 0 and core.counters["partial_frames_refused"] == 1

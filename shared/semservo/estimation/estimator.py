@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import OrderedDict
 from dataclasses import replace
 from typing import NamedTuple
 
@@ -65,6 +66,14 @@ MIN_OVERLAP = 0.1
 #: on the object where it stands, its sub-pixel offset is the mask's, not a wish to move
 #: the object by it. A mask farther off is a target somewhere else, taken as drawn.
 MASK_ANCHORED_WITHIN_PX = 0.5
+#: A partial frame against an anchored mask is measured against the mask's same rows,
+#: anchored to the reference's same rows (a mask cut through its object reads the image
+#: off by up to about half a pixel more than the whole mask does); rows whose image reads
+#: further off than this (px) are not measured (the whole frame is used).
+MASK_ROWS_ANCHORED_WITHIN_PX = 2.0
+#: Partial frames' estimators kept (one per band of rows and turn setting, the most
+#: recently used): a run's moves settle in a few bands; each is a few tens of MB at 1024 px.
+ROW_ESTIMATORS_KEPT = 6
 #: Views moved by more than this fraction of the frame's side (along rows or columns)
 #: have their turn refined again under windows over the scene both images share
 #: (``MotionEstimator._refine_on_overlap``).
@@ -162,7 +171,8 @@ class MotionEstimator:
         threshold's edges are not where the correlation puts a shaded, edge-brightened
         object) is taken off every estimate (``mask_offset``), so the target is where
         the reference was, as in the paper's case 6; a mask drawn elsewhere is the target
-        as drawn.
+        as drawn (and measured on whole frames only, ``first_row`` below).
+    mask_anchored_within_px : the line for that anchoring.
     window : apodization, see :func:`apodization_window`.
     snr_threshold_db : frames whose SNR is below this are filtered (section II-D).
     band : the highest spatial frequency (cycles/pixel) the sub-pixel fit uses.
@@ -208,6 +218,7 @@ class MotionEstimator:
         mask_band: float = 0.05,
         precision: str = "full",
         scan_averaged: bool = False,
+        mask_anchored_within_px: float = MASK_ANCHORED_WITHIN_PX,
     ):
         if precision not in ("full", "fast"):
             raise ValueError(f"precision must be 'full' or 'fast', not {precision!r}")
@@ -219,7 +230,7 @@ class MotionEstimator:
         self._given_reference = reference
         self._mask_region = None if mask is None else (
             mask.astype(bool) if isinstance(mask, np.ndarray) and mask.ndim == 2 else polygon_mask(reference.shape, mask))
-        self._rows_estimators: dict[tuple[int, bool], MotionEstimator] = {}
+        self._rows_estimators: OrderedDict[tuple[int, bool], MotionEstimator] = OrderedDict()
         self._rows_lock = threading.Lock()
         if mask is not None:
             reference = mask_reference(reference, mask)
@@ -248,10 +259,12 @@ class MotionEstimator:
         #: The offset (dx, dy px) taken off every estimate: a mask's own against the
         #: reference it was drawn on (``mask`` above), else (0, 0).
         self.mask_offset = (0.0, 0.0)
+        #: The mask is anchored to the reference's image (``mask``, above).
+        self.mask_anchored = False
         if mask is not None:
             own = self._estimate(*self._check(self._given_reference), False)
-            if own.confidence >= self.min_confidence and math.hypot(own.dx, own.dy) <= MASK_ANCHORED_WITHIN_PX:
-                self.mask_offset = (float(own.dx), float(own.dy))
+            if own.confidence >= self.min_confidence and math.hypot(own.dx, own.dy) <= mask_anchored_within_px:
+                self.mask_offset, self.mask_anchored = (float(own.dx), float(own.dy)), True
 
     def estimate(self, image, *, rotation: bool | None = None, scan_averaged: bool | None = None,
                  first_row: int = 0) -> Motion:
@@ -323,6 +336,10 @@ class MotionEstimator:
         if array.shape != self.shape:
             raise ValueError(f"image is {array.shape[1] if array.ndim == 2 else array.shape} x "
                              f"{array.shape[0]}, the reference is {self.shape[1]} x {self.shape[0]}")
+        if self._mask_region is not None and not self.mask_anchored:
+            raise ValueError("a mask taken as drawn (not anchored to the image it was drawn on) is measured on "
+                             "whole frames: cut at a row, its correlation with the image moves by up to half a "
+                             "pixel")
         turns = self.rotation and rotation is not False
         motion = self._rows_estimator(rows, turns).estimate(array[rows:], scan_averaged=scan_averaged)
         # The rows' estimator turns about their own centre, ``rows / 2`` below the
@@ -337,22 +354,35 @@ class MotionEstimator:
         """Make now what a partial frame from ``first_row`` will be measured with (the
         reference's rows from its band on: FFT plans, spectra, the turn's references), so
         that its estimate takes no longer than a whole frame's. Safe to call from another
-        thread while this estimator measures frames (e.g. while the frame is scanned); a
-        no-op for rows that cannot be a partial frame."""
+        thread while this estimator measures frames (e.g. while the frame is scanned: FFT
+        plans are made under one lock, :data:`~.plans.PLANNING_LOCK`); a no-op for rows
+        that cannot be a partial frame, ValueError for rows an anchored mask cannot
+        measure."""
         rows = -(-int(first_row) // BAND_ROWS) * BAND_ROWS
-        if 0 < rows and self.shape[0] - rows >= MIN_SIZE:
+        if 0 < rows and self.shape[0] - rows >= MIN_SIZE and (self._mask_region is None or self.mask_anchored):
             self._rows_estimator(rows, self.rotation and rotation is not False)
 
     def _rows_estimator(self, rows: int, rotation: bool) -> "MotionEstimator":
         """The estimator of the reference's rows from ``rows`` on (with the turn's
-        references or not), made once; one lock, so a frame waits for one being made."""
+        references or not), made once and kept among the last
+        :data:`ROW_ESTIMATORS_KEPT`; one lock, so a frame waits for one being made. For an
+        anchored mask, the mask's rows anchored to the reference's rows (ValueError when
+        they read it more than :data:`MASK_ROWS_ANCHORED_WITHIN_PX` off)."""
+        key = (rows, rotation)
         with self._rows_lock:
-            made = self._rows_estimators.get((rows, rotation))
+            made = self._rows_estimators.get(key)
             if made is None:
                 mask = None if self._mask_region is None else self._mask_region[rows:]
                 made = MotionEstimator(self._given_reference[rows:], rotation=rotation, mask=mask,
-                                       scan_averaged=self.scan_averaged, **self._settings)
-                self._rows_estimators[(rows, rotation)] = made
+                                       scan_averaged=self.scan_averaged,
+                                       mask_anchored_within_px=MASK_ROWS_ANCHORED_WITHIN_PX, **self._settings)
+                if mask is not None and not made.mask_anchored:
+                    raise ValueError(f"the mask's rows from {rows} on read the image they were drawn on more than "
+                                     f"{MASK_ROWS_ANCHORED_WITHIN_PX:g} px off: measured on whole frames")
+                self._rows_estimators[key] = made
+                while len(self._rows_estimators) > ROW_ESTIMATORS_KEPT:
+                    self._rows_estimators.popitem(last=False)
+            self._rows_estimators.move_to_end(key)
             return made
 
     def _estimate(self, image: np.ndarray, statistics: FrameStatistics, rotation: bool | None) -> Motion:

@@ -21,13 +21,17 @@ def wisdom_path() -> Path:
     return Path(os.environ.get("SEMSERVO_FFTW_WISDOM", default))
 
 
-_wisdom_lock = threading.Lock()
+#: Held around every plan made and all wisdom read or written, in this process: FFTW
+#: allows only the execution of plans to run concurrently, and pyFFTW takes its own lock
+#: for planning but not for exporting wisdom (an estimator made in a thread, for a
+#: partial frame's rows, must not plan while another exports).
+PLANNING_LOCK = threading.RLock()
 #: The wisdom files already read into this process (the setting may name another later).
 _wisdom_loaded: set[Path] = set()
 
 
 def _load_wisdom(path: Path) -> None:
-    with _wisdom_lock:
+    with PLANNING_LOCK:
         if path in _wisdom_loaded:
             return
         _wisdom_loaded.add(path)
@@ -40,7 +44,7 @@ def _load_wisdom(path: Path) -> None:
 def _save_wisdom(path: Path) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        temporary = path.with_suffix(f".{os.getpid()}.tmp")
+        temporary = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
         temporary.write_bytes(pickle.dumps(pyfftw.export_wisdom()))
         temporary.replace(path)
     except OSError as error:
@@ -57,17 +61,19 @@ class FFTPlans:
     @classmethod
     def for_shape(cls, shape: tuple[int, int], effort: str = "FFTW_MEASURE", threads: int = 1) -> "FFTPlans":
         path = wisdom_path()
-        _load_wisdom(path)
-        before = pyfftw.export_wisdom()
-        real = pyfftw.empty_aligned(shape, dtype="float32")
-        spectrum = pyfftw.empty_aligned((shape[0], shape[1] // 2 + 1), dtype="complex64")
-        plans = cls(
-            forward=pyfftw.FFTW(real, spectrum, axes=(0, 1), direction="FFTW_FORWARD", flags=(effort,), threads=threads),
-            inverse=pyfftw.FFTW(spectrum.copy(), real.copy(), axes=(0, 1), direction="FFTW_BACKWARD",
-                                flags=(effort, "FFTW_DESTROY_INPUT"), threads=threads),
-        )
-        # Saved when planning learned something, and also when this file lacks what the
-        # process already knew (plans made earlier, under another wisdom path).
-        if pyfftw.export_wisdom() != before or not path.is_file():
-            _save_wisdom(path)
+        with PLANNING_LOCK:
+            _load_wisdom(path)
+            before = pyfftw.export_wisdom()
+            real = pyfftw.empty_aligned(shape, dtype="float32")
+            spectrum = pyfftw.empty_aligned((shape[0], shape[1] // 2 + 1), dtype="complex64")
+            plans = cls(
+                forward=pyfftw.FFTW(real, spectrum, axes=(0, 1), direction="FFTW_FORWARD", flags=(effort,),
+                                    threads=threads),
+                inverse=pyfftw.FFTW(spectrum.copy(), real.copy(), axes=(0, 1), direction="FFTW_BACKWARD",
+                                    flags=(effort, "FFTW_DESTROY_INPUT"), threads=threads),
+            )
+            # Saved when planning learned something, and also when this file lacks what the
+            # process already knew (plans made earlier, under another wisdom path).
+            if pyfftw.export_wisdom() != before or not path.is_file():
+                _save_wisdom(path)
         return plans

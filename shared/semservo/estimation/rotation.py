@@ -15,6 +15,7 @@ import numpy as np
 import pyfftw
 
 from semservo.estimation import _kernels
+from semservo.estimation.plans import PLANNING_LOCK
 from semservo.estimation.resolutions import FullResolution, HalfResolution
 from semservo.estimation.translation import centred_shift
 
@@ -270,9 +271,10 @@ class LogPolarReference:
         # every peak back onto the true turn, so the four add into one surface.
         frequencies = np.arange(angles // 2 + 1)
         turn_samples = np.asarray(TURNED_REFERENCE_DEG) * angles / 180.0
-        plan = pyfftw.FFTW(pyfftw.empty_aligned(grid.map_cols.shape, "float32"),
-                           pyfftw.empty_aligned((grid.map_cols.shape[0], angles // 2 + 1), "complex64"),
-                           axes=(1,), flags=(fft_effort,))
+        with PLANNING_LOCK:  # one plan made at a time in this process (plans.PLANNING_LOCK)
+            plan = pyfftw.FFTW(pyfftw.empty_aligned(grid.map_cols.shape, "float32"),
+                               pyfftw.empty_aligned((grid.map_cols.shape[0], angles // 2 + 1), "complex64"),
+                               axes=(1,), flags=(fft_effort,))
         return cls(
             grid=grid, refiner=AngularRefiner.for_angles(angles), emphasis=emphasis, plan=plan,
             reference_conjugate=reference_conjugate,

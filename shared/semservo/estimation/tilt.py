@@ -29,6 +29,7 @@ exact inverse used here (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx)).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import NamedTuple, Sequence
 
@@ -996,6 +997,22 @@ def foreshortening(alpha_deg: float | None, beta_deg: float | None) -> np.ndarra
     identity where it does not (:func:`undoes_foreshortening`: the frame is then
     measured as it is)."""
     return _seen_through(alpha_deg, beta_deg) if undoes_foreshortening(alpha_deg, beta_deg) else np.eye(2)
+
+
+def rows_seen_square_on(first_row: int, shape: tuple[int, int], alpha_deg: float, beta_deg: float) -> int:
+    """The first row of a frame undone by :func:`undo_foreshortening` whose bicubic
+    samples all come from the frame's rows from ``first_row`` on (the rows of a partial
+    frame: what was scanned after a move settled). Seen through A, an output row reads
+    input rows ``sin alpha sin beta`` per column apart across the frame and ``cos alpha``
+    times as far from the centre: at 15 degrees on both axes a row reaches 33 rows up
+    over a 512-px frame. Two rows more for the bicubic kernel."""
+    rows, cols = shape
+    forward = _seen_through(alpha_deg, beta_deg)
+    centre_y, centre_x = (rows - 1) / 2, (cols - 1) / 2
+    # Output row y reads rows centre_y + cos(alpha) (y - centre_y) + s (x - centre_x), x over the row.
+    reach = abs(forward[1, 0]) * centre_x
+    needed = first_row + 2
+    return int(min(max(math.ceil(centre_y + (needed - centre_y + reach) / forward[1, 1]), first_row), rows))
 
 
 def undo_foreshortening(frame: np.ndarray, alpha_deg: float, beta_deg: float) -> np.ndarray:

@@ -156,6 +156,7 @@ MOVED = COMMANDS.add("moved", MovedRequest, MovedReply,
                      "the stage moved (a run's move), settling at settles_at_ns: the frame whose scan spans that "
                      "time is measured on its rows scanned after it (a partial frame, `first_row` in its estimate), "
                      "when they are at least half of them and its source times its scans (`source_interval_s`); "
-                     "a run acts on it a scan sooner than on the next whole frame")
+                     "a run acts on it a scan sooner than on the next whole frame. Best effort, so answered within "
+                     "0.25 s or given up (that frame is then used whole)", timeout_s=0.25)
 REFERENCE_IMAGE = COMMANDS.add("reference_image", ReferenceImageRequest, ReferenceImage,
                                "the taught reference's pixels (`no_reference`)", timeout_s=5.0)
