@@ -606,15 +606,12 @@ class EstimatorCore:
         pixels = frame.pixels
         # One snapshot: the tracker's thread may measure the next sweep meanwhile.
         latest, tilt = (self.last_tilt, self.undone_tilt) if self.measure_tilts else (None, None)
-        first_row = self._first_row_after_move(frame)
-        if tilt and undoes_foreshortening(tilt.get("alpha_deg"), tilt.get("beta_deg")):
+        undone = tilt if tilt and undoes_foreshortening(tilt.get("alpha_deg"), tilt.get("beta_deg")) else None
+        if undone:
             # Seen square on, as the reference was: a tilted view is foreshortened, which
             # the log-polar angle reads as degrees of turn (14 at 15 degrees of tilt).
-            pixels = undo_foreshortening(pixels, tilt["alpha_deg"], tilt["beta_deg"])
-            if first_row:  # the resampling reaches rows up: only those it reads from the rows after the move
-                first_row = rows_seen_square_on(first_row, pixels.shape, tilt["alpha_deg"], tilt["beta_deg"])
-                if pixels.shape[0] - first_row < max(PARTIAL_FRAME_FROM * pixels.shape[0], MIN_SIZE):
-                    first_row = 0
+            pixels = undo_foreshortening(pixels, undone["alpha_deg"], undone["beta_deg"])
+        first_row = self._first_row_after_move(frame, undone)
         averaged = self.estimator.scan_averaged and self._scanned_slowly(frame)
         rotation = self.measure_rotation and self.estimator.rotation
         try:
@@ -658,17 +655,22 @@ class EstimatorCore:
                                            float(motion.dx), float(motion.dy)))
         return estimate
 
-    def _first_row_after_move(self, frame: Frame) -> int:
+    def _first_row_after_move(self, frame: Frame, undone: dict | None = None) -> int:
         """The first row of ``frame`` to measure: after the move a run told of, when its
         scan spans the move's settling and enough rows are left (a partial frame); else 0
         (the whole frame, stale or not). Only for a source that times its scans (its
-        ``source_interval_s``: a scan generator's own start and end, not a file's times)."""
+        ``source_interval_s``: a scan generator's own start and end, not a file's times).
+        ``undone``: the tilts whose foreshortening the frame is resampled to undo, which
+        reaches rows up (:func:`semservo.estimation.tilt.rows_seen_square_on`)."""
         header, after = frame.header, self.moved_settles_at_ns
         if after is None or header.scan_started_at_ns is None or header.source_interval_s is None:
             return 0
-        first_row = rows_scanned_after(header.shape[0], header.scan_started_at_ns, header.acquired_at_ns,
+        rows = header.shape[0]
+        first_row = rows_scanned_after(rows, header.scan_started_at_ns, header.acquired_at_ns,
                                        after + PARTIAL_FRAME_MARGIN_NS)
-        return first_row if first_row and header.shape[0] - first_row >= MIN_SIZE else 0
+        if first_row and undone:
+            first_row = rows_seen_square_on(first_row, header.shape, undone["alpha_deg"], undone["beta_deg"])
+        return first_row if first_row and rows - first_row >= max(PARTIAL_FRAME_FROM * rows, MIN_SIZE) else 0
 
     def _scanned_slowly(self, frame: Frame) -> bool:
         """Whether ``frame``'s scan lasted long enough for the scan-averaged shift

@@ -19,7 +19,7 @@ import numpy as np
 
 from semservo.estimation.common import MIN_SIZE, Motion, as_image
 from semservo.estimation.masks import mask_reference, polygon_mask
-from semservo.estimation.raster import BAND_ROWS, ScanReference, scan_averaged_shift
+from semservo.estimation.raster import ScanReference, band_start, scan_averaged_shift
 from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search, kept_near
 from semservo.estimation.rotation import (
     ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_distinct,
@@ -328,7 +328,7 @@ class MotionEstimator:
 
     def _estimate_rows(self, image, first_row: int, rotation: bool | None, scan_averaged: bool | None) -> Motion:
         """:meth:`estimate` on the rows from ``first_row`` (rounded up to a band)."""
-        rows = -(-first_row // BAND_ROWS) * BAND_ROWS
+        rows = band_start(first_row)
         if first_row < 0 or self.shape[0] - rows < MIN_SIZE:
             raise ValueError(f"first_row {first_row}: a partial frame needs at least {MIN_SIZE} of the "
                              f"{self.shape[0]} rows from a band's start")
@@ -358,7 +358,7 @@ class MotionEstimator:
         plans are made under one lock, :data:`~.plans.PLANNING_LOCK`); a no-op for rows
         that cannot be a partial frame, ValueError for rows an anchored mask cannot
         measure."""
-        rows = -(-int(first_row) // BAND_ROWS) * BAND_ROWS
+        rows = band_start(first_row)
         if 0 < rows and self.shape[0] - rows >= MIN_SIZE and (self._mask_region is None or self.mask_anchored):
             self._rows_estimator(rows, self.rotation and rotation is not False)
 

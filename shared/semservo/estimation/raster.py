@@ -107,6 +107,12 @@ SCAN_AVERAGED_FROM_S = 0.025
 PARTIAL_FRAME_FROM = 0.5
 
 
+def band_start(row: int) -> int:
+    """``row`` rounded up to the start of a band of :data:`BAND_ROWS` (where a partial
+    frame's rows begin: the scan-averaged shift measures whole bands)."""
+    return -(-int(row) // BAND_ROWS) * BAND_ROWS
+
+
 def rows_scanned_after(rows: int, scan_start: float, scan_end: float, after: float, *,
                        min_fraction: float = PARTIAL_FRAME_FROM) -> int | None:
     """The first row, at the start of a band of :data:`BAND_ROWS`, of a frame scanned
@@ -122,8 +128,7 @@ def rows_scanned_after(rows: int, scan_start: float, scan_end: float, after: flo
     if after >= scan_end:
         return None
     line = (scan_end - scan_start) / rows
-    first = math.ceil((after - scan_start) / line - 1e-9)
-    first = -(-first // BAND_ROWS) * BAND_ROWS
+    first = band_start(math.ceil((after - scan_start) / line - 1e-9))
     return first if rows - first >= min_fraction * rows else None
 
 

@@ -1004,7 +1004,7 @@ def rows_seen_square_on(first_row: int, shape: tuple[int, int], alpha_deg: float
     samples all come from the frame's rows from ``first_row`` on (the rows of a partial
     frame: what was scanned after a move settled). Seen through A, an output row reads
     input rows ``sin alpha sin beta`` per column apart across the frame and ``cos alpha``
-    times as far from the centre: at 15 degrees on both axes a row reaches 33 rows up
+    times as far from the centre: at 15 degrees on both axes a row reaches 17 rows up
     over a 512-px frame. Two rows more for the bicubic kernel."""
     rows, cols = shape
     forward = _seen_through(alpha_deg, beta_deg)

@@ -10,8 +10,8 @@ from typing import Callable
 
 import numpy as np
 
-from semservo.reproduce import (FIGURE_CASES, PAPER_TABLE1_POSES, PAPER_TABLE2, PAPER_TABLE3, PAPER_TABLE4, load,
-                                methods)
+from semservo.reproduce import (FIGURE_CASES, LAW_FRAMES, PAPER_TABLE1_POSES, PAPER_TABLE2, PAPER_TABLE3,
+                                PAPER_TABLE4, load, methods)
 from semservo.reproduce.tilts import plot_fig8
 
 CASE_NUMBERS = {case: index for index, case in enumerate(FIGURE_CASES, 1)}
@@ -205,8 +205,6 @@ def _select(result: dict, **match) -> list[dict]:
     """The rows matching; a law's rows are those on its default frames
     (:data:`semservo.reproduce.LAW_FRAMES`) unless ``frames`` is given (rows measured
     before partial frames existed were on whole ones)."""
-    from semservo.reproduce import LAW_FRAMES
-
     if "law" in match and "frames" not in match:
         match["frames"] = LAW_FRAMES[match["law"]] if match.get("method", "semservo") == "semservo" else "whole"
     return [r for r in result["rows"] if all(r.get(key, "whole" if key == "frames" else None) == value
