@@ -113,6 +113,15 @@ def test_the_cost_axis_reads_in_decades_without_minor_lines(page):
     }""")
     assert all(abs(math.log10(value) - round(math.log10(value))) < 1e-9 for value in drawn["splits"]), drawn
     assert len([label for label in drawn["labels"] if label]) >= 3, drawn
+    # Voltages whose new labels need more room than the last ones ("37.5" after "35"): the
+    # plot is laid out again, its y axis as wide as its labels (uPlot drew "7.5" before).
+    page.evaluate("() => window.semservo.plots.voltage.setData([[1, 2], [35, 36], [36, 40]])")
+    page.wait_for_timeout(200)
+    page.evaluate("() => window.semservo.plots.voltage.setData([[1, 2, 3, 4], [37.1, 37.3, 37.2, 37.2], "
+                  "[37.5, 37.9, 37.8, 37.8]])")
+    page.wait_for_function("() => { const plot = window.semservo.plots.voltage;"
+                           " return plot.axes[1]._values.some((label) => label.includes('.'))"
+                           " && plot.bbox.left / devicePixelRatio >= plot.yAxisSize; }", timeout=5000)
 
 
 def test_without_a_reference_the_panels_say_so(open_page, system, lab):

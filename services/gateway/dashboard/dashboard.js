@@ -169,7 +169,23 @@ measure.font = AXIS_FONT;
 function axisSize(self, values) {
   if (!values) return 40;
   const widest = Math.max(0, ...values.map((value) => (value ? measure.measureText(String(value)).width : 0)));
-  return Math.ceil(widest) + 18;
+  const size = Math.ceil(widest) + 18;
+  if (self) self.yAxisSize = size;  // what the plot's layout must leave it (layOutAgainIfCut)
+  return size;
+}
+
+// uPlot (1.6.32) lays a plot out before its y axis is sized for new data, and does not lay
+// it out again when the new labels need more room: "37.5" drawn where "35" fitted lost its
+// first digit. After a draw, lay it out again when they do: once that draw is done (a
+// resize within it is not drawn), and there and back by a pixel (uPlot skips a resize to
+// the same size).
+function layOutAgainIfCut(plot) {
+  if (!plot.yAxisSize || Math.round(plot.bbox.left / (window.devicePixelRatio || 1)) >= plot.yAxisSize) return;
+  setTimeout(() => {
+    const { width, height } = plot;
+    plot.setSize({ width: width - 1, height });
+    plot.setSize({ width, height });
+  }, 0);
 }
 
 // Log axis labels a person reads: 1e-3, 0.01, 0.1, 1, 10, 100, 1000, 1e4.
@@ -219,6 +235,7 @@ function makePlot(box, series, { log = false } = {}) {
     axes: [{ ...axis }, yAxis],
     series: [{ label: "iteration" }, ...series],
     legend: { show: true },
+    hooks: { draw: [layOutAgainIfCut] },
   }, [[], ...series.map(() => [])], box);
   plot.box = box;
   return plot;
