@@ -205,6 +205,8 @@ class RunSummary(Response):
     dofs: list[str] = Field(default_factory=list)
     duration_s: float | None = Field(None, description="from start to end (or to now, for a run still servoing)")
     fresh_frames: int | None = None
+    partial_frames: int | None = Field(None, description="of the fresh frames, those measured on the rows "
+                                                         "scanned after a move (a partial frame)")
     time_to_target_s: float | None = None
 
 

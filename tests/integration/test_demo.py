@@ -11,6 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from semservo.api import RunSummary
+from services.gateway.records import RunStore
+
 pytestmark = pytest.mark.integration
 
 
@@ -51,6 +54,14 @@ def test_at_the_microscope_s_own_pace_the_demo_acts_on_the_rows_after_each_move(
     record = json.loads(next(runs.glob("*.json")).read_text())
     used = [r for r in record["records"] if r.get("first_row")]
     assert len(used) == int(partial.group(2)) >= 1
+    # The run as the API lists it counts them too.
+    store = RunStore(runs / "semservo.sqlite")
+    try:
+        (summary,) = [run for run in store.list_runs() if run["id"] == record["id"]]
+    finally:
+        store.close()
+    listed = RunSummary.model_validate({name: summary[name] for name in RunSummary.model_fields if name in summary})
+    assert listed.partial_frames == len(used)
     settled_ns = 0
     for r in record["records"]:
         if r.get("first_row"):  # its rows measured were scanned after the last move had settled
