@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 from semservo import reproduce
@@ -30,6 +31,22 @@ def test_the_position_law_reaches_the_target_in_a_few_fresh_frames_acting_on_fre
     stale = [t for t, _, fresh in result["trace"] if not fresh]
     assert len(stale) == len(moves)
     assert result["seconds"] == pytest.approx(result["frames_scanned"] * result["frame_time_s"], rel=1e-6)
+
+
+def test_a_trial_reports_where_the_sample_rested_beside_the_frames_mean_pose():
+    """The true final error is the last frame's mean pose, the vibration's mean over its
+    scan included; the stage's own error leaves the vibration out (what a move can fix)."""
+    lab = loop.Lab("high-magnification", 1)
+    interval = (0.30, 0.30 + lab.settings.frame_time_s)
+    shown, resting = lab.true_pose(interval), lab.true_pose(interval, vibration=False)
+    disturbances = lab.world.disturbances
+    vibration = [np.subtract(disturbances.offset(t), disturbances.offset(t, vibration=False))
+                 for t in np.linspace(*interval, 32)]
+    assert shown - resting == pytest.approx(np.mean(vibration, axis=0), abs=1e-9)
+    assert float(np.hypot(*(shown - resting))) > 1e-4  # a scan does not average 7 Hz away
+    result = loop.run_timed_trial("high-magnification", "position", start("high-magnification", 0.05), seed=2)
+    assert result["outcome"] == "converged", result["reason"]
+    assert result["stage_error_px"] <= 0.1 and result["stage_error_px"] != result["true_error_px"]
 
 
 def test_without_a_calibration_the_position_law_converges_without_overshoot():

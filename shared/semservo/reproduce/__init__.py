@@ -325,7 +325,7 @@ def time_trial(job: dict, taught: loop.Taught | None = None) -> dict:
                                   stage_model=job["stage_model"], method=job["method"], settings=settings,
                                   taught=taught)
     keep = ("outcome", "reason", "fresh_frames", "frames_scanned", "seconds", "iterations", "true_error_px",
-            "overshoot_px", "frame_time_s", "pixel_um")
+            "stage_error_px", "overshoot_px", "frame_time_s", "pixel_um")
     summary = {key: job[key] for key in ("key", "case", "offset", "trial", "law", "method", "stage_model")}
     summary.update({key: result[key] for key in keep}, frames=frames,
                    partial_frames_used=sum(1 for record in result["records"] if record.get("first_row")))

@@ -159,8 +159,10 @@ class Lab:
         self.clock.t = end + 1e-3
         return pixels, (start, end)
 
-    def true_pose(self, interval: tuple[float, float]) -> np.ndarray:
-        samples = [self.world.pose(t) for t in np.linspace(interval[0], interval[1], 32)]
+    def true_pose(self, interval: tuple[float, float], *, vibration: bool = True) -> np.ndarray:
+        """The sample's pose (um) averaged over ``interval``: what a frame scanned then
+        shows; without the vibration, where the sample rested meanwhile."""
+        samples = [self.world.pose(t, vibration=vibration) for t in np.linspace(interval[0], interval[1], 32)]
         return np.array([[p.x_um, p.y_um] for p in samples]).mean(axis=0)
 
     def move(self, dx_um: float, dy_um: float, at: float | None = None) -> dict[str, float]:
@@ -423,8 +425,10 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     ``hold_s``, hold that long), the scene is lost, the law refuses, or the iteration
     limit or time budget. ``taught``: what :func:`teach` left in a lab of the same case
     and seed (else it teaches). Returns the outcome, the fresh frames used, the frames scanned in all and the
-    simulated seconds to the frame convergence was decided on, the true final error, and
-    the true error (px) at the end of every scan against simulated time (``trace``)."""
+    simulated seconds to the frame convergence was decided on, the true final error (that
+    frame's mean pose against the reference's, px) and the stage's (``stage_error_px``:
+    where the sample rested then, the vibration left out), and the true error (px) at the
+    end of every scan against simulated time (``trace``)."""
     lab = Lab(case, seed, stage_model=stage_model)
     if taught is None:
         taught = teach(lab, settings)
@@ -453,9 +457,13 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         overshoot[0] = max(overshoot[0], -float(error @ towards))
         return float(np.hypot(*error))
 
-    def summary_at(end_s: float, truth: float) -> dict:
-        return {"fresh_frames": fresh_used, "frames_scanned": scanned, "seconds": end_s - started,
-                "iterations": iterations, "true_error_px": truth}
+    def summary_at(interval, truth: float) -> dict:
+        # Where the sample rested during that frame, the vibration left out: what a stage
+        # can be put at (the frame's own mean pose also holds the vibration's mean over its
+        # scan, which no stage move removes: up to ~0.05 px at x5000).
+        resting = (lab.true_pose(interval, vibration=False) - taught_um) / lab.pixel_um
+        return {"fresh_frames": fresh_used, "frames_scanned": scanned, "seconds": interval[1] - started,
+                "iterations": iterations, "true_error_px": truth, "stage_error_px": float(np.hypot(*resting))}
 
     trace, records, recent = [], [], []
     scanned = fresh_used = iterations = lost = corrections = 0
@@ -505,7 +513,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
             record["action"] = "within tolerance"
             records.append(record)
             outcome, reason, converged_at, final_interval = "converged", "", interval[1], interval
-            summary = summary_at(interval[1], truth)
+            summary = summary_at(interval, truth)
             if settings.hold_s <= 0:
                 break
             continue
@@ -535,7 +543,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
             record["action"] = "within tolerance"
             records.append(record)
             outcome, reason, converged_at, final_interval = "converged", "", interval[1], interval
-            summary = summary_at(interval[1], truth)
+            summary = summary_at(interval, truth)
             if settings.hold_s <= 0:
                 break
             continue
@@ -554,7 +562,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         records.append(record)
     if converged_at is None:
         final_interval = (t - frame_time, t)
-        summary = summary_at(t, true_error_px(final_interval))
+        summary = summary_at(final_interval, true_error_px(final_interval))
     result = {
         "case": case, "law": law, "method": method, "stage_model": stage_model, "start_um": list(start_um),
         "seed": seed, "outcome": outcome, "reason": reason, **summary, "overshoot_px": overshoot[0],

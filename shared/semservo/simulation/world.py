@@ -93,9 +93,13 @@ class Disturbances:
     drift_um_per_s: tuple[float, float] = (0.002, -0.0015)
     vibration: tuple = ((7.0, 0.010, 0.3), (50.0, 0.006, 1.1), (93.0, 0.004, 2.0))  # (Hz, um, phase)
 
-    def offset(self, t: float) -> tuple[float, float]:
+    def offset(self, t: float, *, vibration: bool = True) -> tuple[float, float]:
+        """The sample's offset at ``t``: drift, and the vibration unless told not to (where
+        the sample rests, about which it vibrates)."""
         x = self.drift_um_per_s[0] * t
         y = self.drift_um_per_s[1] * t
+        if not vibration:
+            return x, y
         for index, (frequency, amplitude, phase) in enumerate(self.vibration):
             x += amplitude * math.sin(2 * math.pi * frequency * t + phase)
             y += amplitude * math.cos(2 * math.pi * frequency * t + phase + index)
@@ -178,12 +182,12 @@ class World:
         with self.lock:
             return max(self.goniometer.arrival() - self.now(), 0.0) / self.speedup
 
-    def pose(self, t: float | None = None) -> Pose:
+    def pose(self, t: float | None = None, *, vibration: bool = True) -> Pose:
         """The true pose at simulated time ``t``: stage displacement from home, drift and
-        vibration, and the rotation stage."""
+        vibration (without it: where the sample rests), and the rotation stage."""
         with self.lock:
             t = self.now() if t is None else t
-            drift_x, drift_y = self.disturbances.offset(t)
+            drift_x, drift_y = self.disturbances.offset(t, vibration=vibration)
             return Pose(
                 x_um=self.axes[0].position(t) - self.home_um[0] + drift_x,
                 y_um=self.axes[1].position(t) - self.home_um[1] + drift_y,
