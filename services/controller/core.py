@@ -81,6 +81,10 @@ _RUN_ID = re.compile(r"[0-9]{8}-[0-9]{6}-[0-9a-f]{6}")
 #: limit take milliseconds); where a stage asks for longer, the rest of the move is left
 #: to the next fresh frame rather than starve the stage's watchdog of heartbeats.
 CHAIN_WAIT_MAX_S = 0.5
+#: Ticks come at least every 0.2 s while a run servos (the service loop's poll); a gap
+#: this long means the process itself did not run (paused, swapped out), and the silence
+#: of the estimates in it is not theirs (:meth:`ControllerCore.tick`).
+STALLED_AFTER_S = 2.0
 
 
 def _wait_until_ns(when_ns: int) -> bool:
@@ -111,6 +115,7 @@ class ControllerCore:
         self.run: Run | None = None
         self.last_heartbeat = 0.0
         self.last_estimate_at = 0.0  # clock time of the last estimate against the run's reference
+        self._ticked_at: float | None = None  # clock time of the last tick while servoing
         self._journal = None
 
     @property
@@ -454,8 +459,19 @@ class ControllerCore:
         controller stops feeding it, and the stage holds); fail a run whose estimates
         stopped. Returns the seconds until it is due again."""
         if self.state != "servoing":
+            self._ticked_at = None
             return 0.5
         now = self.clock()
+        if self._ticked_at is not None and now - self._ticked_at > STALLED_AFTER_S:
+            # This process did not run for that long (paused, swapped out, a suspended
+            # VM): the silence is its own, not the estimator's. The stage's watchdog has
+            # held the stage meanwhile (the heartbeat below says so); the estimates get a
+            # fresh deadline rather than a failure that blames another service.
+            log.warning("the controller itself did not run for %.1f s; the estimate deadline starts again",
+                        now - self._ticked_at)
+            self.last_estimate_at = max(self.last_estimate_at, now)
+            self.last_heartbeat = -math.inf  # ask the stage now
+        self._ticked_at = now
         silent = now - self.last_estimate_at
         if silent > self.settings.estimate_timeout_s:
             self._finish("failed", f"no estimate against the run's reference for {silent:.1f} s: "
@@ -465,7 +481,11 @@ class ControllerCore:
             try:
                 reply = self.stage.call(stage_protocol.HEARTBEAT, owner=self.owner)
                 self.last_heartbeat = now
-                if reply.state != "ready":
+                if reply.state == "stopped":
+                    # An operator's stop that reached the stage and not this controller
+                    # (its request given up while this process was not running).
+                    self._finish("stopped", f"the stage was stopped{': ' + reply.reason if reply.reason else ''}")
+                elif reply.state != "ready":
                     self._finish("failed", f"the stage is {reply.state}{': ' + reply.reason if reply.reason else ''}")
             except ServiceUnavailable as error:
                 self._finish("failed", f"the stage service is unreachable: {error}", stage_reachable=False)

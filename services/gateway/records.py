@@ -295,7 +295,8 @@ def _summary(row: dict) -> dict:
             "duration_s": None if end_ns is None else round((end_ns - row["started_at_ns"]) / 1e9, 3),
             "fresh_frames": (outcome or {}).get("fresh_frames"),
             "partial_frames": (outcome or {}).get("partial_frames"),
-            "time_to_target_s": (outcome or {}).get("time_to_target_s")}
+            "time_to_target_s": (outcome or {}).get("time_to_target_s"),
+            "source_time_to_target_s": (outcome or {}).get("source_time_to_target_s")}
 
 
 def _target(row) -> dict:

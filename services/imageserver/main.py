@@ -39,7 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="semservo service imageserver",
         description="Publish SEM frames over ZeroMQ PUB/SUB from a source: the fake lab's simulated SEM "
-                    "(sim) or a replayed folder of PNG/TIFF frames (replay).",
+                    "(sim), a replayed folder of PNG/TIFF frames (replay), a folder the SEM's software saves "
+                    "frames into (watch), or a lab's adapter to its microscope's API (adapter).",
     )
     parser.add_argument("--source", choices=["sim", "replay", "watch", "adapter"],
                         help="frame source (default: settings; --replay-dir implies replay, --watch-dir watch, "

@@ -242,7 +242,8 @@ class StageCore:
             self.counters["reconnects"] += 1
         self.link, self.attempts, self.last_error = "connected", 0, None
         self.last_io = self.clock()
-        log.info("stage driver on %s: %s, output range %s", self.url, self.device.get("model"), self.device_limits)
+        log.info("stage driver %s (%s): %s, output range %s", type(self.driver).__name__, self.url,
+                 self.device.get("model"), self.device_limits)
         # Power-cycled, or moved by hand, while the link was down: the stage is not where
         # anything believes it is.
         self._uncommanded(changed, "while the serial link was down", "power-cycled or moved by hand")

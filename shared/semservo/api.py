@@ -148,6 +148,8 @@ class StopResult(ControllerStatus):
     stage_error: str | None = None
     controller: str | None = Field(None, description="why the controller did not answer (the stage stopped all "
                                                      "the same)")
+    body_ignored: str | None = Field(None, description="why the request's body was not used as it was (the stop "
+                                                       "was made all the same)")
 
 
 class ServiceHealth(Response):
@@ -207,7 +209,12 @@ class RunSummary(Response):
     fresh_frames: int | None = None
     partial_frames: int | None = Field(None, description="of the fresh frames, those measured on the rows "
                                                          "scanned after a move (a partial frame)")
-    time_to_target_s: float | None = None
+    time_to_target_s: float | None = Field(None, description="a converged run: wall seconds from start to "
+                                                          "convergence")
+    source_time_to_target_s: float | None = Field(
+        None, description="the same on the image source's clock, from the first frame's scan to the last's (the "
+                          "simulated lab's time: what the run takes at the microscope's frame rate, whatever its "
+                          "speed-up); absent for a source without scan times")
 
 
 class RunRecord(RunSummary):

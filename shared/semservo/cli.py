@@ -270,6 +270,22 @@ def command_estimate(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
+def _active_run(settings) -> str | None:
+    """The id of the run the controller is servoing, if any (None also when it does not
+    answer: a system without a controller has no run to protect)."""
+    from semservo.protocol import controller as controller_protocol
+
+    controller = ServicePort(ControlClient(connect(settings.controller.host, settings.controller.control_port),
+                                           timeout_s=min(settings.request_timeout_s, 2.0), retries=1))
+    try:
+        status = controller.call(controller_protocol.STATUS)
+    except (ServiceUnavailable, CommandError):
+        return None
+    finally:
+        controller.close()
+    return (status.run_id or "?") if status.state == "servoing" else None
+
+
 def command_teach(args: argparse.Namespace) -> int:
     """Teach the running estimator: the one reference the gateway, the dashboard and every
     run use (whoever teaches it)."""
@@ -278,6 +294,12 @@ def command_teach(args: argparse.Namespace) -> int:
     from semservo.protocol import estimator as estimator_protocol
 
     settings = Settings()
+    if not args.during_run:
+        active = _active_run(settings)
+        if active:
+            print(f"semservo teach: refused: run {active} is servoing, and a new reference would fail it (stop it "
+                  "first: semservo stop, the dashboard's STOP or POST /stop; or --during-run)", file=sys.stderr)
+            return 1
     estimator = ServicePort(ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
                                           timeout_s=max(settings.request_timeout_s, 10.0), retries=1))
     request: dict = {"tilts": args.tilts}
@@ -428,6 +450,36 @@ def command_frames(args: argparse.Namespace) -> int:
         subscriber.close()
     print(stats.summary(subscriber.counters))
     return 0 if stats.frames else 1
+
+
+def command_stop(args: argparse.Namespace) -> int:
+    """Stop at once from a terminal, without the gateway: the stage first (it holds and
+    refuses moves until resumed), then the controller's run."""
+    from semservo.protocol import controller as controller_protocol
+    from semservo.protocol import stage as stage_protocol
+
+    settings = Settings()
+    reason = " ".join(args.reason.split())[:500] or "stop requested"
+    stage_took = False
+    for name, command in (("stage", stage_protocol.STOP), ("controller", controller_protocol.STOP)):
+        config = getattr(settings, name)
+        port = ServicePort(ControlClient(connect(config.host, config.control_port),
+                                         timeout_s=min(settings.request_timeout_s, 2.0), retries=2))
+        try:
+            reply = port.call(command, reason=reason)
+        except (ServiceUnavailable, CommandError) as error:
+            print(f"{name}: did not take the stop: {error}", file=sys.stderr)
+            continue
+        finally:
+            port.close()
+        if name == "stage":
+            stage_took = True
+            print(f"stage: {reply.state} ({reply.reason or reason}); it refuses moves until resumed "
+                  "(POST /stage/resume, the dashboard, or a start with resume=true)", flush=True)
+        else:
+            print(f"controller: {reply.state}" + (f", run {reply.run_id}" if reply.run_id else "")
+                  + (f" ({reply.reason})" if reply.reason else ""), flush=True)
+    return 0 if stage_took else 1
 
 
 def command_health(args: argparse.Namespace) -> int:
@@ -658,8 +710,13 @@ def command_demo(args: argparse.Namespace) -> int:
         result = lab.wait(run_id, timeout=timeout, stop_on_timeout=True)
         partial = int((result.outcome or {}).get("partial_frames") or 0)
         of_them = f", {partial} of them partial: a scan's rows after a move" if partial else ""
+        source_s = (result.outcome or {}).get("source_time_to_target_s")
+        faster = f", the simulated lab running {args.speedup:g} x faster" if args.speedup and args.speedup != 1 else ""
+        clocks = (f" (wall clock; {source_s:.1f} s on the microscope's: its frames' own times{faster})"
+                  if source_s is not None else "")
         print(f"4. {result.state} after {result.iterations} iterations ({result.fresh_frames or 0} fresh frames"
-              f"{of_them}) in {result.duration_s or 0:.1f} s{' (' + result.reason + ')' if result.reason else ''}")
+              f"{of_them}) in {result.duration_s or 0:.1f} s{clocks}"
+              f"{' (' + result.reason + ')' if result.reason else ''}")
         if result.final_error_px is not None:
             judged = ("the position law's estimate" if args.law == "position"
                       else "the mean of the last fresh frames")
@@ -744,7 +801,8 @@ def build_parser() -> argparse.ArgumentParser:
                                          "print what runs where, stream their logs, and stop them all on Ctrl-C.")
     up.add_argument("--check", action="store_true", help="exit after showing that frames flow (for scripts)")
     up.add_argument("--frames", type=int, default=20, help="frames --check waits for (default 20)")
-    up.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for health and for --check")
+    up.add_argument("--timeout", type=float, default=60.0,
+                    help="seconds to wait for health and for --check (default 60)")
     up.add_argument("--restart", action="store_true", help="restart a service that dies (with back-off)")
     up.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines")
     up.add_argument("--source", choices=["sim", "replay", "watch", "adapter"],
@@ -827,6 +885,9 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--polygon", metavar="'X,Y X,Y ...'", help="corner points of a mask on the live frame")
     teach.add_argument("--tilts", action="store_true", help="also sweep the focus at the taught pose, so runs can "
                                                             "servo the tilts (waits for the sweep, with progress)")
+    teach.add_argument("--during-run", action="store_true",
+                       help="teach even while a run servos (it then fails: its reference changed); without it a "
+                            "teach during a run is refused, as the gateway refuses it")
     teach.set_defaults(handler=command_teach)
 
     motion = commands.add_parser("motion", help="watch the estimator's motion stream")
@@ -905,6 +966,14 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument("--out", default="docs/reproduction", help="where the report goes (default docs/reproduction)")
     reproduce.add_argument("--fresh", action="store_true", help="redo experiments that have results already")
     reproduce.set_defaults(handler=command_reproduce)
+
+    stop = commands.add_parser(
+        "stop", help="stop at once: the stage first, then the run (without the gateway)",
+        description="Tell the stage service to hold (it refuses moves until an operator resumes it) and the "
+                    "controller to end its run as stopped, straight over their control sockets: works when the "
+                    "gateway or the dashboard does not. Exit status 1 if the stage did not take it.")
+    stop.add_argument("--reason", default="stopped from the command line", help="said in the run's record")
+    stop.set_defaults(handler=command_stop)
 
     health = commands.add_parser("health", help="ask services for their health")
     health.add_argument("names", nargs="*", help="services (default: all)")

@@ -20,6 +20,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import json
+import logging
 import os
 import time
 from collections.abc import AsyncIterator, Iterator
@@ -41,6 +42,15 @@ def default_url() -> str:
     port = os.environ.get("SEMSERVO_GATEWAY__HTTP_PORT")
     return os.environ.get("SEMSERVO_URL") or (f"http://127.0.0.1:{port}" if port else DEFAULT_URL)
 FINISHED = ("converged", "failed", "stopped")
+
+
+log = logging.getLogger("semservo.client")
+
+
+def _worth_asking_again(error: "SemservoError") -> bool:
+    """A wait's poll that may answer next time: the run not recorded yet (404), the
+    gateway unreachable or restarting (0, 5xx)."""
+    return error.status in (0, 404) or error.status >= 500
 
 
 class SemservoError(Exception):
@@ -313,22 +323,45 @@ class Client(_Endpoints):
 
     def wait(self, run_id: str, timeout: float = 300.0, poll_s: float = 0.2, *, stop_on_timeout: bool = False
              ) -> RunRecord:
-        """Block until the run ends; its full record. :class:`WaitTimeout` otherwise
-        (``stop_on_timeout``: the run is stopped first, so none is left behind)."""
+        """Block until the run ends; its full record. :class:`WaitTimeout` otherwise.
+
+        A gateway that does not answer for a while (restarting: unreachable, 5xx) is asked
+        again until the deadline. With ``stop_on_timeout`` no run is left behind: at the
+        deadline, or when the wait ends in any error (Ctrl-C included), the run is stopped
+        if it is the one servoing (never another script's), and the error says so."""
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                run = self.run(run_id)
-                if run.state in FINISHED:
-                    return run
-            except SemservoError as error:
-                if error.status != 404:  # 404: not recorded yet
-                    raise
-            time.sleep(poll_s)
-        if stop_on_timeout:
-            self.stop(f"the script gave up waiting for run {run_id} after {timeout:g} s")
+        try:
+            while time.monotonic() < deadline:
+                try:
+                    run = self.run(run_id)
+                    if run.state in FINISHED:
+                        return run
+                except SemservoError as error:
+                    if not _worth_asking_again(error):
+                        raise
+                time.sleep(poll_s)
+        except BaseException:
+            if stop_on_timeout:
+                self._stop_if_active(run_id, f"the script waiting for run {run_id} ended in an error")
+            raise
+        stopped = stop_on_timeout and self._stop_if_active(
+            run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s")
         raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s"
-                          + ("; it was stopped" if stop_on_timeout else ""))
+                          + ("; it was stopped" if stopped else "; it was not servoing, so not stopped"
+                             if stop_on_timeout else ""))
+
+    def _stop_if_active(self, run_id: str, reason: str) -> bool:
+        """Stop the run if it is the one servoing; whether it was stopped (a failure to
+        ask is logged: the caller's error is the one to raise)."""
+        try:
+            status = self.status()
+            if status.run_id != run_id or status.state != "servoing":
+                return False
+            self.stop(reason)
+            return True
+        except SemservoError as error:
+            log.error("could not stop run %s: %s", run_id, error)
+            return False
 
     def events(self) -> Iterator[dict]:
         """Live events (status, iteration, reference) from ``WS /events``."""
@@ -380,19 +413,37 @@ class AsyncClient(_Endpoints):
                    stop_on_timeout: bool = False) -> RunRecord:
         """As :meth:`Client.wait`."""
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                run = await self.run(run_id)
-                if run.state in FINISHED:
-                    return run
-            except SemservoError as error:
-                if error.status != 404:
-                    raise
-            await asyncio.sleep(poll_s)
-        if stop_on_timeout:
-            await self.stop(f"the script gave up waiting for run {run_id} after {timeout:g} s")
+        try:
+            while time.monotonic() < deadline:
+                try:
+                    run = await self.run(run_id)
+                    if run.state in FINISHED:
+                        return run
+                except SemservoError as error:
+                    if not _worth_asking_again(error):
+                        raise
+                await asyncio.sleep(poll_s)
+        except BaseException:
+            if stop_on_timeout:
+                await self._stop_if_active(run_id, f"the script waiting for run {run_id} ended in an error")
+            raise
+        stopped = stop_on_timeout and await self._stop_if_active(
+            run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s")
         raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s"
-                          + ("; it was stopped" if stop_on_timeout else ""))
+                          + ("; it was stopped" if stopped else "; it was not servoing, so not stopped"
+                             if stop_on_timeout else ""))
+
+    async def _stop_if_active(self, run_id: str, reason: str) -> bool:
+        """As :meth:`Client._stop_if_active`."""
+        try:
+            status = await self.status()
+            if status.run_id != run_id or status.state != "servoing":
+                return False
+            await self.stop(reason)
+            return True
+        except SemservoError as error:
+            log.error("could not stop run %s: %s", run_id, error)
+            return False
 
     async def events(self) -> AsyncIterator[dict]:
         from websockets.asyncio.client import connect

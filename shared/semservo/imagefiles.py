@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -162,7 +163,9 @@ def read_sem_image(source: str | Path | bytes, *, data_bar: DataBar = "auto", pa
     except ImageFileError:
         raise
     except (OSError, ValueError, SyntaxError, KeyError, IndexError, tifffile.TiffFileError) as error:
-        raise ImageFileError(f"{name}: unreadable image ({type(error).__name__}: {error})") from None
+        # PIL names an upload by its buffer's repr ("<_io.BytesIO object at 0x...>"): say "the upload".
+        said = re.sub(r"<_io\.BytesIO object at 0x[0-9a-fA-F]+>", "the upload", str(error))
+        raise ImageFileError(f"{name}: unreadable image ({type(error).__name__}: {said})") from None
     pixels = _grey(pixels, name)
     if data_bar == "auto":
         crop = metadata.data_bar_rows if metadata.data_bar_rows is not None else find_data_bar(pixels)

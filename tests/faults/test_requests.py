@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import math
 import socket
+import subprocess
+import sys
 import time
 
 import pytest
 
-from semservo.client import SemservoError
+from semservo.client import SemservoError, WaitTimeout
 from semservo.transport import CommandError
 
 pytestmark = pytest.mark.integration
@@ -55,6 +57,69 @@ def test_a_start_after_a_stop_does_not_resume_the_stage_silently(campaign):
     lab.wait(started["run_id"], timeout=60)
 
 
+def test_a_stop_with_a_body_it_cannot_read_stops_all_the_same(campaign):
+    """A stop is never refused: a reason of the wrong type, a misspelt field, a body that
+    is not JSON or too long a reason each stop the run and the stage, and say what was not
+    used (each once answered 422 and left the run going)."""
+    http = campaign.client.http
+    bodies = {'{"reason": 123}': "not a string", '{"reasn": "typo"}': "unknown fields ignored: reasn",
+              "not json": "not JSON", '{"reason": "' + "x" * 300 + '"}': "cut to 200"}
+    for body, said in bodies.items():
+        run_id = running(campaign)
+        response = http.post("/stop", content=body, headers={"content-type": "application/json"})
+        assert response.status_code == 200, (body, response.text)
+        stopped = response.json()
+        assert stopped["stage_stopped"] and said in stopped["body_ignored"], stopped
+        assert campaign.wait_finished(run_id)["state"] == "stopped"
+        assert campaign.client.stage()["state"] == "stopped"
+        campaign.client.resume()
+    # A stop with no body, or a proper one, has nothing to say about it.
+    for kwargs in ({}, {"json": {"reason": "operator"}}):
+        response = http.post("/stop", **kwargs)
+        assert response.status_code == 200 and response.json()["body_ignored"] is None, response.text
+    campaign.client.resume()
+
+
+def semservo_cli(*arguments: str) -> subprocess.CompletedProcess:
+    """The command line, against the stack (its ports are in this process's environment)."""
+    return subprocess.run([sys.executable, "-m", "semservo", *arguments], capture_output=True, text=True, timeout=60)
+
+
+def test_a_teach_from_the_command_line_during_a_run_is_refused_and_semservo_stop_stops_it(campaign):
+    """`semservo teach` refuses while a run servos, as the gateway does (it once taught,
+    and the run failed); `semservo stop` stops the stage and the run without the gateway."""
+    run_id = running(campaign)
+    reference = campaign.client.reference().id
+    teach = semservo_cli("teach", "--frames", "1")
+    assert teach.returncode == 1 and "refused" in teach.stderr and run_id in teach.stderr, teach.stderr
+    assert campaign.client.reference().id == reference
+    assert campaign.client.status().state == "servoing"
+    stop = semservo_cli("stop", "--reason", "from the terminal")
+    assert stop.returncode == 0, stop.stdout + stop.stderr
+    assert "stage: stopped" in stop.stdout and run_id in stop.stdout, stop.stdout
+    record = campaign.wait_finished(run_id)
+    assert record["state"] == "stopped" and "from the terminal" in record["reason"], record["reason"]
+    assert campaign.client.stage()["state"] == "stopped"
+    campaign.client.resume()
+
+
+def test_a_script_that_gives_up_waiting_stops_its_own_run_and_no_other(campaign):
+    client = campaign.client
+    run_id = running(campaign)
+    with pytest.raises(WaitTimeout, match="it was stopped"):
+        client.wait(run_id, timeout=1.0, stop_on_timeout=True)
+    assert campaign.wait_finished(run_id)["state"] == "stopped"
+    client.resume()
+    other = running(campaign)
+    # A run id this script got wrong: another script's run goes on.
+    with pytest.raises(WaitTimeout, match="not servoing, so not stopped"):
+        client.wait("20260101-000000-abcdef", timeout=1.0, stop_on_timeout=True)
+    assert client.status().state == "servoing" and client.status().run_id == other
+    client.stop("test over")
+    assert campaign.wait_finished(other)["state"] == "stopped"
+    client.resume()
+
+
 def test_a_json_body_to_teach_is_refused_in_words(campaign):
     response = campaign.client.http.post("/teach", json={"frames": 4})
     assert response.status_code == 415
@@ -68,9 +133,11 @@ def test_huge_offsets_and_non_finite_numbers_are_4xx(campaign):
     for body in ('{"x_um": NaN}', '{"x_um": Infinity}', '{"x_um": 1e999}', "{}"):
         response = http.post("/stage/move", content=body, headers={"content-type": "application/json"})
         assert response.status_code == 422, (body, response.text)
-    for body in ('{"gain_scale": Infinity}', '{"tolerance_px": NaN}', '{"estimate_timeout_s": 1e999}'):
+    for body in ('{"gain_scale": Infinity}', '{"tolerance_px": NaN}', '{"estimate_timeout_s": 1e999}',
+                 '{"gain_scale": 1e308}', '{"law": "paper", "gain_min": 0.9, "gain_max": 0.1}'):
         response = http.post("/start", content=body, headers={"content-type": "application/json"})
         assert response.status_code == 422, (body, response.text)
+    assert "gain_min (0.9) is above gain_max (0.1)" in response.json()["error"]["message"]
     response = http.post("/stage/center", json={"x_px": 90_000, "y_px": 3})
     assert response.status_code == 409 and response.json()["error"]["code"] == "outside_image"
 

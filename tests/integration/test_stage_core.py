@@ -322,6 +322,36 @@ def test_a_run_without_estimates_fails_within_the_timeout_saying_why(stage, tmp_
     assert says in core.reason, core.reason
 
 
+def test_a_controller_that_did_not_run_for_a_while_blames_no_other_service(stage, tmp_path):
+    """Paused (SIGSTOP, a suspended VM) past the estimate deadline, the controller finds
+    the estimates' silence its own: the deadline starts again and the stage is asked. An
+    operator's stop that reached only the stage meanwhile ends the run as stopped, with
+    the operator's reason (it once ended 'failed: frames stopped ... is the image server
+    reachable?')."""
+    clock = FakeClock()
+    core = ControllerCore(LocalStage(stage), estimator=FakeEstimator("ref", 40, 40), runs_dir=tmp_path, clock=clock)
+    core.start(RunSettings(estimate_timeout_s=5.0), "ref")
+    core.tick()
+    clock.now += 6.5  # not run for 6.5 s
+    core.tick()
+    assert core.state == "servoing", core.reason
+    for _ in range(24):  # then ticking as it does, every 0.2 s: 4.8 s
+        clock.now += 0.2
+        core.tick()
+    assert core.state == "servoing", core.reason
+    clock.now += 0.3  # the estimates' own silence, counted from the stall's end
+    core.tick()
+    assert core.state == "failed" and "frames stopped" in core.reason, core.reason
+
+    stage.resume()
+    core.start(RunSettings(estimate_timeout_s=5.0), "ref")
+    core.tick()
+    stage.stop("operator: controller hung test")  # the stop reached the stage only
+    clock.now += 6.5
+    core.tick()
+    assert core.state == "stopped" and "operator: controller hung test" in core.reason, core.reason
+
+
 def test_noise_near_the_target_is_not_divergence_however_small_the_tolerance(stage, tmp_path):
     """The dashboard's stop test once ended 'diverging': with tolerance 0.01 px the old
     floor (5 x tolerance)^2 counted estimation noise near the target as divergence."""

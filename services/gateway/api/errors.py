@@ -11,6 +11,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from semservo.errors import CommandError, first_error, http_status
 
 
+#: Spellings of a non-finite number a request may carry (lower case, no sign).
+NON_FINITE = {"nan", "inf", "infinity"}
+
+
 def error_response(status: int, code: str, message: str, field: str | None = None, **extra) -> JSONResponse:
     return JSONResponse({"error": {"code": code, "message": message, "field": field, **extra}}, status_code=status)
 
@@ -52,8 +56,15 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, error: RequestValidationError) -> JSONResponse:
         first = error.errors()[0]
+        if first.get("type") == "json_invalid":  # its location is a character offset, not a field
+            detail = (first.get("ctx") or {}).get("error") or first.get("msg", "")
+            return error_response(422, "invalid", f"the body is not valid JSON ({detail})", None)
         location = [str(part) for part in first.get("loc", ()) if part not in ("body", "query", "path")]
-        return error_response(422, "invalid", first.get("msg", "invalid request"), ".".join(location) or None)
+        message = first.get("msg", "invalid request")
+        if str(first.get("input", "")).strip().lower().lstrip("+-") in NON_FINITE:
+            # A query's "NaN" parses as a float and then reads as out of range.
+            message = f"not a finite number ({first['input']}): {message}"
+        return error_response(422, "invalid", message, ".".join(location) or None)
 
 
 __all__ = ["error_response", "first_error", "install"]

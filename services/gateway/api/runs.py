@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
+from starlette.concurrency import run_in_threadpool
 
 from semservo.api import RunRecord, RunSettings, RunSummary, StartResult, Status, StopRequest, StopResult
 from semservo.errors import CommandError
@@ -33,10 +35,58 @@ def start(core: Core, settings: RunSettings | None = None,
     return StartResult(run_id=started["run_id"], state=started["state"])
 
 
+#: A stop's reason is kept to this many characters (a longer one is cut, not refused).
+STOP_REASON_CHARS = StopRequest.model_fields["reason"].metadata[0].max_length
+#: The most of a stop's body read; beyond it the body is not used (the stop is made).
+STOP_BODY_BYTES = 16_384
+
+
+def stop_reason(body: bytes) -> tuple[str, str | None]:
+    """The reason a stop's body gives, and why the body was not used, if it was not. A
+    stop is never refused for its body: a reason of the wrong type, a misspelt field, a
+    body that is not JSON still stop the stage (a 422 there once left a run going)."""
+    default = StopRequest().reason
+    if not body.strip():
+        return default, None
+    try:
+        fields = json.loads(body)
+    except ValueError:
+        return default, "the body is not JSON"
+    if fields is None:
+        return default, None
+    if not isinstance(fields, dict):
+        return default, "the body is not a JSON object"
+    unknown = sorted(set(fields) - {"reason"})
+    reason = fields.get("reason", default)
+    if reason is None:
+        reason = default
+    if not isinstance(reason, str):
+        return default, f"reason is not a string ({type(reason).__name__})"
+    reason = " ".join(reason.split()) or default
+    problem = f"unknown fields ignored: {', '.join(unknown)[:100]}" if unknown else None
+    if len(reason) > STOP_REASON_CHARS:
+        reason = reason[:STOP_REASON_CHARS - 1] + "…"
+        problem = "; ".join(filter(None, [problem, f"reason cut to {STOP_REASON_CHARS} characters"]))
+    return reason, problem
+
+
 @router.post("/stop", response_model=StopResult, dependencies=[Depends(require_token)],
-             summary="Stop at once, any time: the stage first, then the run")
-def stop(core: Core, body: StopRequest | None = None) -> StopResult:
-    return StopResult.model_validate(core.stop((body or StopRequest()).reason))
+             summary="Stop at once, any time: the stage first, then the run. Never refused for its body: a body "
+                     "that cannot be read stops all the same (body_ignored says why)",
+             openapi_extra={"requestBody": {"required": False, "content": {
+                 "application/json": {"schema": StopRequest.model_json_schema()}}}})
+async def stop(core: Core, request: Request) -> StopResult:
+    body, read = b"", 0
+    async for chunk in request.stream():  # a stop waits for no more body than a reason needs
+        read += len(chunk)
+        if read > STOP_BODY_BYTES:
+            body = None
+            break
+        body += chunk
+    reason, problem = (StopRequest().reason, f"the body is over {STOP_BODY_BYTES} bytes") if body is None \
+        else stop_reason(body)
+    stopped = await run_in_threadpool(core.stop, reason)
+    return StopResult.model_validate({**stopped, "body_ignored": problem})
 
 
 @router.get("/status", response_model=Status, summary="State, errors, latencies, the reference, every service's "

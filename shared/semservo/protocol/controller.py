@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, PositiveInt, field_validator
+from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, PositiveInt, field_validator, model_validator
 
 from semservo.protocol import CommandReply, CommandRequest, CommandSet, NoArguments
 
@@ -70,9 +70,9 @@ class RunSettings(BaseModel):
                                 "(PositionTiltLaw); 'paper', the paper's velocity law (eq. 30-37, with gain and "
                                 "integral_time_s) for x, y, rotation and the tilts")
     gain: Literal["adaptive", "exponential"] = Field("adaptive", description="eq. 35, or the exponential gain")
-    gain_scale: PositiveFloat = Field(50.0, description="Lambda of eq. 35 (error x s)")
-    gain_min: PositiveFloat = Field(0.5, le=10, description="per second")
-    gain_max: PositiveFloat = Field(0.8, le=10, description="per second")
+    gain_scale: PositiveFloat = Field(50.0, le=1e6, description="Lambda of eq. 35 (error x s)")
+    gain_min: PositiveFloat = Field(0.5, le=10, description="per second; at most gain_max (else refused, 422)")
+    gain_max: PositiveFloat = Field(0.8, le=10, description="per second; at least gain_min")
     min_confidence: float = Field(0.5, ge=0, le=1, description="lower-confidence estimates hold the stage")
     lost_after: Count = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
     max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per command (saturation)")
@@ -106,6 +106,14 @@ class RunSettings(BaseModel):
                                     "run fails, saying so")
     estimate_timeout_s: PositiveFloat = Field(
         5.0, le=600, description="no estimate against the run's reference for this long (wall clock): the run fails")
+
+    @model_validator(mode="after")
+    def _gains_in_order(self) -> "RunSettings":
+        # eq. 35 clips the gain to [gain_min, gain_max]: the other way round, the minimum
+        # asked for would be ignored without a word.
+        if self.gain_min > self.gain_max:
+            raise ValueError(f"gain_min ({self.gain_min:g}) is above gain_max ({self.gain_max:g})")
+        return self
 
 
 ControllerState = Literal["idle", "servoing", "converged", "failed", "stopped"]
