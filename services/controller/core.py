@@ -81,9 +81,11 @@ _RUN_ID = re.compile(r"[0-9]{8}-[0-9]{6}-[0-9a-f]{6}")
 #: limit take milliseconds); where a stage asks for longer, the rest of the move is left
 #: to the next fresh frame rather than starve the stage's watchdog of heartbeats.
 CHAIN_WAIT_MAX_S = 0.5
-#: Ticks come at least every 0.2 s while a run servos (the service loop's poll); a gap
-#: this long means the process itself did not run (paused, swapped out), and the silence
-#: of the estimates in it is not theirs (:meth:`ControllerCore.tick`).
+#: Between the end of one tick or estimate's handling and the next tick, the service loop
+#: polls at most 0.2 s; a gap this long means the process itself did not run (paused,
+#: swapped out), and the silence of the estimates in it is not theirs
+#: (:meth:`ControllerCore.tick`). A pause longer than the stage's watchdog (3 s) finds
+#: the stage held, and the run fails saying so.
 STALLED_AFTER_S = 2.0
 
 
@@ -321,6 +323,17 @@ class ControllerCore:
     def on_estimate(self, estimate: MotionEstimate) -> dict | None:
         """One estimate in; the iteration record out (None when no run is active, or the
         estimate was not against the run's reference)."""
+        try:
+            return self._on_estimate(estimate)
+        finally:
+            self._alive()
+
+    def _alive(self) -> None:
+        """This process has just been running: the stall clock of :meth:`tick` starts here
+        (after any blocking call of its own, which is not a pause)."""
+        self._ticked_at = self.clock() if self.state == "servoing" else None
+
+    def _on_estimate(self, estimate: MotionEstimate) -> dict | None:
         run = self.run
         if self.state != "servoing" or run is None:
             return None
@@ -458,8 +471,13 @@ class ControllerCore:
         """Periodic work: keep the stage's watchdog fed while servoing (a dead
         controller stops feeding it, and the stage holds); fail a run whose estimates
         stopped. Returns the seconds until it is due again."""
+        try:
+            return self._tick()
+        finally:
+            self._alive()
+
+    def _tick(self) -> float:
         if self.state != "servoing":
-            self._ticked_at = None
             return 0.5
         now = self.clock()
         if self._ticked_at is not None and now - self._ticked_at > STALLED_AFTER_S:
@@ -471,7 +489,6 @@ class ControllerCore:
                         now - self._ticked_at)
             self.last_estimate_at = max(self.last_estimate_at, now)
             self.last_heartbeat = -math.inf  # ask the stage now
-        self._ticked_at = now
         silent = now - self.last_estimate_at
         if silent > self.settings.estimate_timeout_s:
             self._finish("failed", f"no estimate against the run's reference for {silent:.1f} s: "

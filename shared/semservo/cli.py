@@ -270,20 +270,20 @@ def command_estimate(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
-def _active_run(settings) -> str | None:
-    """The id of the run the controller is servoing, if any (None also when it does not
-    answer: a system without a controller has no run to protect)."""
+def _run_in_the_way(settings) -> str | None:
+    """Why a teach now would break a run, in words, or None: the run the controller is
+    servoing, or a controller that does not answer (then whether one servoes is unknown)."""
     from semservo.protocol import controller as controller_protocol
 
     controller = ServicePort(ControlClient(connect(settings.controller.host, settings.controller.control_port),
-                                           timeout_s=min(settings.request_timeout_s, 2.0), retries=1))
+                                           timeout_s=max(settings.request_timeout_s, 2.0), retries=1))
     try:
         status = controller.call(controller_protocol.STATUS)
-    except (ServiceUnavailable, CommandError):
-        return None
+    except (ServiceUnavailable, CommandError) as error:
+        return f"the controller does not answer ({error}), so whether a run servoes is not known"
     finally:
         controller.close()
-    return (status.run_id or "?") if status.state == "servoing" else None
+    return f"run {status.run_id or '?'} is servoing" if status.state == "servoing" else None
 
 
 def command_teach(args: argparse.Namespace) -> int:
@@ -295,10 +295,11 @@ def command_teach(args: argparse.Namespace) -> int:
 
     settings = Settings()
     if not args.during_run:
-        active = _active_run(settings)
-        if active:
-            print(f"semservo teach: refused: run {active} is servoing, and a new reference would fail it (stop it "
-                  "first: semservo stop, the dashboard's STOP or POST /stop; or --during-run)", file=sys.stderr)
+        in_the_way = _run_in_the_way(settings)
+        if in_the_way:
+            print(f"semservo teach: refused: {in_the_way}, and a new reference would fail a run (stop it first: "
+                  "semservo stop, the dashboard's STOP or POST /stop; or --during-run to teach anyway)",
+                  file=sys.stderr)
             return 1
     estimator = ServicePort(ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
                                           timeout_s=max(settings.request_timeout_s, 10.0), retries=1))
@@ -459,7 +460,8 @@ def command_stop(args: argparse.Namespace) -> int:
     from semservo.protocol import stage as stage_protocol
 
     settings = Settings()
-    reason = " ".join(args.reason.split())[:500] or "stop requested"
+    # Text the messages can carry (an argument that is not UTF-8 arrives with surrogates).
+    reason = " ".join(args.reason.encode("utf-8", "replace").decode("utf-8").split())[:500] or "stop requested"
     stage_took = False
     for name, command in (("stage", stage_protocol.STOP), ("controller", controller_protocol.STOP)):
         config = getattr(settings, name)
@@ -886,8 +888,9 @@ def build_parser() -> argparse.ArgumentParser:
     teach.add_argument("--tilts", action="store_true", help="also sweep the focus at the taught pose, so runs can "
                                                             "servo the tilts (waits for the sweep, with progress)")
     teach.add_argument("--during-run", action="store_true",
-                       help="teach even while a run servos (it then fails: its reference changed); without it a "
-                            "teach during a run is refused, as the gateway refuses it")
+                       help="teach even while a run servos (it then fails: its reference changed), or when the "
+                            "controller does not answer; without it such a teach is refused, as the gateway refuses "
+                            "a teach during a run")
     teach.set_defaults(handler=command_teach)
 
     motion = commands.add_parser("motion", help="watch the estimator's motion stream")

@@ -46,6 +46,9 @@ FINISHED = ("converged", "failed", "stopped")
 
 log = logging.getLogger("semservo.client")
 
+#: How long a wait that gives up keeps asking a gateway that does not answer to stop its run.
+STOP_TRIES_S = 5.0
+
 
 def _worth_asking_again(error: "SemservoError") -> bool:
     """A wait's poll that may answer next time: the run not recorded yet (404), the
@@ -344,24 +347,27 @@ class Client(_Endpoints):
             if stop_on_timeout:
                 self._stop_if_active(run_id, f"the script waiting for run {run_id} ended in an error")
             raise
-        stopped = stop_on_timeout and self._stop_if_active(
-            run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s")
-        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s"
-                          + ("; it was stopped" if stopped else "; it was not servoing, so not stopped"
-                             if stop_on_timeout else ""))
+        said = self._stop_if_active(run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s") \
+            if stop_on_timeout else ""
+        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s" + said)
 
-    def _stop_if_active(self, run_id: str, reason: str) -> bool:
-        """Stop the run if it is the one servoing; whether it was stopped (a failure to
-        ask is logged: the caller's error is the one to raise)."""
-        try:
-            status = self.status()
-            if status.run_id != run_id or status.state != "servoing":
-                return False
-            self.stop(reason)
-            return True
-        except SemservoError as error:
-            log.error("could not stop run %s: %s", run_id, error)
-            return False
+    def _stop_if_active(self, run_id: str, reason: str) -> str:
+        """Stop the run if it is the one servoing (never another script's), asking for up
+        to :data:`STOP_TRIES_S` while the gateway does not answer; what happened, in words
+        (logged as an error when the stop could not be made: the run may still be going)."""
+        deadline = time.monotonic() + STOP_TRIES_S
+        while True:
+            try:
+                status = self.status()
+                if status.run_id != run_id or status.state != "servoing":
+                    return "; it was not servoing, so not stopped"
+                self.stop(reason)
+                return "; it was stopped"
+            except SemservoError as error:
+                if not _worth_asking_again(error) or time.monotonic() > deadline:
+                    log.error("could not stop run %s: %s", run_id, error)
+                    return f"; it could NOT be stopped ({error}): it may still be servoing"
+            time.sleep(0.25)
 
     def events(self) -> Iterator[dict]:
         """Live events (status, iteration, reference) from ``WS /events``."""
@@ -427,23 +433,25 @@ class AsyncClient(_Endpoints):
             if stop_on_timeout:
                 await self._stop_if_active(run_id, f"the script waiting for run {run_id} ended in an error")
             raise
-        stopped = stop_on_timeout and await self._stop_if_active(
-            run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s")
-        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s"
-                          + ("; it was stopped" if stopped else "; it was not servoing, so not stopped"
-                             if stop_on_timeout else ""))
+        said = await self._stop_if_active(run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s") \
+            if stop_on_timeout else ""
+        raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s" + said)
 
-    async def _stop_if_active(self, run_id: str, reason: str) -> bool:
+    async def _stop_if_active(self, run_id: str, reason: str) -> str:
         """As :meth:`Client._stop_if_active`."""
-        try:
-            status = await self.status()
-            if status.run_id != run_id or status.state != "servoing":
-                return False
-            await self.stop(reason)
-            return True
-        except SemservoError as error:
-            log.error("could not stop run %s: %s", run_id, error)
-            return False
+        deadline = time.monotonic() + STOP_TRIES_S
+        while True:
+            try:
+                status = await self.status()
+                if status.run_id != run_id or status.state != "servoing":
+                    return "; it was not servoing, so not stopped"
+                await self.stop(reason)
+                return "; it was stopped"
+            except SemservoError as error:
+                if not _worth_asking_again(error) or time.monotonic() > deadline:
+                    log.error("could not stop run %s: %s", run_id, error)
+                    return f"; it could NOT be stopped ({error}): it may still be servoing"
+            await asyncio.sleep(0.25)
 
     async def events(self) -> AsyncIterator[dict]:
         from websockets.asyncio.client import connect

@@ -122,6 +122,16 @@ def test_the_cost_axis_reads_in_decades_without_minor_lines(page):
     page.wait_for_function("() => { const plot = window.semservo.plots.voltage;"
                            " return plot.axes[1]._values.some((label) => label.includes('.'))"
                            " && plot.bbox.left / devicePixelRatio >= plot.yAxisSize; }", timeout=5000)
+    # ... and then it rests: no draw after the layout, with data or without (a plot
+    # emptied for a new run, its axis hidden, once redrew 200 times a second).
+    page.evaluate("() => { window.voltageDraws = 0;"
+                  " window.semservo.plots.voltage.hooks.draw.push(() => { window.voltageDraws += 1; }); }")
+    for data in ("[[1, 2, 3, 4], [37.1, 37.3, 37.2, 37.2], [37.5, 37.9, 37.8, 37.8]]", "[[], [], []]"):
+        page.evaluate(f"() => window.semservo.plots.voltage.setData({data})")
+        page.wait_for_timeout(300)
+        settled = page.evaluate("() => window.voltageDraws")
+        page.wait_for_timeout(500)
+        assert page.evaluate("() => window.voltageDraws") == settled, data
 
 
 def test_without_a_reference_the_panels_say_so(open_page, system, lab):

@@ -13,6 +13,8 @@ from semservo.errors import CommandError, first_error, http_status
 
 #: Spellings of a non-finite number a request may carry (lower case, no sign).
 NON_FINITE = {"nan", "inf", "infinity"}
+#: The number errors a non-finite input reads as (pydantic's types): a bound it fails.
+NUMBER_BOUNDS = {"less_than", "less_than_equal", "greater_than", "greater_than_equal", "finite_number"}
 
 
 def error_response(status: int, code: str, message: str, field: str | None = None, **extra) -> JSONResponse:
@@ -61,7 +63,7 @@ def install(app: FastAPI) -> None:
             return error_response(422, "invalid", f"the body is not valid JSON ({detail})", None)
         location = [str(part) for part in first.get("loc", ()) if part not in ("body", "query", "path")]
         message = first.get("msg", "invalid request")
-        if str(first.get("input", "")).strip().lower().lstrip("+-") in NON_FINITE:
+        if first.get("type") in NUMBER_BOUNDS and str(first.get("input", "")).strip().lower().lstrip("+-") in NON_FINITE:
             # A query's "NaN" parses as a float and then reads as out of range.
             message = f"not a finite number ({first['input']}): {message}"
         return error_response(422, "invalid", message, ".".join(location) or None)

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
 
 from semservo.api import RunRecord, RunSettings, RunSummary, StartResult, Status, StopRequest, StopResult
 from semservo.errors import CommandError
@@ -39,6 +41,8 @@ def start(core: Core, settings: RunSettings | None = None,
 STOP_REASON_CHARS = StopRequest.model_fields["reason"].metadata[0].max_length
 #: The most of a stop's body read; beyond it the body is not used (the stop is made).
 STOP_BODY_BYTES = 16_384
+#: The longest a stop waits for its body to arrive (then it stops with the default reason).
+STOP_BODY_WAIT_S = 1.0
 
 
 def stop_reason(body: bytes) -> tuple[str, str | None]:
@@ -50,8 +54,8 @@ def stop_reason(body: bytes) -> tuple[str, str | None]:
         return default, None
     try:
         fields = json.loads(body)
-    except ValueError:
-        return default, "the body is not JSON"
+    except (ValueError, RecursionError):  # RecursionError: nested deeper than the parser goes
+        return default, "the body is not JSON the gateway can read"
     if fields is None:
         return default, None
     if not isinstance(fields, dict):
@@ -62,12 +66,27 @@ def stop_reason(body: bytes) -> tuple[str, str | None]:
         reason = default
     if not isinstance(reason, str):
         return default, f"reason is not a string ({type(reason).__name__})"
-    reason = " ".join(reason.split()) or default
-    problem = f"unknown fields ignored: {', '.join(unknown)[:100]}" if unknown else None
+    # Text the services' messages can carry: a lone surrogate is valid JSON, not UTF-8.
+    cleaned = reason.encode("utf-8", "replace").decode("utf-8")
+    problem_text = "reason had characters that are not text (replaced)" if cleaned != reason else None
+    reason = " ".join(cleaned.split()) or default
+    problem = "; ".join(filter(None, [f"unknown fields ignored: {', '.join(unknown)[:100]}" if unknown else None,
+                                      problem_text])) or None
     if len(reason) > STOP_REASON_CHARS:
         reason = reason[:STOP_REASON_CHARS - 1] + "…"
         problem = "; ".join(filter(None, [problem, f"reason cut to {STOP_REASON_CHARS} characters"]))
     return reason, problem
+
+
+async def _stop_body(request: Request) -> bytes | None:
+    """The stop's body, or None once it is over :data:`STOP_BODY_BYTES` (a stop waits for
+    no more body than a reason needs)."""
+    body = b""
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > STOP_BODY_BYTES:
+            return None
+    return body
 
 
 @router.post("/stop", response_model=StopResult, dependencies=[Depends(require_token)],
@@ -76,15 +95,14 @@ def stop_reason(body: bytes) -> tuple[str, str | None]:
              openapi_extra={"requestBody": {"required": False, "content": {
                  "application/json": {"schema": StopRequest.model_json_schema()}}}})
 async def stop(core: Core, request: Request) -> StopResult:
-    body, read = b"", 0
-    async for chunk in request.stream():  # a stop waits for no more body than a reason needs
-        read += len(chunk)
-        if read > STOP_BODY_BYTES:
-            body = None
-            break
-        body += chunk
-    reason, problem = (StopRequest().reason, f"the body is over {STOP_BODY_BYTES} bytes") if body is None \
-        else stop_reason(body)
+    try:
+        body = await asyncio.wait_for(_stop_body(request), STOP_BODY_WAIT_S)
+        reason, problem = (StopRequest().reason, f"the body is over {STOP_BODY_BYTES} bytes") if body is None \
+            else stop_reason(body)
+    except (asyncio.TimeoutError, ClientDisconnect):  # stop now; the body was too slow or was cut off
+        reason, problem = StopRequest().reason, "the body did not arrive whole and in time"
+    except Exception as error:  # noqa: BLE001 - whatever the body did, the stop is made
+        reason, problem = StopRequest().reason, f"the body could not be read ({type(error).__name__})"
     stopped = await run_in_threadpool(core.stop, reason)
     return StopResult.model_validate({**stopped, "body_ignored": problem})
 

@@ -178,9 +178,13 @@ function axisSize(self, values) {
 // it out again when the new labels need more room: "37.5" drawn where "35" fitted lost its
 // first digit. After a draw, lay it out again when they do: once that draw is done (a
 // resize within it is not drawn), and there and back by a pixel (uPlot skips a resize to
-// the same size).
+// the same size). At most once per setData (never a loop: a hidden axis, no data, or a
+// zoom whose rounding keeps the two a pixel apart once drew 200 times a second).
 function layOutAgainIfCut(plot) {
-  if (!plot.yAxisSize || Math.round(plot.bbox.left / (window.devicePixelRatio || 1)) >= plot.yAxisSize) return;
+  const yAxis = plot.axes[1];
+  if (plot.laidOutAgain || !yAxis._show || !plot.yAxisSize) return;
+  if (plot.bbox.left / (window.devicePixelRatio || 1) + 1 >= plot.yAxisSize) return;
+  plot.laidOutAgain = true;
   setTimeout(() => {
     const { width, height } = plot;
     plot.setSize({ width: width - 1, height });
@@ -235,7 +239,7 @@ function makePlot(box, series, { log = false } = {}) {
     axes: [{ ...axis }, yAxis],
     series: [{ label: "iteration" }, ...series],
     legend: { show: true },
-    hooks: { draw: [layOutAgainIfCut] },
+    hooks: { draw: [layOutAgainIfCut], setData: [(self) => { self.laidOutAgain = false; }] },
   }, [[], ...series.map(() => [])], box);
   plot.box = box;
   return plot;

@@ -248,6 +248,7 @@ def run_trial(case: str, method: str, start_um: tuple[float, float], *, seed: in
     frames, intervals = zip(*(lab.scan(lab.reference_dwell_ns) for _ in range(settings.reference_frames)))
     reference = np.mean(frames, axis=0, dtype=np.float32)
     taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
+    resting = lab.true_pose((intervals[0][0], intervals[-1][1]), vibration=False)
     mask = None
     desired = reference
     if lab.preset.mask_reference:
@@ -385,6 +386,9 @@ class Taught:
     #: noise of the reference's own scans, a false correlation peak).
     charge: np.ndarray | None = None
     noise_state: dict | None = None
+    #: Where the sample rested while the reference was scanned (the vibration left out):
+    #: what a trial's ``stage_error_px`` is measured from.
+    resting_um: tuple[float, float] | None = None
 
     def start(self, lab: "Lab") -> None:
         """Put a fresh lab of the same case and seed where teaching left its own: its
@@ -408,13 +412,15 @@ def teach(lab: Lab, settings) -> Taught:
     frames, intervals = zip(*(lab.scan(lab.reference_dwell_ns) for _ in range(settings.reference_frames)))
     reference = np.mean(frames, axis=0, dtype=np.float32)
     taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
+    resting = lab.true_pose((intervals[0][0], intervals[-1][1]), vibration=False)
     mask = mask_of(reference) if lab.preset.mask_reference else None
     measure = methods.make("semservo", reference, mask=mask, scan_averaged=settings.scan_averaged)
     at_rest = [measure(lab.scan()[0]) for _ in range(settings.reference_frames)]
     at_rest = np.array([(m.dx, m.dy) for m in at_rest if m.ok])
     noise_px = float(np.sqrt(np.mean(np.var(at_rest, axis=0, ddof=1)))) if len(at_rest) > 2 else 0.03
     return Taught(reference, mask, (float(taught[0]), float(taught[1])), noise_px, lab.clock.t,
-                  lab.world.sem.charge.copy(), lab.world.rng.bit_generator.state)
+                  lab.world.sem.charge.copy(), lab.world.rng.bit_generator.state,
+                  (float(resting[0]), float(resting[1])))
 
 
 def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed: int = 1, stage_model: str = "calibrated",
@@ -437,6 +443,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     measure = taught.measure(method, settings.scan_averaged)
     controller = _law_for(law, stage_model, settings, taught.noise_px)
     taught_um = np.array(taught.taught_um)
+    taught_resting_um = np.array(taught.resting_um if taught.resting_um is not None else taught.taught_um)
     converge_frames = settings.converge_frames
     lab.jog(*start_um)
     jitter = np.random.default_rng([seed, *(int(round(value * 1e3)) % 2**32 for value in start_um)])
@@ -458,10 +465,11 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
         return float(np.hypot(*error))
 
     def summary_at(interval, truth: float) -> dict:
-        # Where the sample rested during that frame, the vibration left out: what a stage
-        # can be put at (the frame's own mean pose also holds the vibration's mean over its
-        # scan, which no stage move removes: up to ~0.05 px at x5000).
-        resting = (lab.true_pose(interval, vibration=False) - taught_um) / lab.pixel_um
+        # Where the sample rested during that frame against where it rested while the
+        # reference was scanned, the vibration left out of both: what a stage can be put at
+        # (the frame's own mean pose also holds the vibration's mean over its scan, which no
+        # stage move removes: up to ~0.05 px at x5000).
+        resting = (lab.true_pose(interval, vibration=False) - taught_resting_um) / lab.pixel_um
         return {"fresh_frames": fresh_used, "frames_scanned": scanned, "seconds": interval[1] - started,
                 "iterations": iterations, "true_error_px": truth, "stage_error_px": float(np.hypot(*resting))}
 
