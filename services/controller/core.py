@@ -498,9 +498,10 @@ class ControllerCore:
             try:
                 reply = self.stage.call(stage_protocol.HEARTBEAT, owner=self.owner)
                 self.last_heartbeat = now
-                if reply.state == "stopped":
+                if reply.state == "stopped" and reply.stopped_by == "request":
                     # An operator's stop that reached the stage and not this controller
-                    # (its request given up while this process was not running).
+                    # (its request given up while this process was not running). A stop
+                    # of the stage's own (outputs it did not command) fails the run below.
                     self._finish("stopped", f"the stage was stopped{': ' + reply.reason if reply.reason else ''}")
                 elif reply.state != "ready":
                     self._finish("failed", f"the stage is {reply.state}{': ' + reply.reason if reply.reason else ''}")

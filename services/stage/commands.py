@@ -56,7 +56,7 @@ def heartbeat(core: StageCore, request: protocol.OwnerRequest) -> protocol.Heart
 
 @handlers.handles(protocol.STOP)
 def stop(core: StageCore, request: protocol.StopRequest) -> protocol.StageState:
-    return protocol.StageState.model_validate(core.stop(request.reason))
+    return protocol.StageState.model_validate(core.stop(request.reason, by="request"))
 
 
 @handlers.handles(protocol.RESUME)

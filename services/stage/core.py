@@ -123,6 +123,9 @@ class StageCore:
         self.link = "connecting"
         self.state = "ready"  # ready | stopped | held
         self.state_reason = ""
+        #: Who stopped it: "request" (a stop command: an operator, the gateway, a script)
+        #: or "stage" (this service's own checks: outputs it did not command, a release).
+        self.stopped_by: str | None = None
         self.device: dict = {}
         self.device_limits: tuple[float, float] = (nv40.VOLTAGE_MIN, nv40.VOLTAGE_MAX)
         self.voltages: dict[str, float] = {}
@@ -182,11 +185,12 @@ class StageCore:
             log.warning("%s", self.state_reason)
         elif saved.get("state") == "stopped":
             self.state, self.state_reason = "stopped", f"{saved.get('reason', 'stopped')} (before a restart)"
+            self.stopped_by = saved.get("stopped_by") or "stage"
 
     def _persist(self) -> None:
         if self._state_path is None:
             return
-        state = {"state": self.state, "reason": self.state_reason,
+        state = {"state": self.state, "reason": self.state_reason, "stopped_by": self._stopped_by(),
                  "armed_by": self.watchdog.owner if self.watchdog.armed else None}
         temporary = self._state_path.with_suffix(f".{os.getpid()}.tmp")
         temporary.write_text(json.dumps(state))
@@ -498,8 +502,11 @@ class StageCore:
     def heartbeat(self, owner: str | None = None) -> dict:
         if owner is not None and owner == self.watchdog.owner:
             self.watchdog.last_contact = self.clock()
-        return {"state": self.state, "reason": self.state_reason, "watchdog": self.watchdog.armed,
-                "owner": self.watchdog.owner}
+        return {"state": self.state, "reason": self.state_reason, "stopped_by": self._stopped_by(),
+                "watchdog": self.watchdog.armed, "owner": self.watchdog.owner}
+
+    def _stopped_by(self) -> str | None:
+        return (self.stopped_by or "stage") if self.state == "stopped" else None
 
     def arm(self, timeout_s: float, owner: str) -> dict:
         """A run starts: hold if ``owner`` is silent for ``timeout_s``. Clears a hold."""
@@ -520,11 +527,12 @@ class StageCore:
             self._persist()
         return self.describe()
 
-    def stop(self, reason: str = "stop requested") -> dict:
+    def stop(self, reason: str = "stop requested", *, by: str = "stage") -> dict:
         """Hold at once and refuse moves until :meth:`resume`. Works in any state, link
         up or not. The driver's ``halt`` stops motion in progress (the NV 40/3 sends
-        nothing: an amplifier keeps its outputs)."""
-        self.state, self.state_reason = "stopped", reason
+        nothing: an amplifier keeps its outputs). ``by``: "request" for a stop command,
+        "stage" for this service's own (the run it ends failed, not stopped)."""
+        self.state, self.state_reason, self.stopped_by = "stopped", reason, by
         self.watchdog = Watchdog()
         self._persist()
         log.warning("stage stopped: %s", reason)
@@ -577,6 +585,7 @@ class StageCore:
     def describe(self) -> dict:
         return {
             "url": self.url, "link": self.link, "state": self.state, "reason": self.state_reason,
+            "stopped_by": self._stopped_by(),
             "device": self.device.get("model"), "voltages": dict(self.voltages), "positions_um": self.positions(),
             "limits": {**asdict(self.limits), "device_voltage": list(self.device_limits)},
             "watchdog": {"armed": self.watchdog.armed, "timeout_s": self.watchdog.timeout_s,

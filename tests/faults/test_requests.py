@@ -73,7 +73,8 @@ def test_a_stop_with_a_body_it_cannot_read_stops_all_the_same(campaign):
         stopped = response.json()
         assert stopped["stage_stopped"] and said in stopped["body_ignored"], stopped
         assert campaign.wait_finished(run_id)["state"] == "stopped"
-        assert campaign.client.stage()["state"] == "stopped"
+        stage = campaign.client.stage()
+        assert stage["state"] == "stopped" and stage["stopped_by"] == "request", stage
         campaign.client.resume()
     # A stop with no body, or a proper one, has nothing to say about it.
     for kwargs in ({}, {"json": {"reason": "operator"}}):

@@ -346,10 +346,20 @@ def test_a_controller_that_did_not_run_for_a_while_blames_no_other_service(stage
     stage.resume()
     core.start(RunSettings(estimate_timeout_s=5.0), "ref")
     core.tick()
-    stage.stop("operator: controller hung test")  # the stop reached the stage only
+    stage.stop("operator: controller hung test", by="request")  # the stop command reached the stage only
     clock.now += 6.5
     core.tick()
     assert core.state == "stopped" and "operator: controller hung test" in core.reason, core.reason
+
+    # A stop of the stage's own (outputs it did not command) fails the run, saying why.
+    stage.resume()
+    core.start(RunSettings(estimate_timeout_s=5.0), "ref")
+    core.tick()
+    stage.stop("the amplifier's outputs changed while the serial link was down")
+    clock.now += 0.2
+    core.last_heartbeat = -math.inf  # the heartbeat is due
+    core.tick()
+    assert core.state == "failed" and "outputs changed" in core.reason, core.reason
 
 
 def test_noise_near_the_target_is_not_divergence_however_small_the_tolerance(stage, tmp_path):

@@ -99,9 +99,15 @@ class LogReply(CommandReply):
     entries: list[LogEntry]
 
 
+#: Who stopped the stage: a stop command ("request": an operator, the gateway, a script) or
+#: the stage service's own checks ("stage": outputs it did not command, a release).
+StoppedBy = Literal["request", "stage"]
+
+
 class HeartbeatReply(CommandReply):
     state: Literal["ready", "stopped", "held"]
     reason: str
+    stopped_by: StoppedBy | None = Field(None, description="when stopped: by a stop command or by the stage itself")
     watchdog: bool
     owner: str | None
 
@@ -147,6 +153,8 @@ class StageState(CommandReply):
     link: Literal["connecting", "connected", "lost"]
     state: Literal["ready", "stopped", "held"]
     reason: str
+    stopped_by: StoppedBy | None = Field(None, description="when stopped: by a stop command (an operator, the "
+                                                           "gateway, a script) or by the stage itself")
     device: str | None = Field(description="what the device says it is")
     voltages: dict[str, float]
     positions_um: dict[str, float]
