@@ -729,27 +729,17 @@ class GatewayCore:
         """Stop at once: the stage first (it refuses moves from then on), then the run."""
         stage_error = None
         try:
-            self._ask_stop("stage", stage_protocol.STOP, reason)
+            self.ask("stage", stage_protocol.STOP, reason=reason)
         except CommandError as error:
             stage_error = error.message
         try:
-            status = self._ask_stop("controller", controller_protocol.STOP, reason).model_dump(mode="json")
+            status = self.ask("controller", controller_protocol.STOP, reason=reason).model_dump(mode="json")
         except CommandError as error:
             if stage_error is not None:
                 raise CommandError("stop_failed", f"neither the stage nor the controller answered: {stage_error}; "
                                                   f"{error.message}") from None
             status = {"state": "stopped", "reason": reason, "controller": error.message}
         return {**status, "stage_stopped": stage_error is None, "stage_error": stage_error}
-
-    def _ask_stop(self, service: str, command, reason: str):
-        """A stop, asked again with the plain reason if the service refused the one given
-        as a bad request: a stop is never lost to its wording."""
-        try:
-            return self.ask(service, command, reason=reason)
-        except CommandError as error:
-            if error.code != "bad_request" or reason == "stop requested":
-                raise
-            return self.ask(service, command, reason="stop requested")
 
     # -- status ---------------------------------------------------------------
     def health(self, names: tuple[str, ...] = SERVICE_NAMES) -> dict[str, dict]:

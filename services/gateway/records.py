@@ -282,6 +282,10 @@ class RunStore:
         return out.getvalue()
 
 
+#: What a run's summary takes from its outcome.
+OUTCOME_IN_SUMMARY = ("fresh_frames", "partial_frames", "time_to_target_s", "source_time_to_target_s")
+
+
 def _summary(row: dict) -> dict:
     """A run's row as the API lists it: its columns, with the DOFs and duration that
     people sort and read runs by."""
@@ -293,10 +297,7 @@ def _summary(row: dict) -> dict:
             "truth": json.loads(truth) if isinstance(truth, str) else truth,
             "dofs": list(settings.get("dofs") or []),
             "duration_s": None if end_ns is None else round((end_ns - row["started_at_ns"]) / 1e9, 3),
-            "fresh_frames": (outcome or {}).get("fresh_frames"),
-            "partial_frames": (outcome or {}).get("partial_frames"),
-            "time_to_target_s": (outcome or {}).get("time_to_target_s"),
-            "source_time_to_target_s": (outcome or {}).get("source_time_to_target_s")}
+            **{name: (outcome or {}).get(name) for name in OUTCOME_IN_SUMMARY}}
 
 
 def _target(row) -> dict:

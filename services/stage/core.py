@@ -506,7 +506,7 @@ class StageCore:
                 "watchdog": self.watchdog.armed, "owner": self.watchdog.owner}
 
     def _stopped_by(self) -> str | None:
-        return (self.stopped_by or "stage") if self.state == "stopped" else None
+        return self.stopped_by if self.state == "stopped" else None
 
     def arm(self, timeout_s: float, owner: str) -> dict:
         """A run starts: hold if ``owner`` is silent for ``timeout_s``. Clears a hold."""

@@ -456,12 +456,13 @@ def command_frames(args: argparse.Namespace) -> int:
 def command_stop(args: argparse.Namespace) -> int:
     """Stop at once from a terminal, without the gateway: the stage first (it holds and
     refuses moves until resumed), then the controller's run."""
+    from semservo.protocol import carryable_text
     from semservo.protocol import controller as controller_protocol
     from semservo.protocol import stage as stage_protocol
 
     settings = Settings()
-    # Text the messages can carry (an argument that is not UTF-8 arrives with surrogates).
-    reason = " ".join(args.reason.encode("utf-8", "replace").decode("utf-8").split())[:500] or "stop requested"
+    # An argument that is not UTF-8 arrives with surrogates, which a message cannot carry.
+    reason = carryable_text(args.reason, 500)[0] or "stop requested"
     stage_took = False
     for name, command in (("stage", stage_protocol.STOP), ("controller", controller_protocol.STOP)):
         config = getattr(settings, name)

@@ -64,7 +64,7 @@ def test_a_stop_with_a_body_it_cannot_read_stops_all_the_same(campaign):
     http = campaign.client.http
     bodies = {'{"reason": 123}': "not a string", '{"reasn": "typo"}': "unknown fields ignored: reasn",
               "not json": "not JSON", '{"reason": "' + "x" * 300 + '"}': "cut to 200",
-              "[" * 3000: "not JSON", '{"reason": "\\ud800"}': "not text (replaced)",
+              "[" * 3000: "not JSON", '{"reason": "\\ud800"}': "characters that are not text replaced",
               "{" + " " * 20_000 + "}": "over 16384 bytes"}
     for body, said in bodies.items():
         run_id = running(campaign)

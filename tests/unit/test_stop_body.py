@@ -21,7 +21,7 @@ from services.gateway.api.runs import STOP_REASON_CHARS, stop_reason
     (b"not json", "stop requested", "not JSON"),
     (b"[1, 2]", "stop requested", "not a JSON object"),
     (b"[" * 5000, "stop requested", "not JSON"),  # deeper than the parser goes: RecursionError
-    (b'{"reason": "\\ud800 x"}', "? x", "not text (replaced)"),  # a lone surrogate: valid JSON, not UTF-8
+    (b'{"reason": "\\ud800 x"}', "? x", "characters that are not text replaced"),  # a lone surrogate: valid JSON, not UTF-8
     (b'{"reason": "  two\\nlines  "}', "two lines", None),
 ])
 def test_every_body_gives_a_reason_the_services_can_carry(body, reason, said):

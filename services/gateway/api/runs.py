@@ -13,6 +13,7 @@ from starlette.requests import ClientDisconnect
 
 from semservo.api import RunRecord, RunSettings, RunSummary, StartResult, Status, StopRequest, StopResult
 from semservo.errors import CommandError
+from semservo.protocol import carryable_text
 from services.gateway.api.deps import Core, require_token
 from services.gateway.core import reference_view
 from services.gateway.report import report_png
@@ -66,16 +67,10 @@ def stop_reason(body: bytes) -> tuple[str, str | None]:
         reason = default
     if not isinstance(reason, str):
         return default, f"reason is not a string ({type(reason).__name__})"
-    # Text the services' messages can carry: a lone surrogate is valid JSON, not UTF-8.
-    cleaned = reason.encode("utf-8", "replace").decode("utf-8")
-    problem_text = "reason had characters that are not text (replaced)" if cleaned != reason else None
-    reason = " ".join(cleaned.split()) or default
-    problem = "; ".join(filter(None, [f"unknown fields ignored: {', '.join(unknown)[:100]}" if unknown else None,
-                                      problem_text])) or None
-    if len(reason) > STOP_REASON_CHARS:
-        reason = reason[:STOP_REASON_CHARS - 1] + "…"
-        problem = "; ".join(filter(None, [problem, f"reason cut to {STOP_REASON_CHARS} characters"]))
-    return reason, problem
+    reason, changed = carryable_text(reason, STOP_REASON_CHARS)
+    said = ([f"unknown fields ignored: {', '.join(unknown)[:100]}"] if unknown else []) + \
+        [f"reason: {change}" for change in changed]
+    return reason or default, "; ".join(said) or None
 
 
 async def _stop_body(request: Request) -> bytes | None:

@@ -37,7 +37,23 @@ from semservo.errors import BadRequest, describe_validation_error
 from semservo.messages import Health
 
 __all__ = ["HEALTH", "Command", "CommandReply", "CommandRequest", "CommandSet", "Handlers", "LocalPort", "NoArguments",
-           "Port", "ServicePort", "markdown"]
+           "Port", "ServicePort", "carryable_text", "markdown"]
+
+
+def carryable_text(text: str, max_chars: int) -> tuple[str, list[str]]:
+    """``text`` as a request's string field carries it, and what was changed: code points
+    that are not text (a lone surrogate: valid JSON, not UTF-8) replaced, white space
+    made single spaces, cut to ``max_chars`` (its last one an ellipsis). For what must
+    never be refused for its wording (a stop's reason)."""
+    changed = []
+    cleaned = text.encode("utf-8", "replace").decode("utf-8")
+    if cleaned != text:
+        changed.append("characters that are not text replaced")
+    cleaned = " ".join(cleaned.split())
+    if len(cleaned) > max_chars:
+        cleaned = cleaned[:max_chars - 1] + "…"
+        changed.append(f"cut to {max_chars} characters")
+    return cleaned, changed
 
 
 class CommandRequest(BaseModel):

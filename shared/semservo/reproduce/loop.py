@@ -248,7 +248,6 @@ def run_trial(case: str, method: str, start_um: tuple[float, float], *, seed: in
     frames, intervals = zip(*(lab.scan(lab.reference_dwell_ns) for _ in range(settings.reference_frames)))
     reference = np.mean(frames, axis=0, dtype=np.float32)
     taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
-    resting = lab.true_pose((intervals[0][0], intervals[-1][1]), vibration=False)
     mask = None
     desired = reference
     if lab.preset.mask_reference:
