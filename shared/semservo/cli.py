@@ -623,7 +623,7 @@ def command_demo(args: argparse.Namespace) -> int:
     url = args.url or f"http://127.0.0.1:{settings.gateway.http_port}"
     launcher = None
     lab = Client(url, timeout=30)
-    run_id = None
+    run_id, started_here = None, False
     try:
         try:
             lab.status()
@@ -631,8 +631,11 @@ def command_demo(args: argparse.Namespace) -> int:
                 print(f"demo: a system is already running at {url}, with its own sample; the --sample-* options "
                       "apply to a system the demo starts: stop that one, or leave the options out", file=sys.stderr)
                 return 2
-            print(f"using the running system at {url}")
+            print(f"using the running system at {url}"
+                  + (" (--speedup applies to a system the demo starts; this one keeps its own)"
+                     if args.speedup else ""))
         except SemservoError:
+            started_here = True
             print(f"no system at {url}: starting one on simulated hardware (semservo up does the same)")
             if not _sample_image_environment("demo"):
                 return 2
@@ -714,7 +717,8 @@ def command_demo(args: argparse.Namespace) -> int:
         partial = int((result.outcome or {}).get("partial_frames") or 0)
         of_them = f", {partial} of them partial: a scan's rows after a move" if partial else ""
         source_s = (result.outcome or {}).get("source_time_to_target_s")
-        faster = f", the simulated lab running {args.speedup:g} x faster" if args.speedup and args.speedup != 1 else ""
+        faster = (f", the simulated lab running {args.speedup:g} x faster"
+                  if started_here and args.speedup and args.speedup != 1 else "")
         clocks = (f" (wall clock; {source_s:.1f} s on the microscope's: its frames' own times{faster})"
                   if source_s is not None else "")
         print(f"4. {result.state} after {result.iterations} iterations ({result.fresh_frames or 0} fresh frames"
