@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from semservo.estimation import MotionEstimator, rotate_about_centre
 from semservo.estimation.raster import (
-    BAND_UNCERTAINTY_PX, ScanReference, band_shifts, predicted_frame, scan_averaged_shift, smoothed,
+    BAND_UNCERTAINTY_PX, ScanReference, band_shifts, predicted_frame, scan_averaged_shift, smoothed, vibration_lines,
 )
 
 SIZE = 256
@@ -147,3 +147,72 @@ def test_a_pair_cut_from_one_scene_closes_forth_and_back_even_with_a_bright_bord
     assert np.hypot(forth.dx + back.dx, forth.dy + back.dy) < 0.008  # with the border's residue: 0.017-0.019
     whole = MotionEstimator(first, rotation=False).estimate(second)
     assert abs(whole.dx + 3.0) > 0.05  # the whole frame's window weights the bright patch: -2.88
+
+
+#: The tests' scan lasts 1 s: a row every 1 / SIZE s, frequencies in cycles a scan.
+LINE_TIME_S = 1.0 / SIZE
+LINES_HZ = (2.6, 17.4)
+
+
+def tones(rng, mean_x, mean_y, wander: float = 0.0):
+    """A frame of a scene vibrating at ``LINES_HZ`` (0.4 and 0.25 px, each axis its own
+    phase, a fresh phase each frame: a line need not keep its phase from frame to frame)
+    about (mean_x, mean_y); ``wander``: each line's phase also walks randomly along the
+    scan (radians per sqrt(row)), a vibration that is not a steady tone. Returns the
+    rows' shifts (x, y) and their mean over the scan (the truth)."""
+    time = np.arange(SIZE) * LINE_TIME_S
+    shifts = [np.full(SIZE, mean_x), np.full(SIZE, mean_y)]
+    for frequency, amplitude in zip(LINES_HZ, (0.4, 0.25)):
+        for axis in range(2):
+            phase = rng.uniform(0, 2 * np.pi) + np.cumsum(rng.normal(0, wander, SIZE))
+            shifts[axis] = shifts[axis] + amplitude * np.sin(2 * np.pi * frequency * time + phase)
+    return shifts, (shifts[0].mean(), shifts[1].mean())
+
+
+def test_vibration_lines_are_learned_at_rest_and_put_each_frame_where_the_sample_was_on_average():
+    scene = texture(11, envelope=True)  # the upper rows hold the edges: their moment is not the scan's
+    reference = reference_of(scene)
+    rng = np.random.default_rng(5)
+    at_rest = [scanned(scene, *tones(rng, 0.0, 0.0)[0]) for _ in range(4)]
+    estimator = MotionEstimator(reference, rotation=False, snr_threshold_db=None, scan_averaged=True)
+    learned = estimator.learn_vibration(at_rest, LINE_TIME_S)
+    assert len(learned) == len(LINES_HZ)
+    assert np.allclose(learned, LINES_HZ, atol=0.3)
+    banded = MotionEstimator(reference, rotation=False, snr_threshold_db=None, scan_averaged=True)
+    line_errors, band_errors = [], []
+    for _ in range(6):
+        shifts, truth = tones(rng, rng.uniform(-3, 3), rng.uniform(-3, 3))
+        frame = scanned(scene, *shifts)
+        fitted = estimator.estimate(frame, line_time_s=LINE_TIME_S)
+        averaged = banded.estimate(frame, line_time_s=LINE_TIME_S)  # no lines learned: the bands' mean
+        line_errors.append(np.hypot(fitted.dx - truth[0], fitted.dy - truth[1]))
+        band_errors.append(np.hypot(averaged.dx - truth[0], averaged.dy - truth[1]))
+    assert max(line_errors) < 0.03
+    assert np.mean(line_errors) < 0.5 * np.mean(band_errors)
+    # Without the scan's time per row the lines cannot be fitted: the bands' mean.
+    assert estimator.estimate(frame).dx == pytest.approx(averaged.dx, abs=1e-9)
+
+
+def test_lines_that_wander_a_little_still_help_and_a_still_stage_has_none():
+    scene = texture(12, envelope=True)
+    reference = reference_of(scene)
+    rng = np.random.default_rng(8)
+    # Tones whose phase walks ~0.3 radian over a scan (a line about a percent wide). At
+    # ~1 radian a scan the fit is worse than the bands' mean (README: vibration lines).
+    at_rest = [scanned(scene, *tones(rng, 0.0, 0.0, wander=0.02)[0]) for _ in range(4)]
+    estimator = MotionEstimator(reference, rotation=False, snr_threshold_db=None, scan_averaged=True)
+    assert len(estimator.learn_vibration(at_rest, LINE_TIME_S)) >= 1
+    banded = MotionEstimator(reference, rotation=False, snr_threshold_db=None, scan_averaged=True)
+    line_errors, band_errors = [], []
+    for _ in range(6):
+        shifts, truth = tones(rng, rng.uniform(-3, 3), rng.uniform(-3, 3), wander=0.02)
+        frame = scanned(scene, *shifts)
+        fitted, averaged = (method.estimate(frame, line_time_s=LINE_TIME_S) for method in (estimator, banded))
+        line_errors.append(np.hypot(fitted.dx - truth[0], fitted.dy - truth[1]))
+        band_errors.append(np.hypot(averaged.dx - truth[0], averaged.dy - truth[1]))
+    assert np.mean(line_errors) < np.mean(band_errors)
+    # Still frames with pixel noise only: no line stands out, and nothing is fitted.
+    still = [reference + np.random.default_rng(seed).normal(0, 5, reference.shape) for seed in range(4)]
+    ready = ScanReference.of(reference)
+    assert vibration_lines(ready, still, [(0.0, 0.0)] * 4, LINE_TIME_S) == ()
+    assert MotionEstimator(reference, rotation=False).learn_vibration(at_rest, LINE_TIME_S) == ()  # no scan averaging

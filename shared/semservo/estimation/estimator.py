@@ -19,7 +19,8 @@ import numpy as np
 
 from semservo.estimation.common import MIN_SIZE, Motion, as_image
 from semservo.estimation.masks import mask_reference, polygon_mask
-from semservo.estimation.raster import ScanReference, band_start, scan_averaged_shift
+from semservo.estimation.raster import (ScanReference, band_start, scan_averaged_shift,
+                                        vibration_lines)
 from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search, kept_near
 from semservo.estimation.rotation import (
     ANGLE_CANDIDATES, SMALL_TURN_PROBES, LogPolarReference, ProbeReferences, confidence_from_distinct,
@@ -239,6 +240,9 @@ class MotionEstimator:
         self.rotation = rotation
         self.scan_averaged = scan_averaged and mask is None
         self._scan_reference = ScanReference.of(reference) if self.scan_averaged else None
+        #: The stage's vibration lines (Hz) the scan-averaged shift fits in every frame
+        #: (:meth:`learn_vibration`); empty: the bands' random-effects mean.
+        self.vibration_hz: tuple[float, ...] = ()
         self.precision = precision
         self.snr_threshold_db = snr_threshold_db
         self.reference_snr_db = estimate_snr_db(reference)
@@ -266,8 +270,38 @@ class MotionEstimator:
             if own.confidence >= self.min_confidence and math.hypot(own.dx, own.dy) <= mask_anchored_within_px:
                 self.mask_offset, self.mask_anchored = (float(own.dx), float(own.dy)), True
 
+    def vibration_sample(self, frames) -> tuple[list[np.ndarray], list[tuple[float, float]]]:
+        """The ``frames`` (at rest) this estimator measures confidently, and their
+        whole-frame shifts: what :meth:`learn_vibration` learns from. It uses this
+        estimator's buffers: call it from the thread that estimates."""
+        kept, shifts = [], []
+        for frame in frames:
+            image, statistics = self._check(frame)
+            motion = self._estimate(image, statistics, False)
+            if motion.confidence >= self.min_confidence:
+                kept.append(image)
+                shifts.append((motion.dx, motion.dy))
+        return kept, shifts
+
+    def learn_vibration(self, frames, line_time_s: float, *, sample=None) -> tuple[float, ...]:
+        """Learn the stage's vibration lines from ``frames`` scanned at rest, each row
+        ``line_time_s`` after the one before (:func:`.raster.vibration_lines`), and fit
+        them in every scan-averaged shift from now on (:attr:`vibration_hz`). Frames this
+        estimator cannot measure confidently are left out; fewer than two left, or an
+        estimator without scan averaging: nothing is learned. ``sample``: what
+        :meth:`vibration_sample` made of the frames, taken beforehand (then the
+        learning, seconds long, may run in another thread while this estimator measures
+        frames: it reads only the reference). Returns the lines (Hz)."""
+        if not self.scan_averaged or not line_time_s or line_time_s <= 0:
+            return ()
+        kept, shifts = sample if sample is not None else self.vibration_sample(frames)
+        if len(kept) < 2:
+            return ()
+        self.vibration_hz = vibration_lines(self._scan_reference, kept, shifts, float(line_time_s))
+        return self.vibration_hz
+
     def estimate(self, image, *, rotation: bool | None = None, scan_averaged: bool | None = None,
-                 first_row: int = 0) -> Motion:
+                 first_row: int = 0, line_time_s: float | None = None) -> Motion:
         """Motion of ``image`` against the reference. ValueError for bad input.
 
         ``rotation=False`` skips the rotation measurement of an estimator made with
@@ -310,23 +344,27 @@ class MotionEstimator:
         a scan over all turns (:meth:`_shared_scene_angles`, :func:`_best_of`).
 
         With ``scan_averaged``, last, the shift of an estimate confident enough to act on
-        is averaged over the scan's bands of rows (:func:`.raster.scan_averaged_shift`).
+        is averaged over the scan's bands of rows (:func:`.raster.scan_averaged_shift`);
+        with the vibration lines learned (:meth:`learn_vibration`) and the scan's time
+        per row ``line_time_s``, over the scan's time by fitting those lines.
         """
         if scan_averaged and not self.scan_averaged:
             raise ValueError("this estimator was made without scan averaging (scan_averaged=False)")
         if first_row:
-            return self._estimate_rows(image, int(first_row), rotation, scan_averaged)
+            return self._estimate_rows(image, int(first_row), rotation, scan_averaged, line_time_s)
         image, statistics = self._check(image)
         motion = self._estimate(image, statistics, rotation)
         if self.mask_offset != (0.0, 0.0):
             motion = replace(motion, dx=motion.dx - self.mask_offset[0], dy=motion.dy - self.mask_offset[1])
         if self.scan_averaged and scan_averaged is not False and motion.confidence >= self.min_confidence:
-            refined = scan_averaged_shift(self._scan_reference, image, motion.dx, motion.dy, motion.rotation_deg)
+            refined = scan_averaged_shift(self._scan_reference, image, motion.dx, motion.dy, motion.rotation_deg,
+                                          lines_hz=self.vibration_hz, line_time_s=line_time_s)
             if refined is not None:
                 return replace(motion, dx=refined.dx, dy=refined.dy)
         return motion
 
-    def _estimate_rows(self, image, first_row: int, rotation: bool | None, scan_averaged: bool | None) -> Motion:
+    def _estimate_rows(self, image, first_row: int, rotation: bool | None, scan_averaged: bool | None,
+                       line_time_s: float | None = None) -> Motion:
         """:meth:`estimate` on the rows from ``first_row`` (rounded up to a band)."""
         rows = band_start(first_row)
         if first_row < 0 or self.shape[0] - rows < MIN_SIZE:
@@ -341,7 +379,9 @@ class MotionEstimator:
                              "whole frames: cut at a row, its correlation with the image moves by up to half a "
                              "pixel")
         turns = self.rotation and rotation is not False
-        motion = self._rows_estimator(rows, turns).estimate(array[rows:], scan_averaged=scan_averaged)
+        rows_estimator = self._rows_estimator(rows, turns)
+        rows_estimator.vibration_hz = self.vibration_hz  # the lines are the stage's, whatever the rows
+        motion = rows_estimator.estimate(array[rows:], scan_averaged=scan_averaged, line_time_s=line_time_s)
         # The rows' estimator turns about their own centre, ``rows / 2`` below the
         # frame's: the same motion about the frame's centre moves by (R - I) times that.
         theta = np.radians(motion.rotation_deg)
