@@ -113,6 +113,10 @@ MIN_MASK_AREA_PX = 256
 
 #: The most frames a reference may average (kept as the last received).
 MAX_FRAMES_AVERAGED = 16
+#: The most frames at rest a teach learns the stage's vibration lines from
+#: (:meth:`EstimatorCore._learn_vibration`): four scans resolve the lines as well as
+#: more, and learning takes about a second a frame at 512 x 512.
+VIBRATION_FRAMES = 4
 
 
 @dataclass(frozen=True)
@@ -176,10 +180,13 @@ def _prepare_rows(estimator: MotionEstimator, bands: list[int], rotation: bool) 
 
 class EstimatorCore:
     def __init__(self, *, rotation: bool = True, precision: str = "full", fft_effort: str = "FFTW_MEASURE",
-                 counters: Counter | None = None, tilt: TiltSettings | None = None, scan_averaged: bool = True):
+                 counters: Counter | None = None, tilt: TiltSettings | None = None, scan_averaged: bool = True,
+                 vibration_lines: bool = True):
         self.rotation = rotation
         #: Shifts averaged over the scan's bands of rows (:mod:`semservo.estimation.raster`).
         self.scan_averaged = scan_averaged
+        #: The stage's vibration lines learned at a teach and fitted in those averages.
+        self.vibration_lines = vibration_lines
         # Whether each frame's rotation is measured (a run that cannot turn the sample
         # switches it off: translation alone takes a third of the time).
         self.measure_rotation = rotation
@@ -462,9 +469,61 @@ class EstimatorCore:
         # On the source's clock (the fake lab's simulated time), when the reference was
         # scanned: what the simulator's truth for the taught pose is averaged over.
         scanned = [intervals[0][0], intervals[-1][1]] if all(intervals) else None
-        return self._install(pixels, "frame", frame.header.pixel_size_nm, acquisition=acquisition_of(frame),
-                             frame_seq=frame.header.seq, source=frame.header.source, frames_averaged=frames,
-                             source_interval_s=scanned)
+        described = self._install(pixels, "frame", frame.header.pixel_size_nm, acquisition=acquisition_of(frame),
+                                  frame_seq=frame.header.seq, source=frame.header.source, frames_averaged=frames,
+                                  source_interval_s=scanned)
+        # The frames known to be at rest (scanned after the stage settled; without that
+        # time, only those averaged) teach the stage's vibration lines.
+        at_rest = [f for f in (candidates if scanned_after_ns else chosen)
+                   if f.pixels.shape == frame.pixels.shape and f.header.pixel_size_nm == frame.header.pixel_size_nm]
+        self._learn_vibration(at_rest[-VIBRATION_FRAMES:])
+        return self.describe_reference()
+
+    def _learn_vibration(self, frames: list[Frame]) -> None:
+        """Learn the stage's vibration lines from ``frames`` at rest, in the background
+        (seconds: :meth:`MotionEstimator.learn_vibration`), for the estimator just made;
+        until then, and when they cannot be learned, frames are scan-averaged by their
+        bands. What happened is the reference's ``vibration``."""
+        estimator, reference = self.estimator, self.reference
+        line_times = [self._line_time_s(frame) for frame in frames]
+        if not estimator.scan_averaged or not self.vibration_lines:
+            reference.detail["vibration"] = {"state": "none", "lines_hz": [], "frames": len(frames),
+                                              "reason": "scan averaging is off" if not estimator.scan_averaged
+                                              else "vibration lines are off (settings)"}
+            return
+        if len(frames) < 2 or not all(line_times):
+            reference.detail["vibration"] = {
+                "state": "none", "lines_hz": [], "frames": len(frames),
+                "reason": "fewer than 2 frames at rest" if len(frames) < 2 else "the frames do not say how long "
+                                                                                  "their scan lasted"}
+            return
+        if not all(self._scanned_slowly(frame) for frame in frames):
+            reference.detail["vibration"] = {"state": "none", "lines_hz": [], "frames": len(frames),
+                                              "reason": f"scans shorter than {SCAN_AVERAGED_FROM_S * 1e3:g} ms are "
+                                                        "not scan-averaged"}
+            return
+        reference.detail["vibration"] = {"state": "learning", "lines_hz": [], "frames": len(frames)}
+        line_time = float(np.median(line_times))
+        # The frames' whole-frame shifts now, in the thread that estimates (the
+        # estimator's buffers are not shared); the search, seconds long, in the
+        # background, on the reference alone.
+        sample = estimator.vibration_sample([f.pixels for f in frames])
+
+        def learn() -> None:
+            try:
+                lines = estimator.learn_vibration(None, line_time, sample=sample)
+            except Exception as error:  # the reference stands; its frames are averaged by bands
+                log.warning("vibration lines not learned: %s", error)
+                reference.detail["vibration"] = {"state": "none", "lines_hz": [], "frames": len(frames),
+                                                 "reason": f"learning failed: {error}"}
+                return
+            reference.detail["vibration"] = {"state": "learned" if lines else "none",
+                                             "lines_hz": [round(value, 2) for value in lines], "frames": len(frames),
+                                             **({} if lines else {"reason": "no line stands above the noise"})}
+            log.info("vibration lines of reference %s: %s Hz (from %d frames at rest)", reference.id,
+                     ", ".join(f"{value:.2f}" for value in lines) or "none", len(frames))
+
+        threading.Thread(target=learn, daemon=True, name="vibration-lines").start()
 
     def teach_image(self, pixels: np.ndarray, label: str = "upload", acquisition: dict | None = None,
                     source_interval_s: list[float] | None = None) -> dict:
@@ -614,14 +673,16 @@ class EstimatorCore:
         first_row = self._first_row_after_move(frame, undone)
         averaged = self.estimator.scan_averaged and self._scanned_slowly(frame)
         rotation = self.measure_rotation and self.estimator.rotation
+        line_time = self._line_time_s(frame)
         try:
-            motion = self.estimator.estimate(pixels, rotation=rotation, scan_averaged=averaged, first_row=first_row)
+            motion = self.estimator.estimate(pixels, rotation=rotation, scan_averaged=averaged, first_row=first_row,
+                                             line_time_s=line_time)
         except ValueError as error:  # rows the estimator cannot measure (a mask all one level there)
             if not first_row:
                 raise
             self.counters["partial_frames_refused"] += 1
             log.info("frame %d: its rows after the move cannot be measured (%s); measured whole", frame.header.seq, error)
-            motion = self.estimator.estimate(pixels, rotation=rotation, scan_averaged=averaged)
+            motion = self.estimator.estimate(pixels, rotation=rotation, scan_averaged=averaged, line_time_s=line_time)
         elapsed_ms = (time.perf_counter() - started) * 1e3
         now = time.time_ns()
         header = frame.header
@@ -675,12 +736,29 @@ class EstimatorCore:
     def _scanned_slowly(self, frame: Frame) -> bool:
         """Whether ``frame``'s scan lasted long enough for the scan-averaged shift
         (:data:`semservo.estimation.raster.SCAN_AVERAGED_FROM_S`; unknown: yes)."""
-        header = frame.header
-        previous = self.recent[-2].header.acquired_at_ns if len(self.recent) > 1 else None
-        lasted = scan_lasted_s(header.shape, source_interval_s=header.source_interval_s, dwell_ns=header.dwell_ns,
-                               scan_started_at_ns=header.scan_started_at_ns, acquired_at_ns=header.acquired_at_ns,
-                               previous_acquired_at_ns=previous)
+        lasted = self._scan_lasted_s(frame)
         return lasted is None or lasted >= SCAN_AVERAGED_FROM_S
+
+    def _scan_lasted_s(self, frame: Frame) -> float | None:
+        """How long ``frame``'s scan lasted, on its source's clock where it has one
+        (:func:`semservo.estimation.raster.scan_lasted_s`)."""
+        header = frame.header
+        earlier = [f for f in self.recent if f.header.seq < header.seq]
+        previous = earlier[-1].header.acquired_at_ns if earlier else None
+        return scan_lasted_s(header.shape, source_interval_s=header.source_interval_s, dwell_ns=header.dwell_ns,
+                             scan_started_at_ns=header.scan_started_at_ns, acquired_at_ns=header.acquired_at_ns,
+                             previous_acquired_at_ns=previous)
+
+    @staticmethod
+    def _line_time_s(frame: Frame) -> float | None:
+        """The scan's time per row (what the vibration lines are fitted over), on the
+        same clock as the lines were learned (the source's own where it has one); None
+        when the header says nothing of the scan itself (the time since the frame
+        before bounds a scan, it does not time its rows)."""
+        header = frame.header
+        lasted = scan_lasted_s(header.shape, source_interval_s=header.source_interval_s, dwell_ns=header.dwell_ns,
+                               scan_started_at_ns=header.scan_started_at_ns, acquired_at_ns=header.acquired_at_ns)
+        return lasted / header.shape[0] if lasted else None
 
     def _tilt_fields(self, tilt: dict | None) -> dict:
         """``tilt``, the latest tilt measurement against this reference, carried by every

@@ -43,7 +43,8 @@ def main(argv: list[str] | None = None) -> int:
                         teach_sweeps=config.tilt_teach_sweeps)
     core = EstimatorCore(rotation=config.rotation and not args.no_rotation,
                          precision=args.precision or config.precision, fft_effort=config.fft_effort,
-                         counters=runtime.counters, tilt=tilt, scan_averaged=config.scan_averaged)
+                         counters=runtime.counters, tilt=tilt, scan_averaged=config.scan_averaged,
+                         vibration_lines=config.vibration_lines)
     imageserver_endpoint = connect(settings.imageserver.host, settings.imageserver.control_port)
     tracker = TiltTracker(core, lambda: ControlClient(imageserver_endpoint, timeout_s=5.0, retries=2),
                           timeout_s=config.sweep_timeout_s)

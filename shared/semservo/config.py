@@ -173,6 +173,10 @@ class EstimatorSettings(BaseModel):
     scan_averaged: bool = Field(True, description="average each shift over the scan's bands of rows (vibration faster "
                                                   "than a frame draws each band at its own offset; "
                                                   "semservo.estimation.raster); off: the whole-frame estimate")
+    vibration_lines: bool = Field(True, description="learn the stage's vibration lines (steady tones) from the frames "
+                                                    "at rest when a frame is taught, and fit them in each scan-averaged "
+                                                    "shift; off (or none learned): the bands' mean. Off for a vibration "
+                                                    "that is not steady tones (a phase wandering a radian a scan)")
     fft_effort: Literal["FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"] = "FFTW_MEASURE"
     tilt_method: Literal["plane", "egi"] = Field(
         "plane", description="tilts from the focus sweep: a robust plane fit (default) or the paper's EGI correlation")

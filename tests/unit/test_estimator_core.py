@@ -340,3 +340,65 @@ def test_a_sweep_that_cannot_tell_the_tilts_leaves_the_frames_undone_with_the_la
     assert core.undone_tilt["alpha_deg"] == 0.1
     core.clear()  # a new reference's sweeps start afresh: nothing undone
     assert core.last_tilt is None and core.undone_tilt is None
+
+
+def test_a_teach_learns_the_stages_vibration_lines_from_the_frames_at_rest_in_the_background():
+    """The frames scanned after the stage settled (the gateway says when) teach the
+    vibration's steady tones; the reference says what was learned, and each frame's
+    scan-averaged shift then fits them. The frames here are made by resampling a texture
+    row by row (not the simulated SEM), the scan's time from the frame's source clock."""
+    import time as clock
+
+    from scipy import ndimage
+
+    from services.estimator.core import VIBRATION_FRAMES
+
+    rng = np.random.default_rng(4)
+    size, margin, scan_s = 192, 16, 0.4
+    base = ndimage.gaussian_filter(rng.standard_normal((size + 2 * margin,) * 2), 2.0)
+    rows = np.arange(size)
+    base *= 0.1 + np.exp(-0.5 * ((np.arange(size + 2 * margin)[:, None] - margin - size / 4) / (size / 8)) ** 2)
+    texture = (100 + 400 * base).astype(np.float64)
+
+    def vibrating(seq: int, mean_x: float = 0.0):
+        phase = rng.uniform(0, 2 * np.pi, 2)
+        time = rows / size * scan_s
+        shift_x = mean_x + 0.4 * np.sin(2 * np.pi * 11.0 * time + phase[0])  # 11 Hz: 4.4 cycles a scan
+        shift_y = 0.3 * np.cos(2 * np.pi * 11.0 * time + phase[1])
+        grid_r, grid_c = np.mgrid[0:size, 0:size].astype(np.float64)
+        pixels = ndimage.map_coordinates(texture, [grid_r + margin - shift_y[:, None], grid_c + margin - shift_x[:, None]],
+                                         order=3, mode="reflect").astype(np.float32)
+        header = frame_header(pixels, seq=seq, acquired_at_ns=10**9 * (seq + 1), pixel_size_nm=100.0,
+                              magnification=1000.0, dwell_ns=None, source="test",
+                              scan_started_at_ns=10**9 * (seq + 1) - int(scan_s * 1e9))
+        header = header.model_copy(update={"source_interval_s": (seq * 0.5, seq * 0.5 + scan_s)})
+        return Frame(header, pixels), float(shift_x.mean())
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
+    for seq in range(VIBRATION_FRAMES):
+        core.process(vibrating(seq)[0])
+    taught = core.teach_latest(frames=1, scanned_after_ns=1)
+    assert taught["vibration"]["state"] == "learning" and taught["vibration"]["frames"] == VIBRATION_FRAMES
+    deadline = clock.monotonic() + 60
+    while core.describe_reference()["vibration"]["state"] == "learning" and clock.monotonic() < deadline:
+        clock.sleep(0.05)
+    vibration = core.describe_reference()["vibration"]
+    assert vibration["state"] == "learned" and any(abs(line - 11.0) < 0.5 for line in vibration["lines_hz"])
+    assert len(core.estimator.vibration_hz) == len(vibration["lines_hz"]) >= 1
+    errors = []
+    for seq in range(VIBRATION_FRAMES, VIBRATION_FRAMES + 4):
+        moved, truth = vibrating(seq, mean_x=1.25)
+        estimate = core.process(moved)
+        assert estimate.scan_averaged
+        errors.append(abs(estimate.dx_px - truth))
+    assert max(errors) < 0.05
+    # Without the stage's settling time only the frames averaged are known to be at rest:
+    # one frame teaches no lines, and the reference says why.
+    core.teach_latest(frames=1)
+    assert core.describe_reference()["vibration"] == {"state": "none", "lines_hz": [], "frames": 1,
+                                                      "reason": "fewer than 2 frames at rest"}
+    off = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", vibration_lines=False)
+    for seq in range(3):
+        off.process(vibrating(seq)[0])
+    assert off.teach_latest(frames=3)["vibration"]["reason"] == "vibration lines are off (settings)"
+    assert off.estimator.vibration_hz == ()

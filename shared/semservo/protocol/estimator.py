@@ -80,6 +80,10 @@ class Reference(CommandReply):
                                                           "while it scanned, its frames moved back by it; null: not "
                                                           "steadied)")
     tilt_teach: TiltTeach | None = None
+    vibration: dict[str, Any] | None = Field(None, description="the stage's vibration lines, learned from the frames "
+                                                               "at rest when it was taught, that each scan-averaged "
+                                                               "shift fits: state (learning, learned, none), lines_hz, "
+                                                               "frames (at rest, used), reason (when none)")
 
 
 class ClearReply(CommandReply):
