@@ -37,10 +37,11 @@ from semservo.control import (
     planar_limit_um, saturate_planar,
 )
 from semservo.config import StageSettings
+from semservo.estimation import MotionEstimator
 from semservo.estimation.raster import rows_scanned_after
 from semservo.reproduce import methods
 from semservo.simulation.sem import ScanSettings
-from semservo.simulation.world import HOME_VOLTAGE, PRESETS, World
+from semservo.simulation.world import HOME_VOLTAGE, PRESETS, Disturbances, World
 from semservo.stage_model import BranchModel, LinearModel
 
 #: The stage's displacement models a timed trial can drive the stage through.
@@ -128,10 +129,14 @@ class Lab:
     """The simulated lab of one case, stepped by hand."""
 
     def __init__(self, case: str, seed: int, reference_dwell_ns: float | None = None, stage_model: str = "calibrated",
-                 settling: StageSettling | None = None):
+                 settling: StageSettling | None = None, phase_walk_rad_per_sqrt_s: float = 0.0):
         self.preset = PRESETS[case]
         self.clock = ManualClock()
-        self.world = World(self.preset, speedup=1.0, seed=seed, clock=self.clock)
+        # ``phase_walk_rad_per_sqrt_s``: vibration lines that wander (Disturbances), not
+        # the default's steady tones.
+        self.world = World(self.preset, speedup=1.0, seed=seed, clock=self.clock,
+                           disturbances=Disturbances(phase_walk_rad_per_sqrt_s=phase_walk_rad_per_sqrt_s,
+                                                     walk_seed=seed))
         self._sample_key = (case, seed)
         if self._sample_key in _SAMPLE_STACKS:
             self.world.sem._stacks = dict(_SAMPLE_STACKS[self._sample_key])
@@ -339,6 +344,14 @@ class TimedSettings:
     #: (:mod:`semservo.estimation.raster`, on by default as in the estimator service);
     #: both laws see the same estimates.
     scan_averaged: bool = True
+    #: ... fitting the stage's vibration lines, learned at the teach from its frames at
+    #: rest (:meth:`semservo.estimation.MotionEstimator.learn_vibration`), as the
+    #: estimator service does; False: the bands' random-effects mean.
+    vibration_lines: bool = True
+    #: The simulated vibration's lines wander by this random walk of their phase
+    #: (radians per square root of a second; :class:`~semservo.simulation.world.Disturbances`);
+    #: 0, the default: steady tones.
+    phase_walk_rad_per_sqrt_s: float = 0.0
     #: After the start jog, before the run starts (the jog's settling and early creep).
     start_after_s: float = 1.0
     #: ... plus a part of this drawn from the trial's seed and start (the same for every
@@ -388,6 +401,10 @@ class Taught:
     #: Where the sample rested while the reference was scanned (the vibration left out):
     #: what a trial's ``stage_error_px`` is measured from.
     resting_um: tuple[float, float] | None = None
+    #: The stage's vibration lines (Hz) learned from the frames at rest, and the live
+    #: scan's time per row they are fitted with.
+    vibration_hz: tuple[float, ...] = ()
+    line_time_s: float | None = None
 
     def start(self, lab: "Lab") -> None:
         """Put a fresh lab of the same case and seed where teaching left its own: its
@@ -401,7 +418,9 @@ class Taught:
     def measure(self, method: str, scan_averaged: bool = False):
         desired = self.reference if method == "semservo" or self.mask is None \
             else self.mask.astype(np.float32) * 255  # what a baseline sees: the mask itself
-        return methods.make(method, desired, mask=self.mask, scan_averaged=scan_averaged)
+        return methods.make(method, desired, mask=self.mask, scan_averaged=scan_averaged,
+                            vibration_hz=self.vibration_hz if method == "semservo" else (),
+                            line_time_s=self.line_time_s)
 
 
 def teach(lab: Lab, settings) -> Taught:
@@ -413,13 +432,20 @@ def teach(lab: Lab, settings) -> Taught:
     taught = lab.true_pose((intervals[0][0], intervals[-1][1]))
     resting = lab.true_pose((intervals[0][0], intervals[-1][1]), vibration=False)
     mask = mask_of(reference) if lab.preset.mask_reference else None
-    measure = methods.make("semservo", reference, mask=mask, scan_averaged=settings.scan_averaged)
-    at_rest = [measure(lab.scan()[0]) for _ in range(settings.reference_frames)]
+    at_rest = [lab.scan()[0] for _ in range(settings.reference_frames)]
+    line_time = lab.settings.line_time_s
+    vibration_hz = ()
+    if settings.scan_averaged and settings.vibration_lines and mask is None:
+        estimator = MotionEstimator(reference, rotation=False, scan_averaged=True)
+        vibration_hz = estimator.learn_vibration(at_rest, line_time)
+    measure = methods.make("semservo", reference, mask=mask, scan_averaged=settings.scan_averaged,
+                           vibration_hz=vibration_hz, line_time_s=line_time)
+    at_rest = [measure(frame) for frame in at_rest]
     at_rest = np.array([(m.dx, m.dy) for m in at_rest if m.ok])
     noise_px = float(np.sqrt(np.mean(np.var(at_rest, axis=0, ddof=1)))) if len(at_rest) > 2 else 0.03
     return Taught(reference, mask, (float(taught[0]), float(taught[1])), noise_px, lab.clock.t,
                   lab.world.sem.charge.copy(), lab.world.rng.bit_generator.state,
-                  (float(resting[0]), float(resting[1])))
+                  (float(resting[0]), float(resting[1])), vibration_hz, line_time)
 
 
 def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed: int = 1, stage_model: str = "calibrated",
@@ -434,7 +460,7 @@ def run_timed_trial(case: str, law: str, start_um: tuple[float, float], *, seed:
     frame's mean pose against the reference's, px) and the stage's (``stage_error_px``:
     where the sample rested then, the vibration left out), and the true error (px) at the
     end of every scan against simulated time (``trace``)."""
-    lab = Lab(case, seed, stage_model=stage_model)
+    lab = Lab(case, seed, stage_model=stage_model, phase_walk_rad_per_sqrt_s=settings.phase_walk_rad_per_sqrt_s)
     if taught is None:
         taught = teach(lab, settings)
     else:  # taught in another lab of the same seed: this one starts where teaching ended

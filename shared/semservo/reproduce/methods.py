@@ -65,11 +65,13 @@ def _normalised(image: np.ndarray, halvings: int) -> np.ndarray:
     return (out - out.mean()) / max(float(out.std()), 1e-6)
 
 
-def semservo_method(reference: np.ndarray, rotation: bool = False, mask=None, scan_averaged: bool = False) -> Callable:
+def semservo_method(reference: np.ndarray, rotation: bool = False, mask=None, scan_averaged: bool = False,
+                    vibration_hz: tuple[float, ...] = (), line_time_s: float | None = None) -> Callable:
     estimator = MotionEstimator(reference, rotation=rotation, mask=mask, scan_averaged=scan_averaged)
+    estimator.vibration_hz = tuple(vibration_hz) if estimator.scan_averaged else ()
 
     def measure(current: np.ndarray, first_row: int = 0) -> Measured:
-        motion = estimator.estimate(current, first_row=first_row)
+        motion = estimator.estimate(current, first_row=first_row, line_time_s=line_time_s)
         ok = motion.confidence >= 0.5
         return Measured(motion.dx, motion.dy, motion.rotation_deg, ok, "" if ok else "low confidence")
     return measure
@@ -191,12 +193,15 @@ def keypoint_method(reference: np.ndarray, kind: str) -> Callable:
 
 
 def make(name: str, reference: np.ndarray, *, rotation: bool = False, mask=None,
-         scan_averaged: bool = False) -> Callable[[np.ndarray], Measured]:
+         scan_averaged: bool = False, vibration_hz: tuple[float, ...] = (),
+         line_time_s: float | None = None) -> Callable[[np.ndarray], Measured]:
     """The method ``name`` taught ``reference``; its measure() is timed. ``scan_averaged``:
     semservo's shift averaged over the scan's bands of rows, as its estimator service
-    measures live frames (the paper's tables use the whole-frame estimate, eq. 18-24)."""
+    measures live frames (the paper's tables use the whole-frame estimate, eq. 18-24);
+    with ``vibration_hz`` (learned at the teach) and the scan's ``line_time_s``, over the
+    scan's time by fitting those vibration lines."""
     if name == "semservo":
-        inner = semservo_method(reference, rotation, mask, scan_averaged)
+        inner = semservo_method(reference, rotation, mask, scan_averaged, vibration_hz, line_time_s)
     elif name == "photometric":
         inner = photometric_method(reference)
     elif name == "photometric_single":

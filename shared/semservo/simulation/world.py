@@ -92,6 +92,33 @@ class Disturbances:
 
     drift_um_per_s: tuple[float, float] = (0.002, -0.0015)
     vibration: tuple = ((7.0, 0.010, 0.3), (50.0, 0.006, 1.1), (93.0, 0.004, 2.0))  # (Hz, um, phase)
+    #: Each vibration line's phase wanders by a random walk of this many radians per
+    #: square root of a second, on each axis on its own (a line of finite width, as a
+    #: mechanical resonance is); 0: steady tones. Another vibration than the default's,
+    #: for checking what is fitted to steady tones (``bench/scan_averaged.py --wander``).
+    phase_walk_rad_per_sqrt_s: float = 0.0
+    walk_seed: int = 0
+    _walks: list = field(default_factory=list, repr=False, compare=False)
+
+    #: The random walk's time step (s): finer than a row of any preset's scan.
+    WALK_STEP_S = 2e-4
+
+    def _phase_walk(self, t: float) -> np.ndarray:
+        """Each line's wandered phase at ``t`` on x and y (lines x 2, radians): a random
+        walk drawn once (from ``walk_seed``) and extended as time goes on, interpolated."""
+        steps = int(max(t, 0.0) / self.WALK_STEP_S) + 2
+        while sum(len(block) for block in self._walks) < steps:
+            rng = np.random.default_rng([self.walk_seed, len(self._walks)])
+            block = rng.normal(0.0, self.phase_walk_rad_per_sqrt_s * math.sqrt(self.WALK_STEP_S),
+                               (50_000, len(self.vibration), 2))
+            start = self._walks[-1][-1] if self._walks else np.zeros((len(self.vibration), 2))
+            self._walks.append(start + np.cumsum(block, axis=0))
+        position = max(t, 0.0) / self.WALK_STEP_S
+        index = int(position)
+        block, within = divmod(index, 50_000)
+        here = self._walks[block][within]
+        following = self._walks[(index + 1) // 50_000][(index + 1) % 50_000]
+        return here + (position - index) * (following - here)
 
     def offset(self, t: float, *, vibration: bool = True) -> tuple[float, float]:
         """The sample's offset at ``t``: drift, and the vibration unless told not to (where
@@ -100,9 +127,11 @@ class Disturbances:
         y = self.drift_um_per_s[1] * t
         if not vibration:
             return x, y
+        walk = self._phase_walk(t) if self.phase_walk_rad_per_sqrt_s > 0 else None
         for index, (frequency, amplitude, phase) in enumerate(self.vibration):
-            x += amplitude * math.sin(2 * math.pi * frequency * t + phase)
-            y += amplitude * math.cos(2 * math.pi * frequency * t + phase + index)
+            wander_x, wander_y = (walk[index] if walk is not None else (0.0, 0.0))
+            x += amplitude * math.sin(2 * math.pi * frequency * t + phase + wander_x)
+            y += amplitude * math.cos(2 * math.pi * frequency * t + phase + index + wander_y)
         return x, y
 
 
