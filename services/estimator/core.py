@@ -114,8 +114,8 @@ MIN_MASK_AREA_PX = 256
 #: The most frames a reference may average (kept as the last received).
 MAX_FRAMES_AVERAGED = 16
 #: The most frames at rest a teach learns the stage's vibration lines from
-#: (:meth:`EstimatorCore._learn_vibration`): four scans resolve the lines as well as
-#: more, and learning takes about a second a frame at 512 x 512.
+#: (:meth:`EstimatorCore._learn_vibration`): the frames a teach usually averages, and
+#: learning from four 512 x 512 frames takes under a second.
 VIBRATION_FRAMES = 4
 
 

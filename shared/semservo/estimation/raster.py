@@ -53,10 +53,14 @@ on every row with edges, the lines centred on the rows' mean: the mean is then t
 scan's time average, the rows without edges filled by the lines rather than left out.
 The estimator service learns them at each teach from the frames scanned after the stage
 settled (``SEMSERVO_ESTIMATOR__VIBRATION_LINES``, on by default), the timed trials at
-theirs. On the simulated lab at x5000 the error at rest falls from 0.03-0.10 px RMS per
-seed (the bands' mean) to 0.007-0.03, learning 7, 50 and 93 Hz each time (to 0.08 Hz).
-The lines' fit assumes tones: on frames made another way (``tests/unit/test_raster.py``,
-a texture resampled row by row) it beats the bands' mean while each line's phase wanders
+theirs. On the simulated lab at x5000 (``./dev bench scan_averaged --wander``, 10 labs x
+10 frames at rest) the error falls from 0.051 px RMS (0.025-0.099 per lab, the bands'
+mean) to 0.012 (0.006-0.029), learning 7, 50 and 93 Hz in every lab (within 0.05 Hz).
+The lines' fit assumes tones: with the simulator's tones wandering 0.3 and 1 radian a
+scan it still beats the bands' mean there (0.020 and 0.036 against 0.053 and 0.059),
+since that scene's bands without edges lose their moment whatever the vibration; on
+frames made another way with edges in every band (``tests/unit/test_raster.py``, a
+texture resampled row by row) it beats the bands' mean while each line's phase wanders
 up to ~0.3 radian a scan (0.011 against 0.023 px), ties at ~0.6 and is worse at ~1
 radian a scan (0.036 against 0.023): there, switch it off.
 
