@@ -511,7 +511,11 @@ class EstimatorCore:
 
         def learn() -> None:
             try:
-                lines = estimator.learn_vibration(None, line_time, sample=sample)
+                # A teach since makes another estimator: this one's lines are not needed.
+                lines = estimator.learn_vibration(None, line_time, sample=sample,
+                                                  cancelled=lambda: self.estimator is not estimator)
+                if lines is None:
+                    return
             except Exception as error:  # the reference stands; its frames are averaged by bands
                 log.warning("vibration lines not learned: %s", error)
                 reference.detail["vibration"] = {"state": "none", "lines_hz": [], "frames": len(frames),

@@ -357,12 +357,19 @@ def test_the_estimator_needs_no_private_call_before_any_public_one(frame):
     """Every public method works on a fresh estimator (the angle's refinement used to be
     public but worked only after a private call had halved the frame)."""
     public = [name for name in dir(MotionEstimator) if not name.startswith("_")]
-    assert set(public) == {"estimate", "min_confidence", "prepare_rows"}
+    assert set(public) == {"estimate", "min_confidence", "prepare_rows", "learn_vibration", "vibration_sample"}
     motion = MotionEstimator(frame[:256, :256]).estimate(rotated(frame[:256, :256], 2.0))
     assert motion.rotation_deg == pytest.approx(2.0, abs=0.05)
     fresh = MotionEstimator(frame[:256, :256])
     fresh.prepare_rows(64)  # ahead of the partial frame it is for, on a fresh estimator
     assert fresh.estimate(rotated(frame[:256, :256], 2.0), first_row=64).rotation_deg == pytest.approx(2.0, abs=0.05)
+    still = [np.roll(frame[:256, :256], shift, axis=1) for shift in (1, 2, 3)]
+    kept, shifts = MotionEstimator(frame[:256, :256], rotation=False).vibration_sample(still)
+    assert len(kept) == 3 and [round(dx) for dx, _ in shifts] == [1, 2, 3]
+    # Learned on a fresh estimator: frames that do not vibrate teach no line.
+    assert MotionEstimator(frame[:256, :256], rotation=False, scan_averaged=True).learn_vibration(still, 1e-3) == ()
+    assert MotionEstimator(frame[:256, :256], rotation=False, scan_averaged=True).learn_vibration(
+        still, 1e-3, cancelled=lambda: True) is None
 
 
 def test_frames_far_below_6_db_are_filtered_by_default_and_clean_ones_are_not(frame):

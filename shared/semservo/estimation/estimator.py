@@ -283,7 +283,7 @@ class MotionEstimator:
                 shifts.append((motion.dx, motion.dy))
         return kept, shifts
 
-    def learn_vibration(self, frames, line_time_s: float, *, sample=None) -> tuple[float, ...]:
+    def learn_vibration(self, frames, line_time_s: float, *, sample=None, cancelled=None) -> tuple[float, ...] | None:
         """Learn the stage's vibration lines from ``frames`` scanned at rest, each row
         ``line_time_s`` after the one before (:func:`.raster.vibration_lines`), and fit
         them in every scan-averaged shift from now on (:attr:`vibration_hz`). Frames this
@@ -291,13 +291,18 @@ class MotionEstimator:
         estimator without scan averaging: nothing is learned. ``sample``: what
         :meth:`vibration_sample` made of the frames, taken beforehand (then the
         learning, seconds long, may run in another thread while this estimator measures
-        frames: it reads only the reference). Returns the lines (Hz)."""
+        frames: it reads only the reference). ``cancelled``: asked during the search
+        (:func:`.raster.vibration_lines`); True stops it, nothing learned, and returns
+        None. Returns the lines (Hz)."""
         if not self.scan_averaged or not line_time_s or line_time_s <= 0:
             return ()
         kept, shifts = sample if sample is not None else self.vibration_sample(frames)
         if len(kept) < 2:
             return ()
-        self.vibration_hz = vibration_lines(self._scan_reference, kept, shifts, float(line_time_s))
+        lines = vibration_lines(self._scan_reference, kept, shifts, float(line_time_s), cancelled=cancelled)
+        if lines is None:
+            return None
+        self.vibration_hz = lines
         return self.vibration_hz
 
     def estimate(self, image, *, rotation: bool | None = None, scan_averaged: bool | None = None,

@@ -77,7 +77,7 @@ Pure functions on arrays; :class:`semservo.estimation.MotionEstimator` calls the
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import cv2
 import numpy as np
@@ -533,7 +533,8 @@ def _explained_with(sums: RowSums, line_time_s: float, lines_hz: Sequence[float]
 
 def vibration_lines(reference: ScanReference, frames: Sequence[np.ndarray], shifts: Sequence[tuple[float, float]],
                     line_time_s: float, *, max_lines: int = MAX_VIBRATION_LINES,
-                    false_alarm: float = LINE_FALSE_ALARM) -> tuple[float, ...]:
+                    false_alarm: float = LINE_FALSE_ALARM,
+                    cancelled: Callable[[], bool] | None = None) -> tuple[float, ...] | None:
     """The stage's vibration lines (Hz), learned from ``frames`` scanned at rest (the
     stage still; their whole-frame shifts ``shifts`` against the reference, px) with
     ``line_time_s`` per row: a greedy search (as a line spectrum is cleaned), one line
@@ -545,8 +546,10 @@ def vibration_lines(reference: ScanReference, frames: Sequence[np.ndarray], shif
     with 4 degrees of freedom a frame, Bonferroni over the frequencies tried). Tried:
     from one cycle a scan to the rows' Nyquist frequency (every :data:`SAMPLE_STEP`-th
     row is sampled), :data:`LINE_OVERSAMPLING` per the scan's resolution. Empty when
-    nothing stands out (no vibration, or none a frame's rows can resolve)."""
-    from scipy.stats import chi2
+    nothing stands out (no vibration, or none a frame's rows can resolve). ``cancelled``:
+    asked between frames of the search; when it says True, the search stops and returns
+    None (a teach superseded by the next one need not finish learning)."""
+    from scipy.special import chdtri  # the chi-square's inverse survival function
 
     sums = [row_sums(smoothed(frame), *predicted_frame(reference, dx, dy)) for frame, (dx, dy) in zip(frames, shifts)]
     if not sums or line_time_s <= 0:
@@ -554,7 +557,7 @@ def vibration_lines(reference: ScanReference, frames: Sequence[np.ndarray], shif
     scan_s = len(frames[0]) * line_time_s
     lowest, highest = 1.0 / scan_s, 1.0 / (2 * SAMPLE_STEP * line_time_s)
     candidates = np.arange(lowest, highest, 1.0 / (LINE_OVERSAMPLING * scan_s))
-    threshold = chi2.isf(false_alarm / len(candidates), 4 * len(sums))
+    threshold = chdtri(4 * len(sums), false_alarm / len(candidates))
 
     lines: tuple[float, ...] = ()
     while len(lines) < max_lines:
@@ -563,9 +566,11 @@ def vibration_lines(reference: ScanReference, frames: Sequence[np.ndarray], shif
         fits = [line_model_fit(frame_sums, line_time_s, lines) for frame_sums in sums]
         if any(fit is None for fit in fits):
             return lines
-        base = sum(fit.explained for fit in fits)
-        gains = sum(_explained_with(frame_sums, line_time_s, lines, candidates, fit.noise_variance)
-                    for frame_sums, fit in zip(sums, fits)) - base
+        gains = -sum(fit.explained for fit in fits)
+        for frame_sums, fit in zip(sums, fits):
+            if cancelled is not None and cancelled():
+                return None
+            gains = gains + _explained_with(frame_sums, line_time_s, lines, candidates, fit.noise_variance)
         gains = np.where(np.isfinite(gains), gains, 0.0)
         best = int(np.argmax(gains))
         if gains[best] < threshold:
