@@ -370,15 +370,13 @@ def scan_averaged_shift(reference: ScanReference, frame: np.ndarray, dx: float, 
     usable = np.all(spreads <= BAND_UNCERTAINTY_PX, axis=1)
     if usable.sum() * 2 < len(first_rows):
         return None
-    if lines_hz and line_time_s and line_time_s > 0:
-        fit = line_model_fit(sums, line_time_s, lines_hz, band_rows)
-        if fit is not None and np.all(np.isfinite(fit.mean)) \
-                and float(np.hypot(*fit.mean)) <= MAX_CORRECTION_PX:
-            shifts[~usable] = np.nan
-            return ScanAveragedShift(dx + float(fit.mean[0]), dy + float(fit.mean[1]), shifts, first_rows,
-                                     int(usable.sum()))
-    correction = np.array([random_effects_mean(shifts[usable, axis], spreads[usable, axis] ** 2)
-                           for axis in range(2)])
+    fit = line_model_fit(sums, line_time_s, lines_hz, band_rows) if lines_hz and line_time_s and line_time_s > 0 \
+        else None
+    if fit is not None and np.all(np.isfinite(fit.mean)) and float(np.hypot(*fit.mean)) <= MAX_CORRECTION_PX:
+        correction = fit.mean
+    else:  # no lines, or the rows cannot pin them: the bands' mean
+        correction = np.array([random_effects_mean(shifts[usable, axis], spreads[usable, axis] ** 2)
+                               for axis in range(2)])
     if not np.all(np.isfinite(correction)) or float(np.hypot(*correction)) > MAX_CORRECTION_PX:
         return None
     shifts[~usable] = np.nan
@@ -402,16 +400,13 @@ LINE_OVERSAMPLING = 4
 
 class LineFit(NamedTuple):
     """A frame's displacement beyond the prediction as a mean plus vibration lines
-    (:func:`line_model_fit`): the mean over the scan's rows (x, y px), its covariance,
-    and how much of the residue the model explains (in units of the residue's noise
-    variance; what :func:`vibration_lines` compares models by)."""
+    (:func:`line_model_fit`): the mean over the scan's rows (x, y px), and how much of the
+    residue the model explains (in units of the residue's noise variance; what
+    :func:`vibration_lines` compares models by)."""
 
     mean: np.ndarray
-    covariance: np.ndarray
     explained: float
     noise_variance: float
-    #: Terms per axis: the mean and a cosine and a sine per line.
-    terms: int = 1
 
 
 def _line_basis(rows: np.ndarray, line_time_s: float, lines_hz: Sequence[float]) -> np.ndarray:
@@ -487,15 +482,11 @@ def line_model_fit(sums: RowSums, line_time_s: float, lines_hz: Sequence[float],
     diagonal = np.diag(factor) ** 2
     if not np.all(np.isfinite(factor)) or diagonal.min() < 1e-12 * diagonal.max():
         return None
-    lower_inverse = np.linalg.inv(factor)
-    inverse = lower_inverse.T @ lower_inverse
-    solution = inverse @ vector
+    solution = np.linalg.solve(matrix, vector)
     explained_squares = float(solution @ vector)
     if noise_variance is None:
         noise_variance = _noise_variance(sums, explained_squares, len(vector))
-    means = [0, terms]
-    return LineFit(solution[means], inverse[np.ix_(means, means)] * noise_variance,
-                   explained_squares / noise_variance, noise_variance, terms)
+    return LineFit(solution[[0, terms]], explained_squares / noise_variance, noise_variance)
 
 
 #: Candidate frequencies whose normal equations are built and solved at once
@@ -506,8 +497,8 @@ CANDIDATE_BATCH = 64
 def _explained_with(sums: RowSums, line_time_s: float, lines_hz: Sequence[float], candidates: np.ndarray,
                     noise_variance: float, band_rows: int = BAND_ROWS) -> np.ndarray:
     """What :func:`line_model_fit` with ``lines_hz`` and each candidate frequency added
-    explains of one frame (in units of ``noise_variance``), for every candidate at once;
-    NaN where a candidate's system cannot be solved."""
+    explains of one frame (in units of ``noise_variance``), for every candidate at once
+    (a singular system: its least-squares projection)."""
     fixed = _line_basis(sums.rows, line_time_s, lines_hz)
     time = sums.rows.astype(np.float64) * line_time_s
     explained = np.full(len(candidates), np.nan)
@@ -520,13 +511,9 @@ def _explained_with(sums: RowSums, line_time_s: float, lines_hz: Sequence[float]
         matrices, vectors, _ = _line_systems(sums, bases, band_rows)
         try:
             solutions = np.linalg.solve(matrices, vectors[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:  # one singular system: solve them one by one
-            solutions = np.full(vectors.shape, np.nan)
-            for index in range(len(frequencies)):
-                try:
-                    solutions[index] = np.linalg.solve(matrices[index], vectors[index])
-                except np.linalg.LinAlgError:
-                    pass
+        except np.linalg.LinAlgError:  # a singular system in the batch: least squares, one by one
+            solutions = np.stack([np.linalg.lstsq(matrix, vector, rcond=None)[0]
+                                  for matrix, vector in zip(matrices, vectors)])
         explained[first:first + CANDIDATE_BATCH] = np.sum(solutions * vectors, axis=1) / noise_variance
     return explained
 
