@@ -190,8 +190,8 @@ def test_a_teach_whose_sweep_pins_the_tilts_loosely_sweeps_again_and_pools_them(
     core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", tilt=TiltSettings(teach_sweeps=4))
     core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
     core.teach_latest()
-    # A faint texture: one sweep pins the tilts to +-0.11-0.14 degree only (refused alone).
-    faint = 100 + 3 * (texture() - 100) / 60
+    # A faint texture: one sweep pins the tilts to +-0.12-0.16 degree only (refused alone).
+    faint = 100 + 3.5 * (texture() - 100) / 60
     distances = list(WORKING_DISTANCES_UM)
     answers = []
     for seed in range(10):
@@ -230,7 +230,7 @@ def test_a_new_reference_does_not_pool_the_sweeps_of_the_one_before():
     core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE")
     core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
     core.teach_latest()
-    faint = 100 + 3 * (texture() - 100) / 60
+    faint = 100 + 3.5 * (texture() - 100) / 60
     assert core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, 0), list(WORKING_DISTANCES_UM),
                            PIXEL_UM * 1000) is None
     core.teach_latest()  # a new reference: its tilts need sweeps of their own
@@ -258,7 +258,7 @@ def test_a_run_pools_sweeps_that_cannot_pin_the_tilts_or_pin_them_loosely_near_t
     # Far from the goal, a loose sweep is acted on as it is: the next move is larger than its noise.
     assert not core.sweep_again([depths(4.0, 4.0, 0)], distances, pixel_nm)
     # Refused alone for its uncertainty: swept again wherever it is.
-    refused = depths(4.0, 3.0, 1)
+    refused = depths(4.0, 3.5, 1)
     assert core.pooled_estimate([refused], distances, pixel_nm).confidence == 0
     assert core.sweep_again([refused], distances, pixel_nm)
     # Never beyond the bound.

@@ -242,7 +242,7 @@ def test_kernels_bunched_in_a_corner_cannot_pin_the_tilts_and_say_so():
     see focus span too little of the field, and the tilts are refused with the reason,
     not guessed from a plane that tips on them."""
     scene = np.full((SIZE, SIZE), 100.0)
-    scene[:64, :64] = texture()[:64, :64]
+    scene[:96, :96] = texture()[:96, :96]  # 3 x 3 kernels of 8 x 8
     rng = np.random.default_rng(3)
     sweep = sweep_of_plane(3.0, 2.0, scene=scene) + rng.normal(0, 1.0, (len(WORKING_DISTANCES_UM), SIZE, SIZE))
     estimate = estimate_tilt(sweep, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL)
@@ -373,7 +373,7 @@ def test_pooling_sweeps_narrows_the_tilts_about_as_one_over_the_root_of_their_nu
     step = float(WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0])
     singles, pooled = [], []
     for seed in range(8):
-        maps = noisy_depth_maps(4, noise_um=0.08, seed=seed)
+        maps = noisy_depth_maps(4, noise_um=0.07, seed=seed)
         singles.append(tilt_from_depths(maps[0], KERNEL, PIXEL_UM, step))
         pooled.append(pooled_tilt(maps, KERNEL, PIXEL_UM, step))
     single_uncertainty = np.mean([each.alpha_uncertainty_deg for each in singles])
@@ -531,3 +531,69 @@ def test_tilts_of_a_patch_of_particles_are_not_read_small():
         assert np.abs(at_centres).max() < 0.15
         estimate = estimate_tilt(sweep, working_distances, pixel_um, kernel=kernel)
         assert estimate.alpha_deg - pose[0] == pytest.approx(at_centres[0], abs=1e-9)
+
+
+def test_a_focus_curves_scatter_is_its_noise_not_its_peak():
+    """Measured on the curve itself: the frame-to-frame scatter of a peaked curve plus
+    noise is about the noise's standard deviation (the median leaves out most of the
+    peak's bend, not all); a sharp peak's bend alone counts for under 1 % of its height; too
+    short a sweep gives none (0: the modelled error alone decides)."""
+    from semservo.estimation.tilt import focus_curve_scatter
+
+    rng = np.random.default_rng(4)
+    steps = np.arange(21) - 10.0
+    shape = 1.0 / (0.6 + np.abs(steps)[:, None] + np.zeros((1, 400))) ** 2  # a texture's 1 / s^2, 400 kernels
+    flat = rng.normal(0.0, 0.3, shape.shape)
+    assert np.median(focus_curve_scatter(flat)) == pytest.approx(0.3, rel=0.1)
+    noisy = 20.0 * shape + flat  # a peak of 56, about 180 noise deviations
+    assert 0.3 < np.median(focus_curve_scatter(noisy)) < 2 * 0.3
+    sharp = 1000.0 * shape
+    assert (focus_curve_scatter(sharp) < 0.01 * sharp.max(axis=0)).all()
+    assert (focus_curve_scatter(noisy[4:-5]) == 0).all()  # 12 frames
+
+
+def test_a_peak_of_noise_the_modelled_error_misses_is_not_a_focus_peak():
+    """A kernel whose curve wanders by more than pixel noise alone would make it (the
+    scene's part of the variance's scatter, the mean's noise): its highest value stands
+    8 modelled standard errors over its lowest, but a few of its own; it has no depth.
+    A texture's peak, as high over the same noise, keeps its depth."""
+    from semservo.estimation.tilt import FocusCurves, clear_focus_peaks
+
+    rng = np.random.default_rng(8)
+    frames, pixels = 21, 32 * 32
+    noise = np.full((frames, 1, 2), 3.2)  # the noise's share: a modelled standard error of 0.1
+    wandering = rng.normal(1.0, 0.3, (frames, 1, 2))
+    wandering[10, 0, 0] = 2.2  # 12 modelled standard errors over the lowest: a "peak" to the model
+    wandering[:, 0, 1] += 20.0 / (0.6 + np.abs(np.arange(frames) - 10.0)) ** 2  # a texture in focus at frame 10
+    depths = clear_focus_peaks(FocusCurves(wandering, noise, pixels), np.arange(frames, dtype=float))
+    assert np.isnan(depths[0, 0])
+    assert depths[0, 1] == pytest.approx(10.0, abs=0.3)
+
+
+def test_the_tilts_standard_errors_hold_where_kernels_differ_in_noise():
+    """The jackknife over kernels: where the kernels at the field's edges are four times
+    noisier than those inside (a textured band fainter at its ends), the standard
+    errors from the residuals' robust scale see the many precise kernels and are too
+    small; the jackknife's match the estimates' scatter over noise draws."""
+    from semservo.estimation.tilt import jackknife_slopes_covariance, robust_plane, tilt_from_depths
+
+    truth = plane_depths(2.0, -1.0)
+    rows, cols = np.indices(truth.shape)
+    edge = (np.minimum.reduce([rows, cols, truth.shape[0] - 1 - rows, truth.shape[1] - 1 - cols]) == 0)
+    noise_um = np.where(edge, 0.2, 0.05)
+    rng = np.random.default_rng(21)
+    step = float(WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0])
+    slopes, jackknifed, from_residuals = [], [], []
+    for _ in range(60):
+        depths = truth + rng.normal(0.0, 1.0, truth.shape) * noise_um
+        plane = robust_plane(depths, KERNEL, PIXEL_UM)
+        slopes.append(plane.coefficients[2])
+        jackknifed.append(np.sqrt(jackknife_slopes_covariance(depths, KERNEL, PIXEL_UM)[1, 1]))
+        from_residuals.append(np.sqrt(plane.covariance[2, 2]))
+    scatter = np.std(slopes)
+    assert np.mean(from_residuals) < 0.8 * scatter  # too small: the precise kernels set the scale
+    assert 0.8 * scatter < np.mean(jackknifed) < 1.3 * scatter
+    # The estimate carries the jackknife's standard errors (over the sampling bias's floor).
+    estimate = tilt_from_depths(depths, KERNEL, PIXEL_UM, step)
+    assert estimate.alpha_uncertainty_deg == pytest.approx(np.degrees(jackknifed[-1]), rel=0.1)
+    assert (jackknife_slopes_covariance(np.full((8, 8), np.nan), KERNEL, PIXEL_UM) == np.inf).all()
