@@ -373,8 +373,8 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
 
 def _move_to(lab, x_um: float, y_um: float, halvings: int = 4) -> None:
     """A run's start (absolute, um), halved while the stage refuses a step above its limit:
-    just after a reversal the stage's model asks many volts per micrometre (Masing's
-    rule; a 4 um move asked 27 V of a 25 V limit once), as an operator would then jog in
+    just after a reversal the stage's model asks many volts per micrometre (the minor
+    loop's steep start; a 4 um move asked 27 V of a 25 V limit once), as an operator would then jog in
     two."""
     from semservo.client import SemservoError
 
