@@ -46,28 +46,46 @@ STROKE_SEARCH_UM = (-10.0, 120.0)
 @dataclass
 class BranchModel:
     """Hysteresis branches V = p(d) for increasing and decreasing displacement (the major
-    loop, as calibrated), with a congruent minor loop after a reversal.
+    loop, as calibrated), with a minor loop after a reversal that starts by Masing's rule
+    and ends congruent.
 
     A reversal does not jump to the other branch: the branches are up to 15 % of the
     stroke apart, so a jump would turn a 0.1 um correction into a 10 V step, and a
     servo loop into a limit cycle. Nor does it take the other branch's slope where the
     axis is: a piezo that reverses starts a minor loop, steep at first (it moves little
-    per volt just after it reverses). The minor branch from a reversal at (v_r, d_r) is
-    the major branch of the new direction, from its start s to its end e, mapped
-    affinely onto the span from the reversal to the loop's far end (e, p(e)) (``_minor``):
-    it heads for the last turning point not yet wiped out (Madelung's rule; with one
-    reversal kept that is the major loop's end) with the major branch's shape (the
-    congruency Prandtl-Ishlinskii and Preisach models of piezo hysteresis obey, and
-    Masing's rule its symmetric case). Its slope changes smoothly all the way; the
-    earlier rule, the major branch shifted to start at the reversal, met the other major
-    branch 19-24 um into the return and its volts per micrometre fell by 37 % there, so
-    the law's learned gain was ~30 % off on the fake lab's piezo after reversals. Should
-    the branch meet the major branch before the end (a reversal outside the loop), that
-    branch is taken and the reversal forgotten. Only the last reversal is kept: the
-    wiping-out of nested loops (back on the outer branch past the point an inner loop
-    began) made the voltage jump there, because the lab's two fitted branches are not
-    each other's mirror image; a held position's hundreds of small corrections found it
-    (0.23 px off once in 10 simulated minutes).
+    per volt just after it reverses). The minor branch from a reversal at (v_r, d_r)
+    (``_minor``) blends two curves by the fraction f of the way from the reversal to the
+    loop's far end e, where the two major branches meet:
+
+    - near the reversal, Masing's rule: the major branch of the new direction from its
+      start s, shifted to start at the reversal, ``v_r + p(s + d - d_r) - p(s)`` (the
+      return of a Prandtl-Ishlinskii piezo while few of its play operators have
+      switched, which depends on how far it has come back, not on how far it has to go);
+    - towards the far end, congruency: the whole major branch mapped affinely onto the
+      span from the reversal to (e, p(e)), heading for the last turning point not yet
+      wiped out (Madelung's rule; with one reversal kept that is the loop's end).
+
+    The minor branch is ``shifted + w(f) (congruent - shifted)`` with w(f) = 1 - (1 - f)^3:
+    Masing's slope at the reversal (w(0) = 0), the far end reached (w(1) = 1), and a
+    slope that changes smoothly on the way, congruency weighed in early enough (w = 0.5
+    a fifth of the way) that the shifted branch's crossing (below) is not reached. Each
+    curve alone was worse in the closed loop. The shifted branch alone met the other
+    major branch 19-24 um into the return (the lab's two fitted branches are not each
+    other's mirror image), where its volts per micrometre fell by 37 % and the law's
+    learned gain was ~30 % off. The congruent branch alone compresses the curvature near
+    the reversal by the span's ratio (8 % fewer volts than Masing's 10 um back from a
+    reversal at 60 um): a second move after a reversal did other than the first had (in
+    one trial it left 12 % of its move, against 5 %), and starts 15 % of the field away
+    took a fifth fresh frame (``semservo reproduce --only time_to_target``: a median of 5
+    frames in six presets, 4 with the blend). A linear weight, w = f, still met the
+    crossing on the x axis; one nearer congruency, 1 - (1 - f)^4, took the fifth frame.
+
+    Should the branch meet the major branch before the end (a reversal outside the
+    loop), that branch is taken and the reversal forgotten. Only the last reversal is
+    kept: the wiping-out of nested loops (back on the outer branch past the point an
+    inner loop began) made the voltage jump there, because the lab's two fitted branches
+    are not each other's mirror image; a held position's hundreds of small corrections
+    found it (0.23 px off once in 10 simulated minutes).
 
     The major loop's ends are where the two branches come closest at either end of the
     stroke (``STROKE_SEARCH_UM``). ``offset_v`` is added to every voltage (0 unless a
@@ -106,10 +124,12 @@ class BranchModel:
         return float(np.polyval(self.increasing if direction > 0 else self.decreasing, displacement_um))
 
     def _minor(self, direction: int, target_um: float) -> float | None:
-        """The minor branch from the last reversal (v_r, d_r) at ``target_um``: the major
-        branch of ``direction``, from its start s to its end e, mapped affinely onto the
-        span from the reversal to the loop's far end (e, p(e)):
-        V(d) = v_r + (p(u) - p(s)) (p(e) - v_r) / (p(e) - p(s)), u = s + (d - d_r) (e - s) / (e - d_r).
+        """The minor branch from the last reversal (v_r, d_r) at ``target_um`` (see the
+        class docstring), with f = (d - d_r) / (e - d_r) the fraction of the way to the
+        loop's far end e and s the major branch's start:
+        shifted(d) = v_r + p(s + d - d_r) - p(s) (Masing),
+        congruent(d) = v_r + (p(s + f (e - s)) - p(s)) (p(e) - v_r) / (p(e) - p(s)),
+        V(d) = shifted(d) + (1 - (1 - f)^3) (congruent(d) - shifted(d)).
         None past the far end, or when the reversal lies beyond it (outside the loop)."""
         start_v, start_um, _ = self.reversal
         begin, end = (self.bottom_um, self.top_um) if direction > 0 else (self.top_um, self.bottom_um)
@@ -120,8 +140,10 @@ class BranchModel:
         if fraction >= 1.0:
             return None
         major_begin, major_end = self._major(direction, begin), self._major(direction, end)
+        shifted = start_v + self._major(direction, begin + target_um - start_um) - major_begin
         shaped = self._major(direction, begin + fraction * (end - begin)) - major_begin
-        return start_v + shaped * (major_end - start_v) / (major_end - major_begin)
+        congruent = start_v + shaped * (major_end - start_v) / (major_end - major_begin)
+        return shifted + (1.0 - (1.0 - fraction) ** 3) * (congruent - shifted)
 
     def voltage_for(self, target_um: float) -> float:
         if self.voltage is None:
