@@ -10,8 +10,8 @@ from typing import Callable
 
 import numpy as np
 
-from semservo.reproduce import (FIGURE_CASES, LAW_FRAMES, PAPER_TABLE1_POSES, PAPER_TABLE2, PAPER_TABLE3,
-                                PAPER_TABLE4, load, methods)
+from semservo.reproduce import (EXPERIMENTS, FIGURE_CASES, LAW_FRAMES, PAPER_TABLE1_POSES, PAPER_TABLE2,
+                                PAPER_TABLE3, PAPER_TABLE4, load, methods)
 from semservo.reproduce.tilts import plot_fig8
 
 CASE_NUMBERS = {case: index for index, case in enumerate(FIGURE_CASES, 1)}
@@ -428,6 +428,13 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
              "one motion measurement, the paper's control law (eq. 30-37); the true error is the simulator's "
              "pose at the end against the pose the reference was taught at. The whole-stack benchmarks "
              "(`bench/positioning.py`, `bench/tilt.py`) add the services and the serial line.", ""]
+    # Experiments are kept between runs (resumable), so the report says when each was run:
+    # one run again after a change (``--only NAME --fresh``) leaves the others as they were.
+    runs = [(name, (load(out, name) or {}).get("finished_at")) for name in EXPERIMENTS]
+    runs = [f"{name} {finished[:10]}" for name, finished in runs if finished]
+    if runs:
+        lines += ["Each experiment as last run (`semservo reproduce --only NAME --fresh` runs one again): "
+                  + ", ".join(runs) + ".", ""]
     figures = []
     table4 = load(out, "table4")
     if table4:
