@@ -41,6 +41,9 @@ class DisplacementModel(Protocol):
 
 #: The stroke (um) the branches are taken as monotonic over, and searched for the loop's ends.
 STROKE_SEARCH_UM = (-10.0, 120.0)
+#: A minor branch weighs congruency by 1 - (1 - f)^n of the way f to the loop's far end
+#: (:meth:`BranchModel._minor`): n = 1 still met the other branch, n = 4 bent too soon.
+MINOR_LOOP_BLEND_POWER = 3
 
 
 @dataclass
@@ -129,7 +132,7 @@ class BranchModel:
         loop's far end e and s the major branch's start:
         shifted(d) = v_r + p(s + d - d_r) - p(s) (Masing),
         congruent(d) = v_r + (p(s + f (e - s)) - p(s)) (p(e) - v_r) / (p(e) - p(s)),
-        V(d) = shifted(d) + (1 - (1 - f)^3) (congruent(d) - shifted(d)).
+        V(d) = shifted(d) + (1 - (1 - f)^n) (congruent(d) - shifted(d)), n = ``MINOR_LOOP_BLEND_POWER``.
         None past the far end, or when the reversal lies beyond it (outside the loop)."""
         start_v, start_um, _ = self.reversal
         begin, end = (self.bottom_um, self.top_um) if direction > 0 else (self.top_um, self.bottom_um)
@@ -143,7 +146,7 @@ class BranchModel:
         shifted = start_v + self._major(direction, begin + target_um - start_um) - major_begin
         shaped = self._major(direction, begin + fraction * (end - begin)) - major_begin
         congruent = start_v + shaped * (major_end - start_v) / (major_end - major_begin)
-        return shifted + (1.0 - (1.0 - fraction) ** 3) * (congruent - shifted)
+        return shifted + (1.0 - (1.0 - fraction) ** MINOR_LOOP_BLEND_POWER) * (congruent - shifted)
 
     def voltage_for(self, target_um: float) -> float:
         if self.voltage is None:
