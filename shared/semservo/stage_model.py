@@ -68,10 +68,13 @@ class BranchModel:
       span from the reversal to (e, p(e)), heading for the last turning point not yet
       wiped out (Madelung's rule; with one reversal kept that is the loop's end).
 
-    The minor branch is ``shifted + w(f) (congruent - shifted)`` with w(f) = 1 - (1 - f)^3:
-    Masing's slope at the reversal (w(0) = 0), the far end reached (w(1) = 1), and a
-    slope that changes smoothly on the way, congruency weighed in early enough (w = 0.5
-    a fifth of the way) that the shifted branch's crossing (below) is not reached. Each
+    The minor branch is ``shifted + w(f) (congruent - shifted)`` with w(f) = 1 - (1 - f)^n,
+    n = ``MINOR_LOOP_BLEND_POWER``: Masing's slope at the reversal (w(0) = 0), the far end
+    reached (w(1) = 1), congruency weighed in early (w = 0.5 a fifth of the way). On y, and
+    on every rising return, it closes at the far end; on x after reversals high in the
+    stroke it still meets the falling major branch first, later and more gently than
+    the shifted branch (reversals at 60, 80, 90 um: 47, 33, 35 um into the return, its
+    slope changing 1.5, 13, 6 % over 0.1 um there, against 19-23 um and 26-112 %). Each
     curve alone was worse in the closed loop. The shifted branch alone met the other
     major branch 19-24 um into the return (the lab's two fitted branches are not each
     other's mirror image), where its volts per micrometre fell by 37 % and the law's

@@ -430,13 +430,14 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
              "(`bench/positioning.py`, `bench/tilt.py`) add the services and the serial line.", ""]
     # Experiments are kept between runs (resumable), so the report says when each was run:
     # one run again after a change (``--only NAME --fresh``) leaves the others as they were.
-    runs = [(name, (load(out, name) or {}).get("finished_at")) for name in EXPERIMENTS]
-    runs = [f"{name} {finished[:10]}" for name, finished in runs if finished]
+    results = {name: load(out, name) for name in EXPERIMENTS}
+    runs = [f"{name} {result['finished_at'][:10]}" for name, result in results.items()
+            if result and result.get("finished_at")]
     if runs:
         lines += ["Each experiment as last run (`semservo reproduce --only NAME --fresh` runs one again): "
                   + ", ".join(runs) + ".", ""]
     figures = []
-    table4 = load(out, "table4")
+    table4 = results["table4"]
     if table4:
         lines += ["## Table IV: time per iteration and successes", "",
                   f"Computation per iteration (the method's measurement, ms, mean) and converged trials out of "
@@ -455,7 +456,7 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                   "semservo's successes in cases 1-5 at twice its computation. No method converges more often.",
                   "", "Baseline settings (chosen once, not per case): see `semservo.reproduce.methods`. SIFT stands "
                   "in for the paper's SURF (patented; not in current OpenCV builds), ORB (oriented FAST) for FAST.", ""]
-    timing = load(out, "time_to_target")
+    timing = results["time_to_target"]
     if timing:
         quick = " *Quick run: fewer presets, models and trials.*" if timing.get("quick") else ""
         settings = timing["settings"]
@@ -512,14 +513,14 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                       "the paper's law, the same starts, scanning and budget."] + [""] + baseline
         plot_time_to_target(timing, out / "time_to_target.png")
         lines += ["", "![Time to target: true error against simulated time](time_to_target.png)", ""]
-    hold = load(out, "hold")
+    hold = results["hold"]
     if hold:
         lines += ["## Hold after arrival (not in the paper)", "",
                   f"The position law reaches the target from 5 % of the field under the `unstable` preset (levels "
                   f"changing, the lab's drift and vibration), then holds it for {hold['minutes']:g} simulated minutes: "
                   "the true error of every fresh frame while holding, and the corrections made.", ""]
         lines += hold_lines(hold) + [""]
-    table3 = load(out, "table3")
+    table3 = results["table3"]
     if table3:
         lines += ["## Table III: accuracy over trials", "",
                   f"semservo, {table3['trials']} trials per case; accuracy is the mean |true error| per axis; "
@@ -534,7 +535,7 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
             name = f"runs_{case}.png"
             plot_runs(case, trials, out / name)
             figures.append((f"Figs. 9-11, case {CASE_NUMBERS[case]} ({case})", name))
-    table2 = load(out, "table2")
+    table2 = results["table2"]
     if table2:
         lines += ["## Table II: positioning error against the desired image's quality", "",
                   f"Reference scanned once per trial at the given dwell, live frames at 360 ns/px; {table2['trials']} "
@@ -544,7 +545,7 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                   "Unlike the paper's, the error here hardly depends on the reference's quality: the estimator's "
                   "whole-spectrum fit is limited by the live frames' noise and the stage's vibration, not by the "
                   "reference's.", ""]
-    table1 = load(out, "table1")
+    table1 = results["table1"]
     if table1:
         lines += ["## Table I: the tilts", "",
                   "The paper's three poses on the simulated `tilts` preset (depth of field 3.5 um), the plane fit "
@@ -553,7 +554,7 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                   "Fig. 8 (10/10 converged from random poses, through the whole stack): `./dev bench tilt` and the "
                   "main README's *Five degrees of freedom*, with its plot `docs/tilt_fig8.png`.", ""]
         lines += table1_lines(table1) + [""]
-    replay = load(out, "replay2013")
+    replay = results["replay2013"]
     if replay:
         lines += ["## The 2013 recording against the photometric baseline", ""]
         if "skipped" in replay:
@@ -573,7 +574,7 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
                       "follow the measured error itself, best near the end where the run oscillates. Far from the "
                       "goal (40-55 px) our step on frames halved twice is small while the recorded law moved steadily: "
                       "its gain and image scale are not recorded.", ""]
-    fig8 = load(out, "fig8")
+    fig8 = results["fig8"]
     if fig8:
         lines += ["## Fig. 8: five degrees of freedom", ""]
         lines += ["Through the whole stack (the fake lab 20 times faster), each run from the taught pose; the true "
@@ -590,7 +591,7 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
         plot_fig8(fig8["runs"][0], out / "fig8_five_dof.png")
         figures.append(("Fig. 8: angular velocities and cost per iteration, from (7, 12, 20) degrees",
                         "fig8_five_dof.png"))
-    fig4 = load(out, "fig4")
+    fig4 = results["fig4"]
     if fig4:
         plot_fig4(fig4, out / "fig4_cost_map.png")
         figures.insert(0, ("Fig. 4: the cost around the desired pose", "fig4_cost_map.png"))
