@@ -36,7 +36,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="the stage's displacement models (default: all four)")
     parser.add_argument("--no-baseline", action="store_true", help="skip the photometric baseline")
     parser.add_argument("--workers", type=int, default=2, help="processes (default 2: the machine is shared)")
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "docs" / "reproduction")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "docs" / "reproduction",
+                        help="where the report goes (default docs/reproduction)")
     parser.add_argument("--fresh", action="store_true", help="forget the trials kept from an earlier run")
     args = parser.parse_args(argv)
 

@@ -517,7 +517,7 @@ def write(out: Path, say: Callable[[str], None] = print) -> Path:
     if hold:
         lines += ["## Hold after arrival (not in the paper)", "",
                   f"The position law reaches the target from 5 % of the field under the `unstable` preset (levels "
-                  f"changing, the lab's drift and vibration), then holds it for {hold['minutes']:g} simulated minutes: "
+                  f"changing, the lab's drift and vibration), then holds it for {hold['minutes']:g} simulated minute{'' if hold['minutes'] == 1 else 's'}: "
                   "the true error of every fresh frame while holding, and the corrections made.", ""]
         lines += hold_lines(hold) + [""]
     table3 = results["table3"]
