@@ -41,7 +41,7 @@ class DisplacementModel(Protocol):
 
 #: The stroke (um) the branches are taken as monotonic over, and searched for the loop's ends.
 STROKE_SEARCH_UM = (-10.0, 120.0)
-#: A minor branch weighs congruency by 1 - (1 - f)^n of the way f to the loop's far end
+#: A minor branch weighs the scaled branch by 1 - (1 - f)^n of the way f to the loop's far end
 #: (:meth:`BranchModel._minor`): n = 1 still met the other branch, n = 4 bent too soon.
 MINOR_LOOP_BLEND_POWER = 3
 
@@ -50,7 +50,7 @@ MINOR_LOOP_BLEND_POWER = 3
 class BranchModel:
     """Hysteresis branches V = p(d) for increasing and decreasing displacement (the major
     loop, as calibrated), with a minor loop after a reversal that starts by Masing's rule
-    and ends congruent.
+    and ends on the major branch scaled onto the rest of the loop.
 
     A reversal does not jump to the other branch: the branches are up to 15 % of the
     stroke apart, so a jump would turn a 0.1 um correction into a 10 V step, and a
@@ -64,13 +64,13 @@ class BranchModel:
       start s, shifted to start at the reversal, ``v_r + p(s + d - d_r) - p(s)`` (the
       return of a Prandtl-Ishlinskii piezo while few of its play operators have
       switched, which depends on how far it has come back, not on how far it has to go);
-    - towards the far end, congruency: the whole major branch mapped affinely onto the
+    - towards the far end, scaling: the whole major branch mapped affinely onto the
       span from the reversal to (e, p(e)), heading for the last turning point not yet
       wiped out (Madelung's rule; with one reversal kept that is the loop's end).
 
-    The minor branch is ``shifted + w(f) (congruent - shifted)`` with w(f) = 1 - (1 - f)^n,
+    The minor branch is ``shifted + w(f) (scaled - shifted)`` with w(f) = 1 - (1 - f)^n,
     n = ``MINOR_LOOP_BLEND_POWER``: Masing's slope at the reversal (w(0) = 0), the far end
-    reached (w(1) = 1), congruency weighed in early (w = 0.5 a fifth of the way). On y, and
+    reached (w(1) = 1), the scaled branch weighed in early (w = 0.5 a fifth of the way). On y, and
     on every rising return, it closes at the far end; on x after reversals high in the
     stroke it still meets the falling major branch first, later and more gently than
     the shifted branch (reversals at 60, 80, 90 um: 47, 33, 35 um into the return, its
@@ -78,13 +78,13 @@ class BranchModel:
     curve alone was worse in the closed loop. The shifted branch alone met the other
     major branch 19-24 um into the return (the lab's two fitted branches are not each
     other's mirror image), where its volts per micrometre fell by 37 % and the law's
-    learned gain was ~30 % off. The congruent branch alone compresses the curvature near
+    learned gain was ~30 % off. The scaled branch alone compresses the curvature near
     the reversal by the span's ratio (8 % fewer volts than Masing's 10 um back from a
     reversal at 60 um): a second move after a reversal did other than the first had (in
     one trial it left 12 % of its move, against 5 %), and starts 15 % of the field away
     took a fifth fresh frame (``semservo reproduce --only time_to_target``: a median of 5
     frames in six presets, 4 with the blend). A linear weight, w = f, still met the
-    crossing on the x axis; one nearer congruency, 1 - (1 - f)^4, took the fifth frame.
+    crossing on the x axis; one nearer the scaled branch, 1 - (1 - f)^4, took the fifth frame.
 
     Should the branch meet the major branch before the end (a reversal outside the
     loop), that branch is taken and the reversal forgotten. Only the last reversal is
@@ -134,8 +134,8 @@ class BranchModel:
         class docstring), with f = (d - d_r) / (e - d_r) the fraction of the way to the
         loop's far end e and s the major branch's start:
         shifted(d) = v_r + p(s + d - d_r) - p(s) (Masing),
-        congruent(d) = v_r + (p(s + f (e - s)) - p(s)) (p(e) - v_r) / (p(e) - p(s)),
-        V(d) = shifted(d) + (1 - (1 - f)^n) (congruent(d) - shifted(d)), n = ``MINOR_LOOP_BLEND_POWER``.
+        scaled(d) = v_r + (p(s + f (e - s)) - p(s)) (p(e) - v_r) / (p(e) - p(s)),
+        V(d) = shifted(d) + (1 - (1 - f)^n) (scaled(d) - shifted(d)), n = ``MINOR_LOOP_BLEND_POWER``.
         None past the far end, or when the reversal lies beyond it (outside the loop)."""
         start_v, start_um, _ = self.reversal
         begin, end = (self.bottom_um, self.top_um) if direction > 0 else (self.top_um, self.bottom_um)
@@ -148,8 +148,8 @@ class BranchModel:
         major_begin, major_end = self._major(direction, begin), self._major(direction, end)
         shifted = start_v + self._major(direction, begin + target_um - start_um) - major_begin
         shaped = self._major(direction, begin + fraction * (end - begin)) - major_begin
-        congruent = start_v + shaped * (major_end - start_v) / (major_end - major_begin)
-        return shifted + (1.0 - (1.0 - fraction) ** MINOR_LOOP_BLEND_POWER) * (congruent - shifted)
+        scaled = start_v + shaped * (major_end - start_v) / (major_end - major_begin)
+        return shifted + (1.0 - (1.0 - fraction) ** MINOR_LOOP_BLEND_POWER) * (scaled - shifted)
 
     def voltage_for(self, target_um: float) -> float:
         if self.voltage is None:

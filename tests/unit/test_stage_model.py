@@ -1,5 +1,5 @@
 """Displacement -> voltage models: the lab's branches with a minor loop after reversals (Masing's rule
-blended into congruency), linear, files."""
+blended into the major branch scaled onto the loop), linear, files."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def test_tritor_model_uses_the_branch_of_the_direction_of_motion():
     assert voltage_for("x", "decreasing", 59.9) < down < top
     assert model.voltage_for(59.9) == pytest.approx(down)  # no motion keeps the branch
     # Near the reversal, Masing's rule: the falling major branch from its start, shifted
-    # here, within 5 % over the first 10 um back (the congruent branch alone asked 8 %
+    # here, within 5 % over the first 10 um back (the scaled branch alone asked 8 %
     # less at 10 um: a second move after a reversal then did other than the first, and
     # starts 15 % of the field away took a fresh frame more).
     for back in (0.1, 3.0, 10.0):
