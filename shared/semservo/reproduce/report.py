@@ -26,16 +26,22 @@ def _paper_cell(entry) -> str:
     return "× (0/6)" if ms is None else f"{ms} ({successes}/6)"
 
 
+def table4_cell(result: dict, case: str, method: str) -> tuple[float, int]:
+    """One cell of Table IV: the method's mean computation per iteration (ms) in the case,
+    and how many of its trials reached the target."""
+    trials = result["rows"][case][method]
+    return (float(np.mean([t["compute_ms"] for t in trials if t["compute_ms"] is not None])),
+            sum(_at_target(t, result) for t in trials))
+
+
 def table4_lines(result: dict) -> list[str]:
     lines = ["| case | " + " | ".join(methods.LABELS[m] for m in methods.METHODS)
              + " | paper: ours, flow, SURF, FAST |", "| --- |" + " --- |" * (len(methods.METHODS) + 1)]
     for case in result["cases"]:
         cells = []
         for method in methods.METHODS:
-            trials = result["rows"][case][method]
-            ok = sum(_at_target(t, result) for t in trials)
-            ms = np.mean([t["compute_ms"] for t in trials if t["compute_ms"] is not None])
-            cells.append(f"{ms:.1f} ms ({ok}/{len(trials)})")
+            ms, ok = table4_cell(result, case, method)
+            cells.append(f"{ms:.1f} ms ({ok}/{len(result['rows'][case][method])})")
         paper = ", ".join(_paper_cell(entry) for entry in PAPER_TABLE4[case])
         lines.append(f"| {CASE_NUMBERS[case]} {case} | " + " | ".join(cells) + f" | {paper} |")
     return lines
@@ -46,11 +52,11 @@ def table4_summary(result: dict) -> str:
     written once went stale when the table was re-run)."""
     cases = result["cases"]
 
-    def successes(method: str, case: str) -> int:
-        return sum(_at_target(trial, result) for trial in result["rows"][case][method])
-
     def compute_ms(method: str, case: str) -> float:
-        return float(np.mean([t["compute_ms"] for t in result["rows"][case][method] if t["compute_ms"] is not None]))
+        return table4_cell(result, case, method)[0]
+
+    def successes(method: str, case: str) -> int:
+        return table4_cell(result, case, method)[1]
 
     def case_list(chosen: list[str]) -> str:
         numbers = [str(CASE_NUMBERS[case]) for case in chosen]
