@@ -18,8 +18,8 @@ from semservo.estimation import MotionEstimator
 from semservo.estimation.common import MIN_SIZE
 from semservo.estimation.raster import (BAND_ROWS, PARTIAL_FRAME_FROM, SCAN_AVERAGED_FROM_S, rows_scanned_after,
                                        scan_lasted_s)
-from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, check_sweep, content_shifts, depth_map,
-                                      egi_tilt_between, plan_sweep, pool_depths, pooled_tilt, rows_seen_square_on,
+from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, KernelDepths, TiltEstimate, check_sweep, content_shifts,
+                                      egi_tilt_between, kernel_depths, plan_sweep, pool_depths, pooled_tilt, rows_seen_square_on,
                                       undo_foreshortening, undoes_foreshortening, wants_another_sweep)
 from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
@@ -159,7 +159,7 @@ class TeachPool:
     depths and sweep step, and the tilts of them all pooled."""
 
     reference_id: str
-    depth_maps: list[np.ndarray] = field(default_factory=list)
+    depth_maps: list[KernelDepths] = field(default_factory=list)
     steps: list[float] = field(default_factory=list)
     #: How far each sweep's content moved while it scanned (px; None: not steadied).
     content_moved_px: list[float | None] = field(default_factory=list)
@@ -261,9 +261,9 @@ class EstimatorCore:
                           max_tilt_deg=settings.max_tilt_deg).tolist()
 
     def sweep_depths(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None,
-                     frame_times_ns: list[int] | None = None) -> np.ndarray:
-        """A sweep's kernel depths (:func:`semservo.estimation.tilt.depth_map`; NaN where
-        no clear peak); TeachError for input that is not a sweep. With ``frame_times_ns``
+                     frame_times_ns: list[int] | None = None) -> KernelDepths:
+        """A sweep's kernel depths and their uncertainties
+        (:func:`semservo.estimation.tilt.kernel_depths`; NaN where no clear peak); TeachError for input that is not a sweep. With ``frame_times_ns``
         (the middle of each frame's scan, as the image server tells it), the frames are
         first moved back by how far their content moved meanwhile, read off the live
         frames (:meth:`sweep_content_shifts`); ``last_sweep_moved_px`` says how far, or
@@ -280,7 +280,7 @@ class EstimatorCore:
             shifts = None  # not the same view: read as scanned, its kernels' content changed anyway
         self.counters["sweeps_steadied" if shifts is not None else "sweeps_not_steadied"] += 1
         self.last_sweep_moved_px = float(np.hypot(*np.ptp(shifts, axis=0))) if shifts is not None else None
-        return depth_map(sweep, working_distances, kernel, pixel_size_nm / 1000, shifts)
+        return kernel_depths(sweep, working_distances, kernel, pixel_size_nm / 1000, shifts)
 
     def sweep_content_shifts(self, frame_times_ns: list[int]) -> np.ndarray | None:
         """How far each frame of a sweep had its content moved from the sweep's middle
@@ -293,7 +293,7 @@ class EstimatorCore:
             return None
         return content_shifts(np.asarray(frame_times_ns, dtype=np.float64), track[:, 0], track[:, 1], track[:, 2])
 
-    def sweep_again(self, depth_maps: list[np.ndarray], working_distances: list[float],
+    def sweep_again(self, depth_maps: list[KernelDepths], working_distances: list[float],
                     pixel_size_nm: float | None) -> bool:
         """During a run, whether the tracker should sweep the same view again and pool it
         with these sweeps' depths before it reports the tilts: when they cannot pin them
@@ -316,7 +316,7 @@ class EstimatorCore:
                    abs(estimate.beta_deg - reference.estimate.beta_deg))
         return near <= self.tilt_settings.pool_near_deg
 
-    def pooled_estimate(self, depth_maps: list[np.ndarray], working_distances: list[float],
+    def pooled_estimate(self, depth_maps: list[KernelDepths], working_distances: list[float],
                         pixel_size_nm: float | None) -> TiltEstimate:
         """The tilts of the pooled depths of sweeps of one view on these working distances."""
         if pixel_size_nm is None:
@@ -356,7 +356,7 @@ class EstimatorCore:
         if estimate.confidence <= 0:
             swept = "focus sweep" if estimate.sweeps == 1 else f"{estimate.sweeps} focus sweeps"
             raise NoTiltReference(f"the reference's {swept} cannot tell the tilts: {estimate.reason}")
-        self.tilt_reference = TiltReference(self.reference.id, pool_depths(pool.depth_maps), estimate,
+        self.tilt_reference = TiltReference(self.reference.id, pool_depths(pool.depth_maps).depths, estimate,
                                             pixel_size_nm / 1000, len(sweep),
                                             tuple(float(value) for value in working_distances))
         self.last_tilt = None
@@ -370,7 +370,7 @@ class EstimatorCore:
 
     def tilt_from_sweep(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None, *,
                         scan_started_at_ns: int | None = None, source_interval_s=None, took_s: float | None = None,
-                        earlier: list[np.ndarray] | None = None, sweep_depth_map: np.ndarray | None = None,
+                        earlier: list[KernelDepths] | None = None, sweep_depth_map: KernelDepths | None = None,
                         frame_times_ns: list[int] | None = None) -> dict:
         """The tilts of a sweep against the taught one's: alpha and beta (degrees, the
         convention of :mod:`semservo.estimation.tilt`) with a confidence (0: not measured, the
@@ -387,7 +387,7 @@ class EstimatorCore:
         this = sweep_depth_map if sweep_depth_map is not None else self.sweep_depths(sweep, working_distances,
                                                                                      pixel_size_nm, frame_times_ns)
         maps = [*(earlier or []), this]
-        estimate, depths = self.pooled_estimate(maps, working_distances, pixel_size_nm), pool_depths(maps)
+        estimate, depths = self.pooled_estimate(maps, working_distances, pixel_size_nm), pool_depths(maps).depths
         if self.tilt_settings.method == "egi":
             alpha, beta, peak = egi_tilt_between(reference.depths, depths, self.tilt_settings.kernel_px,
                                                  reference.pixel_size_um)

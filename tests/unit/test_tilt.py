@@ -349,18 +349,31 @@ def noisy_depth_maps(count: int, noise_um: float, seed: int = 11, alpha_deg: flo
     return [truth + rng.normal(0.0, noise_um, truth.shape) for _ in range(count)]
 
 
+def test_pooled_depths_weigh_each_sweep_by_its_uncertainty():
+    """Inverse-variance weighting: a depth twice as uncertain weighs a quarter as much,
+    and the pooled uncertainty is 1 / sqrt(sum of the weights)."""
+    from semservo.estimation.tilt import KernelDepths, pool_depths
+
+    precise = KernelDepths(np.array([[1.0, 4.0]]), np.array([[0.1, 0.2]]))
+    loose = KernelDepths(np.array([[2.0, np.nan]]), np.array([[0.2, np.nan]]))
+    pooled = pool_depths([precise, loose])
+    assert pooled.depths[0, 0] == pytest.approx((1.0 / 0.01 + 2.0 / 0.04) / (1 / 0.01 + 1 / 0.04))
+    assert pooled.uncertainties[0, 0] == pytest.approx(1 / np.sqrt(1 / 0.01 + 1 / 0.04))
+    assert pooled.depths[0, 1] == 4.0 and pooled.uncertainties[0, 1] == pytest.approx(0.2)
+
+
 def test_pooled_depths_are_each_kernels_mean_where_half_the_sweeps_see_it():
     from semservo.estimation.tilt import pool_depths
 
     first = np.array([[1.0, np.nan], [3.0, np.nan]])
     second = np.array([[3.0, 2.0], [np.nan, np.nan]])
     third = np.array([[2.0, np.nan], [np.nan, 5.0]])
-    pooled = pool_depths([first, second])
+    pooled = pool_depths([first, second]).depths
     assert pooled[0, 0] == 2.0 and pooled[0, 1] == 2.0 and pooled[1, 0] == 3.0 and np.isnan(pooled[1, 1])
     # Of three sweeps, a kernel seen in one only is left out (a marginal peak).
-    pooled = pool_depths([first, second, third])
+    pooled = pool_depths([first, second, third]).depths
     assert pooled[0, 0] == 2.0 and np.isnan(pooled[0, 1]) and np.isnan(pooled[1, 0]) and np.isnan(pooled[1, 1])
-    np.testing.assert_array_equal(pool_depths([first]), first)
+    np.testing.assert_array_equal(pool_depths([first]).depths, first)
     with pytest.raises(ValueError, match="same shape"):
         pool_depths([first, np.zeros((3, 3))])
     with pytest.raises(ValueError, match="one or more"):
@@ -529,8 +542,9 @@ def test_tilts_of_a_patch_of_particles_are_not_read_small():
         at_centres = np.subtract(tilts(depth_map(sweep, working_distances, kernel, pixel_um)), pose[:2])
         assert np.abs(at_texture).max() > 0.25  # the old reading: squeezed
         assert np.abs(at_centres).max() < 0.15
+        # The estimate (each kernel weighed by its uncertainty) holds as well.
         estimate = estimate_tilt(sweep, working_distances, pixel_um, kernel=kernel)
-        assert estimate.alpha_deg - pose[0] == pytest.approx(at_centres[0], abs=1e-9)
+        assert np.abs(np.subtract((estimate.alpha_deg, estimate.beta_deg), pose[:2])).max() < 0.15
 
 
 def test_a_focus_curves_scatter_is_its_noise_not_its_peak():
@@ -597,3 +611,62 @@ def test_the_tilts_standard_errors_hold_where_kernels_differ_in_noise():
     estimate = tilt_from_depths(depths, KERNEL, PIXEL_UM, step)
     assert estimate.alpha_uncertainty_deg == pytest.approx(np.degrees(jackknifed[-1]), rel=0.1)
     assert (jackknife_slopes_covariance(np.full((8, 8), np.nan), KERNEL, PIXEL_UM) == np.inf).all()
+
+
+# --------------------------------------------------------------------------------------
+# Each kernel weighed by how well its focus curve pins its depth
+
+
+def test_a_faint_kernels_depth_is_given_a_larger_uncertainty():
+    """Half the field of full contrast, half of a tenth of it, the same noise: the faint
+    kernels' depths scatter more over noise draws, and their uncertainties (from the
+    focus curve's noise alone) say so, in rank and roughly in size."""
+    from semservo.estimation.tilt import (DEPTH_UNCERTAINTY_FLOOR_STEPS, clear_focus_peaks, focus_peak_uncertainties,
+                                          noise_free_focus_curves)
+
+    scene = texture()
+    scene[:, SIZE // 2:] = 100 + (scene[:, SIZE // 2:] - 100) / 10
+    depths, uncertainties = [], []
+    for seed in range(8):
+        curves = noise_free_focus_curves(sweep_of_plane(0.0, 0.0, scene=scene, seed=seed), KERNEL)
+        depths.append(clear_focus_peaks(curves, WORKING_DISTANCES_UM))
+        uncertainties.append(focus_peak_uncertainties(curves, WORKING_DISTANCES_UM))
+    depths, uncertainties = np.stack(depths), np.stack(uncertainties)
+    half = SIZE // KERNEL // 2
+    bright_scatter, faint_scatter = (np.nanstd(depths[:, :, :half]), np.nanstd(depths[:, :, half:]))
+    bright_error, faint_error = np.median(uncertainties[:, :, :half]), np.median(uncertainties[:, :, half:])
+    assert faint_scatter > 3 * bright_scatter
+    assert faint_error > 3 * bright_error
+    # Where the noise decides (the faint half) the error is its scatter's size; the
+    # bright half's depths scatter under the floor (a fiftieth of a step), and read so.
+    assert faint_error == pytest.approx(faint_scatter, rel=0.5)
+    step = WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0]
+    assert bright_error == pytest.approx(DEPTH_UNCERTAINTY_FLOOR_STEPS * step) and bright_scatter < bright_error
+    assert np.all(uncertainties > 0) and np.all(np.isfinite(uncertainties))
+
+
+def test_the_plane_weighs_kernels_by_their_uncertainty():
+    """Kernels of one half ten times noisier than the other's: weighed by their
+    uncertainties the slopes scatter less over draws than weighed alike; with an
+    uncertainty that does not match the scatter (all alike in truth), the excess found by
+    with_excess_scatter evens the weights out again and the standard errors are the
+    scatter's."""
+    from semservo.estimation.tilt import robust_plane, with_excess_scatter
+
+    truth = plane_depths(2.0, -1.0)
+    noise_um = np.where(np.indices(truth.shape)[1] < truth.shape[1] // 2, 0.02, 0.2)
+    rng = np.random.default_rng(3)
+    alike, weighed, calibrated = [], [], []
+    for _ in range(40):
+        depths = truth + rng.normal(0.0, 1.0, truth.shape) * noise_um
+        alike.append(robust_plane(depths, KERNEL, PIXEL_UM).coefficients[1:])
+        effective = with_excess_scatter(depths, noise_um, KERNEL, PIXEL_UM)
+        weighed.append(robust_plane(depths, KERNEL, PIXEL_UM, uncertainties=effective).coefficients[1:])
+        calibrated.append(np.median(effective / noise_um))
+    assert np.all(np.std(weighed, axis=0) < 0.6 * np.std(alike, axis=0))
+    assert np.median(calibrated) == pytest.approx(1.0, rel=0.3)  # the uncertainties were right: kept
+    # Uncertainties that say nothing (all depths equally noisy, the claims 10 x apart):
+    depths = truth + rng.normal(0.0, 0.05, truth.shape)
+    effective = with_excess_scatter(depths, noise_um, KERNEL, PIXEL_UM)
+    assert effective.max() / effective.min() < 1.5  # evened out, not 10 x apart
+    assert np.median(effective) == pytest.approx(0.05, rel=0.3)  # and in depth, the scatter's size

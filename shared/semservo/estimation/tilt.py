@@ -79,6 +79,10 @@ SYMMETRY_HALF_WINDOW = 3
 #: Candidate centres per sweep step, within a step of the highest sample (then refined
 #: by a parabola through the mismatch).
 SYMMETRY_CANDIDATES_PER_STEP = 20
+#: No kernel's depth is trusted to better than this fraction of a sweep step, whatever
+#: its focus curve's noise (:func:`focus_peak_uncertainties`): what the noise leaves out
+#: (the sampling bias, the content under the kernel) is not weighed away.
+DEPTH_UNCERTAINTY_FLOOR_STEPS = 0.02
 #: The most focus sweeps a teach takes of the taught pose (:func:`pooled_tilt`,
 #: :func:`wants_another_sweep`): each is 15-25 frames, and pooling n of them narrows the
 #: tilts' uncertainty by about 1 / sqrt(n) only while the kernels' depth noise dominates.
@@ -315,10 +319,82 @@ def focus_curve_scatter(signal: np.ndarray) -> np.ndarray:
     return 1.4826 * np.median(np.abs(second - np.median(second, axis=0)), axis=0) / np.sqrt(6.0)
 
 
+def focus_peak_uncertainties(curves: FocusCurves, working_distances: np.ndarray) -> np.ndarray:
+    """Each kernel's depth's standard error (the sweep's unit, kernel rows x cols), as its
+    focus curve's noise carries into its centre of symmetry (:func:`symmetry_centres`),
+    never under ``DEPTH_UNCERTAINTY_FLOOR_STEPS`` of a step.
+
+    The centre is read off the curve's width, 1 / sqrt(measure), on the samples within
+    ``SYMMETRY_HALF_WINDOW`` of its peak, all weighed alike; moving the centre by d
+    changes each mirrored pair's mismatch by the width's growth per step, g, times 2 d,
+    so with m samples whose widths scatter by s_w (their RMS) the centre scatters by
+    s_w / (g sqrt(m)) steps (g the least-squares slope of the width on the distance from
+    the highest sample). The measure's scatter at each sample is that of the scene's
+    variance from ``pixels`` noisy pixels, (2 N^2 + 4 S N) / pixels for a scene's share S
+    and the noise's N (both over the mean), and carries into the width as s / (2 S^1.5).
+
+    Why: the kernels that see focus differ in how well they pin it by a factor of ten
+    (on sparse particles, a bright cluster against a faint one at its edge; on
+    drift_pair_before under a Gaussian probe, 44 kernels, 10 sweeps: 0.015-0.16 um). The
+    plane weighs each by the inverse square (:func:`robust_plane`), and pooled sweeps
+    add them so (:func:`pool_depths`). On 8 sweeps of the flat view, the logs of this
+    error and of each kernel's scatter over the sweeps correlate by 0.80-0.88
+    (drift_pair_before under both probes, the aperture, the grid under the disc) and
+    it reads 1.0-1.6 times the scatter (median); with the curve's measured scatter
+    (:func:`focus_curve_scatter`, which the clear-peak test adds) in s it read 1.4-2.4
+    times, and 17 times on a clean synthetic texture, where the measured scatter is the
+    peak's bend. Only the ratios weigh the plane: :func:`with_excess_scatter` scales
+    them to the plane's residuals, and the tilts' standard errors stay the jackknife's."""
+    signal = curves.signal
+    frames = signal.shape[0]
+    working_distances = np.asarray(working_distances, dtype=np.float64)
+    step = (working_distances[-1] - working_distances[0]) / (frames - 1)
+    floor = DEPTH_UNCERTAINTY_FLOOR_STEPS * step
+    half = min(SYMMETRY_HALF_WINDOW, (frames - 1) // 2)
+    if half < 1:
+        return np.full(signal.shape[1:], floor)
+    best = np.clip(np.argmax(signal, axis=0), half, frames - 1 - half)
+    highest = np.take_along_axis(signal, best[np.newaxis], axis=0)[0]
+    # As clear_focus_peaks reads the curve: a measure at or under 0 (noise only) is a
+    # millionth of the peak, a width a thousand times the peak's.
+    measure = np.maximum(signal, 1e-6 * np.maximum(highest, 1e-300))
+
+    def at(lag: int) -> np.ndarray:
+        return np.take_along_axis(measure, (best + lag)[np.newaxis], axis=0)[0]
+
+    noise = curves.noise[0]
+    lags = [lag for lag in range(-half, half + 1) if lag != 0]
+    distance = np.abs(np.arange(-half, half + 1, dtype=np.float64))
+    distance -= distance.mean()
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        # The width's growth per step: the least-squares slope of the width on the
+        # distance from the highest sample, over the whole window (two samples alone
+        # would make the weights as noisy as the depths).
+        widths = np.stack([at(lag) ** -0.5 for lag in range(-half, half + 1)])
+        growth = np.tensordot(distance, widths, axes=1) / np.square(distance).sum()
+        width_errors = [0.5 * at(lag) ** -1.5 * np.sqrt((2 * noise**2 + 4 * at(lag) * noise) / curves.pixels)
+                        for lag in lags]
+        width_error = np.sqrt(np.mean(np.square(width_errors), axis=0))
+        uncertainty = step * width_error / (growth * np.sqrt(len(lags)))
+    # A curve that does not grow away from its peak, or whose noise overflows, pins
+    # nothing: the sweep's whole span.
+    sane = np.isfinite(uncertainty) & (growth > 0)
+    return np.where(sane, np.clip(uncertainty, floor, step * (frames - 1)), step * (frames - 1))
+
+
+class KernelDepths(NamedTuple):
+    """A sweep's kernel depths (the sweep's unit; NaN where a kernel has no clear focus
+    peak) and each one's standard error (:func:`focus_peak_uncertainties`), kernel rows
+    x cols: what :func:`kernel_depths` reads and :func:`pool_depths` pools."""
+
+    depths: np.ndarray
+    uncertainties: np.ndarray
+
+
 class PlaneFit(NamedTuple):
     """A robust plane through the kernel depths (:func:`robust_plane`): depth = c + gx x +
     gy y, the kernels' final weights (0: left out), the residuals' robust standard
-    deviation, and the coefficients' covariance."""
+    deviation (in depth, over the kernels kept), and the coefficients' covariance."""
 
     coefficients: np.ndarray
     weights: np.ndarray
@@ -326,14 +402,19 @@ class PlaneFit(NamedTuple):
     covariance: np.ndarray
 
 
-def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations: int = 30) -> PlaneFit:
+def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations: int = 30,
+                 uncertainties: np.ndarray | None = None) -> PlaneFit:
     """The plane depth = c + gx x + gy y (x, y the kernel centres relative to the image
     centre, in the sweep's unit) through the kernels with a depth, by iteratively
     reweighted least squares with Tukey's biweight (``BIWEIGHT`` robust standard
     deviations, the scale the median absolute residual), started from
     :func:`fit_plane`: kernels whose depth is wrong by microns (a peak of noise, an
     edge that entered the kernel) get no weight, those a little off a little less. The
-    covariance is the residual scale squared times (X^T W X)^-1."""
+    covariance is the residual scale squared times (X^T W X)^-1.
+
+    ``uncertainties`` (each depth's standard error, :func:`focus_peak_uncertainties`;
+    only their ratios matter): each kernel weighs 1 / uncertainty^2 besides its biweight,
+    which then reads its residual in its own standard errors. None: all alike."""
     kernel_rows, kernel_cols = depths.shape
     centre_y, centre_x = kernel_rows * kernel / 2, kernel_cols * kernel / 2
     y = ((np.arange(kernel_rows) + 0.5) * kernel - centre_y) * pixel_size
@@ -342,16 +423,22 @@ def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations:
     finite = np.isfinite(depths)
     design = np.column_stack([np.ones(finite.sum()), grid_x[finite], grid_y[finite]])
     values = depths[finite]
+    errors = np.ones(values.size) if uncertainties is None else np.asarray(uncertainties, dtype=np.float64)[finite]
+    prior = 1.0 / np.square(errors)
     coefficients, _, _ = fit_plane(depths, kernel, pixel_size)
-    weights = np.ones(values.size)
+    weights = prior.copy()
     scale = 0.0
     for _ in range(iterations):
-        residuals = values - design @ coefficients
-        scale = 1.4826 * float(np.median(np.abs(residuals[weights > 0]))) if (weights > 0).any() else 0.0
+        residuals = (values - design @ coefficients) / errors
+        # The scale from every kernel's residual, not only those still weighed: with
+        # uneven weights a few precise kernels fit closely, and a scale of those alone
+        # shrinks round by round until it leaves out good kernels (a corner of 9 kernels
+        # kept 5). The median holds against the wrong ones as long as they are a minority.
+        scale = 1.4826 * float(np.median(np.abs(residuals)))
         if scale <= 0:
             break
         u = residuals / (BIWEIGHT * scale)
-        weights = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        weights = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) * prior
         if (weights > 0).sum() < 3:
             break
         weighted = design * weights[:, None]
@@ -368,10 +455,60 @@ def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations:
         covariance = scale**2 * np.linalg.pinv(normal)
     else:
         covariance = np.full((3, 3), np.inf)
+    if uncertainties is not None and used.any():
+        # The scale above is in each kernel's standard errors; the plane's is in depth.
+        scale = 1.4826 * float(np.median(np.abs(values - design @ coefficients)[used]))
     return PlaneFit(coefficients, all_weights, scale, covariance)
 
 
-def jackknife_slopes_covariance(depths: np.ndarray, kernel: int, pixel_size: float) -> np.ndarray:
+def with_excess_scatter(depths: np.ndarray, uncertainties: np.ndarray, kernel: int, pixel_size: float,
+                        rounds: int = 2) -> np.ndarray:
+    """Each kernel's uncertainty with the scatter about the plane that its focus curve's
+    noise does not explain added in quadrature, and the whole scaled to that scatter:
+    sqrt(a (uncertainty^2 + excess^2)), one excess and one scale a for all kernels, by
+    maximum likelihood (the kernels' residuals about the robust plane, those it keeps, as
+    normal with that variance; a profiled out, the excess searched over 0 and 0.05-50
+    times the median uncertainty on a log grid), the plane refitted with them ``rounds``
+    times, starting from every kernel alike. The result is in depth, the standard errors
+    the residuals bear out: sweeps pooled (:func:`pool_depths`) weigh each other by them.
+
+    Why: the focus curve's noise is not every error in a kernel's depth. A rough surface,
+    content that enters a kernel, the sampling between steps scatter the depths alike
+    whatever the noise; weighed by the noise alone, the few quiet kernels would decide the
+    plane and its standard errors would grow (a plane +-0.3 um rough: 0.11 degree against
+    0.08 unweighed). Where the noise explains the scatter (sparse particles, a faint
+    texture) the excess is 0 and the weights stand."""
+    uncertainties = np.asarray(uncertainties, dtype=np.float64)
+    finite = np.isfinite(depths) & np.isfinite(uncertainties)
+    if finite.sum() < MIN_KERNELS:
+        return uncertainties
+    typical = float(np.median(uncertainties[finite]))
+    candidates = np.concatenate([[0.0], typical * np.logspace(np.log10(0.05), np.log10(50.0), 31)])
+    effective = np.where(finite, 1.0, np.nan)  # first round: all alike (the unweighed plane)
+    kernel_rows, kernel_cols = depths.shape
+    y = ((np.arange(kernel_rows) + 0.5) * kernel - kernel_rows * kernel / 2) * pixel_size
+    x = ((np.arange(kernel_cols) + 0.5) * kernel - kernel_cols * kernel / 2) * pixel_size
+    grid_y, grid_x = np.meshgrid(y, x, indexing="ij")
+    for _ in range(rounds):
+        plane = robust_plane(depths, kernel, pixel_size, uncertainties=effective)
+        kept = finite & (plane.weights > 0)
+        if kept.sum() < MIN_KERNELS:
+            break
+        centre, slope_x, slope_y = plane.coefficients
+        squared = (depths - (centre + slope_x * grid_x + slope_y * grid_y))[kept] ** 2
+        variances = uncertainties[kept][None, :] ** 2 + candidates[:, None] ** 2
+        level = np.mean(squared[None, :] / variances, axis=1)
+        with np.errstate(divide="ignore"):
+            likelihood = -np.sum(np.log(level[:, None] * variances), axis=1)
+        best = int(np.argmax(np.where(np.isfinite(likelihood), likelihood, -np.inf)))
+        if not level[best] > 0:
+            break
+        effective = np.sqrt(level[best] * (uncertainties**2 + candidates[best] ** 2))
+    return effective
+
+
+def jackknife_slopes_covariance(depths: np.ndarray, kernel: int, pixel_size: float,
+                                uncertainties: np.ndarray | None = None) -> np.ndarray:
     """The covariance (2 x 2: x then y) of the robust plane's slopes (:func:`robust_plane`)
     by the jackknife over kernels: the plane fitted again without each kernel with a
     depth in turn, (n - 1) / n times the sum of the slopes' squared deviations from
@@ -387,7 +524,7 @@ def jackknife_slopes_covariance(depths: np.ndarray, kernel: int, pixel_size: flo
     from the residuals and 0.85-1.2 from the jackknife on the drift pair, and 0.8-1.7
     and 0.8-1.45 on the grid, the FIB-SEM slice, the aperture and the hole (the
     aperture under the disc the highest either way). Its cost: a refit per kernel,
-    about 0.1-0.2 s for 200 kernels."""
+    about 0.1-0.2 s for 200 kernels. ``uncertainties``: as :func:`robust_plane` weighs them."""
     finite = np.argwhere(np.isfinite(depths))
     count = len(finite)
     if count < MIN_KERNELS:
@@ -396,7 +533,7 @@ def jackknife_slopes_covariance(depths: np.ndarray, kernel: int, pixel_size: flo
     for index, (row, col) in enumerate(finite):
         without = depths.copy()
         without[row, col] = np.nan
-        slopes[index] = robust_plane(without, kernel, pixel_size).coefficients[1:]
+        slopes[index] = robust_plane(without, kernel, pixel_size, uncertainties=uncertainties).coefficients[1:]
     deviations = slopes - slopes.mean(axis=0)
     return (count - 1) / count * (deviations.T @ deviations)
 
@@ -467,8 +604,9 @@ def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32,
     """
     check_sweep(sweep, working_distances, pixel_size, kernel)
     working_distances = np.asarray(working_distances, dtype=np.float64)
-    depths = depth_map(sweep, working_distances, kernel, pixel_size, content_shifts_px)
-    return tilt_from_depths(depths, kernel, pixel_size, float(np.diff(working_distances).mean()))
+    depths = kernel_depths(sweep, working_distances, kernel, pixel_size, content_shifts_px)
+    return tilt_from_depths(depths.depths, kernel, pixel_size, float(np.diff(working_distances).mean()),
+                            depths.uncertainties)
 
 
 def texture_offsets(sweep: np.ndarray, curves: FocusCurves, kernel: int,
@@ -525,28 +663,31 @@ def texture_offsets(sweep: np.ndarray, curves: FocusCurves, kernel: int,
 
 
 def depths_at_kernel_centres(depths: np.ndarray, offsets: np.ndarray, kernel: int, pixel_size: float,
-                             iterations: int = 2) -> np.ndarray:
+                             iterations: int = 2, uncertainties: np.ndarray | None = None) -> np.ndarray:
     """The kernel depths (read where each kernel's texture lies, ``offsets`` from
     :func:`texture_offsets`) moved to the kernels' centres along the plane through them
     (:func:`robust_plane`, refitted on the moved depths ``iterations`` times): depth -
     (gx dx + gy dy). Unchanged where fewer than ``MIN_KERNELS`` have a depth (no plane to
     move them along). The plane's slopes are known far better than the move needs (a
-    degree off moves a depth by 1.7 % of an offset of at most half a kernel)."""
+    degree off moves a depth by 1.7 % of an offset of at most half a kernel).
+    ``uncertainties``: as :func:`robust_plane` weighs them."""
     depths = np.asarray(depths, dtype=np.float64)
     if np.isfinite(depths).sum() < MIN_KERNELS:
         return depths
     moved = depths
     for _ in range(iterations):
-        _, slope_x, slope_y = robust_plane(moved, kernel, pixel_size).coefficients
+        _, slope_x, slope_y = robust_plane(moved, kernel, pixel_size, uncertainties=uncertainties).coefficients
         if not np.isfinite([slope_x, slope_y]).all():
             return depths
         moved = depths - (slope_x * offsets[..., 1] + slope_y * offsets[..., 0]) * pixel_size
     return moved
 
 
-def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: float) -> TiltEstimate:
+def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: float,
+                     uncertainties: np.ndarray | None = None) -> TiltEstimate:
     """The two tilts from the kernel depths (NaN: no clear peak): a robust plane
-    (:func:`robust_plane`), or a refusal with the reason where the depths cannot pin it:
+    (:func:`robust_plane`, each kernel weighed by its ``uncertainties`` when given), or a
+    refusal with the reason where the depths cannot pin it:
 
     * too few kernels with a clear peak (``MIN_KERNELS``), or that the plane holds for;
     * either tilt's standard error above ``MAX_TILT_UNCERTAINTY_DEG``: the kernels that
@@ -562,7 +703,9 @@ def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: f
         return TiltEstimate(nan, nan, nan, clear, total, nan, 0.0,
                             f"only {clear} of {total} kernels have a clear focus peak (at least {MIN_KERNELS} "
                             "are needed): flat content, or focus outside the sweep")
-    plane = robust_plane(depths, kernel, pixel_size)
+    if uncertainties is not None:
+        uncertainties = with_excess_scatter(depths, uncertainties, kernel, pixel_size)
+    plane = robust_plane(depths, kernel, pixel_size, uncertainties=uncertainties)
     centre, slope_x, slope_y = plane.coefficients
     used = plane.weights > 0
     alpha = float(np.degrees(np.arctan(slope_y)))
@@ -572,7 +715,7 @@ def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: f
     rows, cols = np.nonzero(used)
     span_y = (np.ptp(rows) + 1) * kernel * pixel_size if rows.size else np.inf
     span_x = (np.ptp(cols) + 1) * kernel * pixel_size if cols.size else np.inf
-    slopes_spread = jackknife_slopes_covariance(depths, kernel, pixel_size)
+    slopes_spread = jackknife_slopes_covariance(depths, kernel, pixel_size, uncertainties)
     slope_y_error = np.hypot(np.sqrt(slopes_spread[1, 1]), SAMPLING_BIAS_STEPS * step / span_y)
     slope_x_error = np.hypot(np.sqrt(slopes_spread[0, 0]), SAMPLING_BIAS_STEPS * step / span_x)
     alpha_error = float(np.degrees(slope_y_error / (1 + slope_y**2)))
@@ -614,11 +757,13 @@ def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: f
 # The taught pose, swept more than once
 
 
-def pool_depths(depth_maps: Sequence[np.ndarray]) -> np.ndarray:
-    """The kernel depths of several focus sweeps of one view pooled (:func:`depth_map`'s
+def pool_depths(depth_maps: Sequence[KernelDepths | np.ndarray]) -> KernelDepths:
+    """The kernel depths of several focus sweeps of one view pooled (:func:`kernel_depths`'
     maps, NaN where a kernel has no clear peak): each kernel's mean over the sweeps where
-    it has a depth, NaN where it has one in fewer than half of them (a peak seen once in
-    four sweeps is a marginal one).
+    it has a depth, each sweep's weighed by the inverse square of its uncertainty, and
+    the pooled uncertainty 1 / sqrt(sum of those weights); NaN where it has a depth in
+    fewer than half of them (a peak seen once in four sweeps is a marginal one). A plain
+    array of depths weighs alike in every kernel (uncertainty 1).
 
     Why the depths and not the focus curves: the noise in a kernel's depth is the pixel
     noise of its sweep, independent from sweep to sweep, so the mean of n depths
@@ -627,22 +772,33 @@ def pool_depths(depth_maps: Sequence[np.ndarray]) -> np.ndarray:
     ``SAMPLING_BIAS_STEPS`` (sweeps on the same working distances share that bias);
     averaging the noise-free focus curves instead did as well on real textures
     (``bench/tilt_real.py``) but needs the same working distances in every sweep."""
-    maps = [np.asarray(depths, dtype=np.float64) for depths in depth_maps]
-    if not maps or maps[0].ndim != 2 or any(depths.shape != maps[0].shape for depths in maps):
+    maps = [depths if isinstance(depths, KernelDepths)
+            else KernelDepths(np.asarray(depths, dtype=np.float64), np.ones(np.shape(depths)))
+            for depths in depth_maps]
+    if (not maps or maps[0].depths.ndim != 2
+            or any(depths.depths.shape != maps[0].depths.shape or depths.uncertainties.shape != maps[0].depths.shape
+                   for depths in maps)):
         raise ValueError("pool_depths needs one or more depth maps (kernel rows x cols) of the same shape")
-    maps = np.stack(maps)
-    seen = np.isfinite(maps)
+    depths = np.stack([np.asarray(each.depths, dtype=np.float64) for each in maps])
+    uncertainties = np.stack([np.asarray(each.uncertainties, dtype=np.float64) for each in maps])
+    seen = np.isfinite(depths) & np.isfinite(uncertainties) & (uncertainties > 0)
     count = seen.sum(axis=0)
-    total = np.where(seen, maps, 0.0).sum(axis=0)
-    enough = count >= np.ceil(len(maps) / 2)
-    return np.where(enough & (count > 0), total / np.maximum(count, 1), np.nan)
+    weights = np.where(seen, 1.0 / np.where(seen, uncertainties, 1.0) ** 2, 0.0)
+    total = weights.sum(axis=0)
+    enough = (count >= np.ceil(len(maps) / 2)) & (count > 0)
+    safe_total = np.where(enough, total, 1.0)
+    mean = (weights * np.where(seen, depths, 0.0)).sum(axis=0) / safe_total
+    return KernelDepths(np.where(enough, mean, np.nan), np.where(enough, 1.0 / np.sqrt(safe_total), np.nan))
 
 
-def pooled_tilt(depth_maps: Sequence[np.ndarray], kernel: int, pixel_size: float, step: float) -> TiltEstimate:
+def pooled_tilt(depth_maps: Sequence[KernelDepths | np.ndarray], kernel: int, pixel_size: float,
+                step: float) -> TiltEstimate:
     """The tilts from the pooled depths of one or more sweeps of the same view
-    (:func:`pool_depths`, :func:`tilt_from_depths`), with ``sweeps`` set; a refusal's
-    reason says how many sweeps were pooled."""
-    estimate = replace(tilt_from_depths(pool_depths(depth_maps), kernel, pixel_size, step), sweeps=len(depth_maps))
+    (:func:`pool_depths`, :func:`tilt_from_depths` weighing each kernel by its pooled
+    uncertainty), with ``sweeps`` set; a refusal's reason says how many sweeps were pooled."""
+    pooled = pool_depths(depth_maps)
+    estimate = replace(tilt_from_depths(pooled.depths, kernel, pixel_size, step, pooled.uncertainties),
+                       sweeps=len(depth_maps))
     if estimate.reason and len(depth_maps) > 1:
         estimate = replace(estimate, reason=f"after {len(depth_maps)} sweeps pooled, {estimate.reason}")
     return estimate
@@ -694,11 +850,21 @@ EGI_GRID = 141
 
 def depth_map(sweep, working_distances, kernel: int = 32, pixel_size: float | None = None,
               content_shifts_px=None) -> np.ndarray:
-    """Each kernel's depth at its centre (NaN where it has no clear focus peak): eq. 13
-    without the noise's share and the peak fit (:func:`noise_free_focus_curves`,
-    :func:`clear_focus_peaks`), the first step of both methods; with ``pixel_size`` (the
-    sweep's unit per pixel), each depth is moved from where the kernel's texture lies to
-    the kernel's centre (:func:`texture_offsets`, :func:`depths_at_kernel_centres`).
+    """Each kernel's depth at its centre (NaN where it has no clear focus peak): the
+    depths of :func:`kernel_depths`, without their uncertainties."""
+    return kernel_depths(sweep, working_distances, kernel, pixel_size, content_shifts_px).depths
+
+
+def kernel_depths(sweep, working_distances, kernel: int = 32, pixel_size: float | None = None,
+                  content_shifts_px=None) -> KernelDepths:
+    """Each kernel's depth at its centre (NaN where it has no clear focus peak) and its
+    standard error: eq. 13 without the noise's share and the peak fit
+    (:func:`noise_free_focus_curves`, :func:`clear_focus_peaks`,
+    :func:`focus_peak_uncertainties`), the first step of both methods; with
+    ``pixel_size`` (the sweep's unit per pixel), each depth is moved from where the
+    kernel's texture lies to the kernel's centre (:func:`texture_offsets`,
+    :func:`depths_at_kernel_centres`) and the scatter about the plane that the noise does
+    not explain is added to the standard errors (:func:`with_excess_scatter`).
 
     ``content_shifts_px`` (frames x 2: how far each frame's content had moved, right and
     down, from the sweep's middle frame; :func:`content_shifts`): the frames are first
@@ -712,9 +878,14 @@ def depth_map(sweep, working_distances, kernel: int = 32, pixel_size: float | No
     depths = clear_focus_peaks(curves, working_distances)
     if content_shifts_px is not None:
         depths = np.where(mirrored_kernels(content_shifts_px, sweep.shape[1:], kernel), np.nan, depths)
-    if pixel_size is None:
-        return depths
-    return depths_at_kernel_centres(depths, texture_offsets(sweep, curves, kernel), kernel, pixel_size)
+    uncertainties = np.where(np.isfinite(depths), focus_peak_uncertainties(curves, working_distances), np.nan)
+    if pixel_size is not None:
+        depths = depths_at_kernel_centres(depths, texture_offsets(sweep, curves, kernel), kernel, pixel_size,
+                                          uncertainties=uncertainties)
+        # What the noise does not explain, added here: sweeps pooled then weigh alike
+        # what weighs alike (pool_depths).
+        uncertainties = with_excess_scatter(depths, uncertainties, kernel, pixel_size)
+    return KernelDepths(depths, uncertainties)
 
 
 # --------------------------------------------------------------------------------------

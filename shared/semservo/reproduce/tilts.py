@@ -35,6 +35,7 @@ import numpy as np
 from semservo.config import EstimatorSettings
 from semservo.estimation import MotionEstimator
 from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
+                                      kernel_depths,
                                       plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, wants_another_sweep)
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
@@ -127,11 +128,11 @@ def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
     step = float(working_distances[1] - working_distances[0])
     maps = []
     while True:
-        maps.append(depth_map(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel,
+        maps.append(kernel_depths(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel,
                               lab.pixel_um))
         estimate = pooled_tilt(maps, kernel, lab.pixel_um, step)
         if not wants_another_sweep(estimate, max_sweeps):
-            return estimate, pool_depths(maps)
+            return estimate, pool_depths(maps).depths
 
 
 def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print,
@@ -175,9 +176,9 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
             # As the estimator service does in a run: a sweep that cannot pin the tilts
             # is followed by more of the same plan, their depths pooled.
             step = float(first_sweep[1] - first_sweep[0])
-            maps = [depth_map(frames, first_sweep, 32, lab.pixel_um)]
+            maps = [kernel_depths(frames, first_sweep, 32, lab.pixel_um)]
             while True:
-                maps.append(depth_map(lab.sweep(pose, first_sweep), first_sweep, 32, lab.pixel_um))
+                maps.append(kernel_depths(lab.sweep(pose, first_sweep), first_sweep, 32, lab.pixel_um))
                 plane = pooled_tilt(maps, 32, lab.pixel_um, step)
                 if not wants_another_sweep(plane, sweeps_when_refused):
                     break
