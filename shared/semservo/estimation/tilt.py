@@ -403,7 +403,8 @@ def kernel_centres(shape: tuple[int, int], kernel: int, pixel_size: float) -> tu
 class PlaneFit(NamedTuple):
     """A robust plane through the kernel depths (:func:`robust_plane`): depth = c + gx x +
     gy y, the kernels' final weights (0: left out), the residuals' robust standard
-    deviation (in depth, over the kernels kept), and the coefficients' covariance."""
+    deviation in depth (the median over every kernel's residual; with uncertainties,
+    over the kernels kept), and the coefficients' covariance."""
 
     coefficients: np.ndarray
     weights: np.ndarray
@@ -703,6 +704,8 @@ def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: f
                             f"only {clear} of {total} kernels have a clear focus peak (at least {MIN_KERNELS} "
                             "are needed): flat content, or focus outside the sweep")
     if uncertainties is not None:
+        # Again, though kernel_depths scaled each sweep's: pooled sweeps share what the
+        # sampling and the content put in every sweep alike, which pooling does not narrow.
         uncertainties = with_excess_scatter(depths, uncertainties, kernel, pixel_size)
     plane = robust_plane(depths, kernel, pixel_size, uncertainties=uncertainties)
     centre, slope_x, slope_y = plane.coefficients
