@@ -103,9 +103,13 @@ def _wait_until_ns(when_ns: int) -> bool:
 class ControllerCore:
     def __init__(self, stage: Port, *, estimator: Port | None = None, camera: CameraToStage | None = None,
                  runs_dir: Path | None = None, watchdog_s: float = 3.0, name: str = "controller",
-                 clock: Callable[[], float] = time.monotonic, publish: Callable[[str, dict], None] | None = None):
+                 clock: Callable[[], float] = time.monotonic, publish: Callable[[str, dict], None] | None = None,
+                 estimator_at_start: Port | None = None):
         self.stage = stage
         self.estimator = estimator
+        #: The estimator as a run's start asks it what to measure: more patient than
+        #: ``estimator``, whose timeouts are the running loop's.
+        self.estimator_at_start = estimator_at_start or estimator
         self.camera = camera or CameraToStage()
         self.runs_dir = runs_dir
         self.watchdog_s = watchdog_s
@@ -144,7 +148,7 @@ class ControllerCore:
                                                 "this stage has none: leave it at 0")
         tilt_dofs = tuple(dof for dof in dofs if dof in ("alpha", "beta"))
         self._estimator_measures(rotation="rotation" in dofs, tilts=bool(tilt_dofs) or None,
-                                 required="rotation" in dofs or bool(tilt_dofs))
+                                 required="rotation" in dofs or bool(tilt_dofs), at_start=True)
         try:
             stage_state = self.stage.call(stage_protocol.ARM, hold_after_s=self.watchdog_s, owner=self.owner)
         except CommandError as refusal:
@@ -218,18 +222,23 @@ class ControllerCore:
             self._finish("stopped", reason)
         return self.status()
 
-    def _estimator_measures(self, rotation: bool | None, tilts: bool | None = None, required: bool = False) -> None:
+    def _estimator_measures(self, rotation: bool | None, tilts: bool | None = None, required: bool = False,
+                            at_start: bool = False) -> None:
         """Tell the estimator whether rotation matters (a run without the rotation DOF
         does not need it, and translation alone is three times faster) and whether to
         measure the tilts; None restores its configuration. Not being heard is logged,
         never fatal, unless ``required`` (a run with rotation or the tilts cannot go on
-        without what the estimator measures for them)."""
+        without what the estimator measures for them). ``at_start``: a run's start
+        asks through ``estimator_at_start``, which may wait longer for an estimator still
+        busy with a teach (:func:`services.controller.main.estimator_ports`); the running
+        loop and a run's end, when the estimator may be dead, cannot."""
         if self.estimator is None:
             if required and tilts:
                 raise BadRequest("tilts need the estimator's focus sweeps, and there is no estimator port")
             return
+        port = self.estimator_at_start if at_start else self.estimator
         try:
-            self.estimator.call(estimator_protocol.MEASURE, rotation=rotation, tilts=tilts)
+            port.call(estimator_protocol.MEASURE, rotation=rotation, tilts=tilts)
         except (CommandError, ServiceUnavailable) as error:
             if required:
                 what = "tilts" if tilts else "rotation"

@@ -755,6 +755,58 @@ def test_a_tilt_run_without_a_taught_sweep_is_refused(turning_stage, tmp_path):
     assert core.state == "idle" and stage.watchdog.owner is None
 
 
+def test_a_run_start_waits_for_an_estimator_busy_past_the_loops_timeouts(turning_stage, tmp_path, context):
+    """Over real sockets, as the controller process wires them (``estimator_ports``): an
+    estimator that answers a start's ``measure`` past the loop's 2 tries of 1 s (busy
+    after a teach on a loaded machine) still starts the run, where the loop's own port
+    refuses it, saying so, with nothing armed."""
+    import threading
+    import time
+
+    from semservo.errors import BadRequest
+    from semservo.transport import ControlClient, ControlServer
+    from services.controller.main import estimator_ports
+
+    stage, _ = turning_stage
+    server = ControlServer("tcp://127.0.0.1:*", max_message_bytes=65536, context=context)
+    busy_for_s = [2.5]  # the first request only
+
+    def measure(args: dict) -> dict:
+        time.sleep(busy_for_s.pop() if busy_for_s else 0.0)
+        return {"rotation": bool(args.get("rotation")), "tilts": bool(args.get("tilts"))}
+
+    server.register("measure", measure)
+    stop = threading.Event()
+
+    def serve() -> None:
+        while not stop.is_set():
+            if server.socket.poll(50):
+                server.handle_one()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    client = ControlClient(server.endpoint, timeout_s=1.0, retries=2, context=context)
+    try:
+        loop_port, start_port = estimator_ports(client)
+        core = ControllerCore(LocalStage(stage), estimator=loop_port, estimator_at_start=start_port,
+                              runs_dir=tmp_path)
+        core.start(RunSettings(dofs=["x", "y", "rotation"]), "ref")
+        assert core.state == "servoing" and stage.watchdog.owner == core.owner
+        core.stop("test over")
+        stage.resume()
+        busy_for_s.append(2.5)
+        impatient = ControllerCore(LocalStage(stage), estimator=loop_port, runs_dir=tmp_path)
+        with pytest.raises(BadRequest, match="rotation cannot be servoed: the estimator, which measures it, did not "
+                                             "take the request"):
+            impatient.start(RunSettings(dofs=["x", "y", "rotation"]), "ref")
+        assert impatient.state == "idle" and stage.watchdog.owner is None
+    finally:
+        stop.set()
+        thread.join()
+        client.close()
+        server.close()
+
+
 def test_a_tilts_only_run_waits_for_its_sweeps(turning_stage, tmp_path):
     import time
 
