@@ -584,6 +584,32 @@ def test_a_peak_of_noise_the_modelled_error_misses_is_not_a_focus_peak():
     assert depths[0, 1] == pytest.approx(10.0, abs=0.3)
 
 
+def test_the_jackknife_fits_every_kernel_left_out_at_once_as_one_refit_each_would():
+    """The jackknife's refits, made all at once, are each the robust plane fitted again
+    without one kernel: on depths with outliers, kernels missing and uneven
+    uncertainties, the covariance equals the one from a refit per kernel."""
+    from semservo.estimation.tilt import jackknife_slopes_covariance, robust_plane
+
+    rng = np.random.default_rng(5)
+    for case in range(6):
+        depths = plane_depths(3.0 * rng.standard_normal(), 3.0 * rng.standard_normal())
+        depths = depths + rng.normal(0.0, 0.05, depths.shape)
+        depths[rng.random(depths.shape) < 0.3] = np.nan  # kernels without a clear peak
+        wrong = rng.random(depths.shape) < 0.05
+        depths[wrong] += rng.normal(0.0, 3.0, wrong.sum())  # peaks of noise, microns off
+        uncertainties = None if case % 2 else np.exp(rng.normal(-3.0, 0.7, depths.shape))
+        kernels = np.argwhere(np.isfinite(depths))
+        slopes = []
+        for row, col in kernels:
+            without = depths.copy()
+            without[row, col] = np.nan
+            slopes.append(robust_plane(without, KERNEL, PIXEL_UM, uncertainties=uncertainties).coefficients[1:])
+        deviations = np.asarray(slopes) - np.mean(slopes, axis=0)
+        one_by_one = (len(kernels) - 1) / len(kernels) * deviations.T @ deviations
+        at_once = jackknife_slopes_covariance(depths, KERNEL, PIXEL_UM, uncertainties)
+        assert at_once == pytest.approx(one_by_one, rel=1e-8, abs=1e-15)
+
+
 def test_the_tilts_standard_errors_hold_where_kernels_differ_in_noise():
     """The jackknife over kernels: where the kernels at the field's edges are four times
     noisier than those inside (a textured band fainter at its ends), the standard

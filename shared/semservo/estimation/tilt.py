@@ -430,29 +430,8 @@ def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations:
     design = np.column_stack([np.ones(finite.sum()), grid_x[finite], grid_y[finite]])
     values = depths[finite]
     errors = np.ones(values.size) if uncertainties is None else np.asarray(uncertainties, dtype=np.float64)[finite]
-    prior = 1.0 / np.square(errors)
-    coefficients, _, _ = fit_plane(depths, kernel, pixel_size)
-    weights = prior.copy()
-    scale = 0.0
-    for _ in range(iterations):
-        residuals = (values - design @ coefficients) / errors
-        # The scale from every kernel's residual, not only those still weighed: with
-        # uneven weights a few precise kernels fit closely, and a scale of those alone
-        # shrinks round by round until it leaves out good kernels (a corner of 9 kernels
-        # kept 5). The median holds against the wrong ones as long as they are a minority.
-        scale = 1.4826 * float(np.median(np.abs(residuals)))
-        if scale <= 0:
-            break
-        u = residuals / (BIWEIGHT * scale)
-        weights = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) * prior
-        if (weights > 0).sum() < 3:
-            break
-        weighted = design * weights[:, None]
-        updated = np.linalg.lstsq(weighted.T @ design, weighted.T @ values, rcond=None)[0]
-        if np.allclose(updated, coefficients, rtol=0, atol=1e-9 * max(1.0, float(np.abs(values).max()))):
-            coefficients = updated
-            break
-        coefficients = updated
+    fits = _robust_planes(design, values, errors, np.ones((1, values.size), dtype=bool), iterations)
+    coefficients, weights, scale = fits.coefficients[0], fits.weights[0], float(fits.scales[0])
     all_weights = np.zeros(depths.shape)
     all_weights[finite] = weights
     used = weights > 0
@@ -465,6 +444,107 @@ def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations:
         # The scale above is in each kernel's standard errors; the plane's is in depth.
         scale = 1.4826 * float(np.median(np.abs(values - design @ coefficients)[used]))
     return PlaneFit(coefficients, all_weights, scale, covariance)
+
+
+class _Planes(NamedTuple):
+    coefficients: np.ndarray  # problems x 3
+    weights: np.ndarray  # problems x kernels (0: left out)
+    scales: np.ndarray  # problems: the last robust scale, in each kernel's standard errors
+
+
+def _weighted_planes(design: np.ndarray, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted least-squares planes, one per row of ``weights`` (problems x kernels):
+    the normal equations solved, through their pseudo-inverse where they are singular
+    (the least-norm answer, as ``lstsq`` gives)."""
+    # As matrix products (kernels' outer products flattened): einsum's three operands were
+    # half the jackknife's time.
+    outer = (design[:, :, None] * design[:, None, :]).reshape(len(design), 9)
+    normal = (weights @ outer).reshape(-1, 3, 3)
+    moments = weights @ (design * values[:, None])
+    try:
+        return np.linalg.solve(normal, moments[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.einsum("pij,pj->pi", np.linalg.pinv(normal), moments)
+
+
+def _masked_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Each row's median over its entries in ``mask`` (a row with none: NaN)."""
+    if values.shape[1] == 0:
+        return np.full(values.shape[0], np.nan)
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    count = mask.sum(axis=1)
+    rows = np.arange(len(count))
+    lower, upper = np.maximum(count - 1, 0) // 2, np.maximum(count, 1) // 2
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, 0.5 * (ordered[rows, lower] + ordered[rows, upper]), np.nan)
+
+
+def _least_squares_planes(design: np.ndarray, values: np.ndarray, included: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`fit_plane` for each row of ``included`` (problems x kernels: which kernels
+    each plane is fitted to): the least-squares plane, refitted once without the kernels
+    off it by more than ``OUTLIER_SIGMAS`` robust standard deviations. Returns the
+    coefficients (problems x 3) and the kernels used (problems x kernels)."""
+    problems = included.shape[0]
+    used = included.copy()
+    coefficients = np.zeros((problems, 3))
+    going = np.ones(problems, dtype=bool)
+    for _ in range(2):
+        going &= used.sum(axis=1) >= 3
+        rows = np.flatnonzero(going)
+        if rows.size == 0:
+            break
+        coefficients[rows] = _weighted_planes(design, values, used[rows].astype(np.float64))
+        residuals = np.abs(values[None, :] - coefficients[rows] @ design.T)
+        spread = 1.4826 * _masked_medians(residuals, used[rows])
+        keep = used[rows] & (residuals <= OUTLIER_SIGMAS * np.maximum(spread, 1e-12)[:, None])
+        changed = keep.sum(axis=1) != used[rows].sum(axis=1)
+        used[rows[changed]] = keep[changed]
+        going[rows[~changed]] = False
+    return coefficients, used
+
+
+def _robust_planes(design: np.ndarray, values: np.ndarray, errors: np.ndarray, included: np.ndarray,
+                   iterations: int = 30) -> _Planes:
+    """:func:`robust_plane`'s iteratively reweighted least squares for each row of
+    ``included`` (problems x kernels: which kernels each plane is fitted to), all at
+    once: ``design`` (kernels x 3: 1, x, y), ``values`` (the depths) and ``errors``
+    (their standard errors, or ones) of every kernel with a depth. One problem is
+    :func:`robust_plane`; one per kernel left out is the jackknife's
+    (:func:`jackknife_slopes_covariance`), a refit per kernel at the cost of a few."""
+    problems = included.shape[0]
+    prior = np.where(included, 1.0 / np.square(errors)[None, :], 0.0)
+    coefficients, _ = _least_squares_planes(design, values, included)
+    weights = prior.copy()
+    scales = np.zeros(problems)
+    tolerance = 1e-9 * np.maximum(1.0, np.max(np.where(included, np.abs(values)[None, :], 0.0), axis=1, initial=0.0))
+    going = np.ones(problems, dtype=bool)
+    for _ in range(iterations):
+        rows = np.flatnonzero(going)
+        if rows.size == 0:
+            break
+        residuals = (values[None, :] - coefficients[rows] @ design.T) / errors[None, :]
+        # The scale from every kernel's residual, not only those still weighed: with
+        # uneven weights a few precise kernels fit closely, and a scale of those alone
+        # shrinks round by round until it leaves out good kernels (a corner of 9 kernels
+        # kept 5). The median holds against the wrong ones as long as they are a minority.
+        scale = 1.4826 * _masked_medians(np.abs(residuals), included[rows])
+        scales[rows] = scale
+        flat = ~(scale > 0)
+        going[rows[flat]] = False
+        rows, residuals, scale = rows[~flat], residuals[~flat], scale[~flat]
+        u = residuals / (BIWEIGHT * scale[:, None])
+        weighed = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) * prior[rows]
+        weights[rows] = weighed
+        few = (weighed > 0).sum(axis=1) < 3
+        going[rows[few]] = False
+        rows, weighed = rows[~few], weighed[~few]
+        if rows.size == 0:
+            continue
+        updated = _weighted_planes(design, values, weighed)
+        settled = np.all(np.abs(updated - coefficients[rows]) <= tolerance[rows, None], axis=1)
+        coefficients[rows] = updated
+        going[rows[settled]] = False
+    return _Planes(coefficients, weights, scales)
 
 
 def with_excess_scatter(depths: np.ndarray, uncertainties: np.ndarray, kernel: int, pixel_size: float,
@@ -528,16 +608,16 @@ def jackknife_slopes_covariance(depths: np.ndarray, kernel: int, pixel_size: flo
     from the residuals and 0.85-1.2 from the jackknife on the drift pair, and 0.8-1.7
     and 0.8-1.45 on the grid, the FIB-SEM slice, the aperture and the hole (the
     aperture under the disc the highest either way). Its cost: a refit per kernel,
-    about 0.1-0.2 s for 200 kernels. ``uncertainties``: as :func:`robust_plane` weighs them."""
-    finite = np.argwhere(np.isfinite(depths))
-    count = len(finite)
+    all fitted at once (:func:`_robust_planes`). ``uncertainties``: as :func:`robust_plane` weighs them."""
+    finite = np.isfinite(depths)
+    count = int(finite.sum())
     if count < MIN_KERNELS:
         return np.full((2, 2), np.inf)
-    slopes = np.empty((count, 2))
-    for index, (row, col) in enumerate(finite):
-        without = depths.copy()
-        without[row, col] = np.nan
-        slopes[index] = robust_plane(without, kernel, pixel_size, uncertainties=uncertainties).coefficients[1:]
+    grid_y, grid_x = kernel_centres(depths.shape, kernel, pixel_size)
+    design = np.column_stack([np.ones(count), grid_x[finite], grid_y[finite]])
+    errors = np.ones(count) if uncertainties is None else np.asarray(uncertainties, dtype=np.float64)[finite]
+    # Every refit at once, each without one kernel (one row of the identity's complement).
+    slopes = _robust_planes(design, depths[finite], errors, ~np.eye(count, dtype=bool)).coefficients[:, 1:]
     deviations = slopes - slopes.mean(axis=0)
     return (count - 1) / count * (deviations.T @ deviations)
 
@@ -549,19 +629,12 @@ def fit_plane(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.nd
     ``OUTLIER_SIGMAS`` robust standard deviations. Returns ((c, gx, gy), the mask of
     kernels used, RMS residual)."""
     grid_y, grid_x = kernel_centres(depths.shape, kernel, pixel_size)
-    used = np.isfinite(depths)
-    coefficients = np.zeros(3)
-    for _ in range(2):
-        if used.sum() < 3:
-            break
-        design = np.column_stack([np.ones(used.sum()), grid_x[used], grid_y[used]])
-        coefficients = np.linalg.lstsq(design, depths[used], rcond=None)[0]
-        residuals = depths - (coefficients[0] + coefficients[1] * grid_x + coefficients[2] * grid_y)
-        spread = 1.4826 * np.median(np.abs(residuals[used]))
-        keep = used & (np.abs(residuals) <= OUTLIER_SIGMAS * max(spread, 1e-12))
-        if keep.sum() == used.sum():
-            break
-        used = keep
+    finite = np.isfinite(depths)
+    design = np.column_stack([np.ones(finite.sum()), grid_x[finite], grid_y[finite]])
+    coefficients, kept = _least_squares_planes(design, depths[finite], np.ones((1, finite.sum()), dtype=bool))
+    coefficients = coefficients[0]
+    used = np.zeros(depths.shape, dtype=bool)
+    used[finite] = kept[0]
     residuals = depths - (coefficients[0] + coefficients[1] * grid_x + coefficients[2] * grid_y)
     rms = float(np.sqrt(np.mean(residuals[used] ** 2))) if used.any() else float("nan")
     return coefficients, used, rms
