@@ -29,6 +29,7 @@ Prints one table per model (markdown) and the depth-of-field scan; writes
 bench/results/tilt_real.json.
 
     ./dev bench tilt_real            # or: python bench/tilt_real.py --poses 10 --images jeol_grid
+    ./dev bench tilt_real --image-files ~/pictures/wafer.tif --poses 10 --dof-poses 0   # your own
 """
 
 from __future__ import annotations
@@ -61,12 +62,18 @@ def say(text: str = "") -> None:
 
 
 def grey(pixels: np.ndarray) -> np.ndarray:
-    """0..255 floats whatever the bit depth (the noise model is per 8-bit grey level)."""
+    """0..255 floats whatever the bit depth (the noise model is per 8-bit grey level):
+    16-bit levels over 257, a float image within 0..1 times 255."""
+    floating = np.issubdtype(pixels.dtype, np.floating)
     pixels = pixels.astype(np.float64)
+    if floating and pixels.max() <= 1.0:
+        return pixels * 255.0
     return pixels / 257.0 if pixels.max() > 255 else pixels
 
 
-def which_set(name: str, shape: str) -> str:
+def which_set(name: str, shape: str, own: frozenset[str] = frozenset()) -> str:
+    if name in own:
+        return "yours"
     return "developed on" if name in DEVELOPED_ON and shape == DEVELOPED_WITH else "held out"
 
 
@@ -80,7 +87,7 @@ def cell(entry: dict) -> str:
     return "-" if not math.isfinite(entry["mean"]) else f"{entry['mean']:.3f} / {entry['max']:.3f}"
 
 
-def print_table(shape: str, results: dict) -> None:
+def print_table(shape: str, results: dict, own: frozenset[str] = frozenset()) -> None:
     say(f"\n### Table I on real textures, {shape} defocus: |error| mean / max (degrees) over the poses not refused\n")
     say("| image | set | refused | plane fit alpha | plane fit beta | sign errors (true >= 0.5) | tracking sweep "
         "alpha, beta | paper's EGI alpha, beta | gamma, foreshortening undone | frames |")
@@ -88,7 +95,7 @@ def print_table(shape: str, results: dict) -> None:
     for name, entry in results.items():
         summary = entry["summary"]
         plane, tracking, egi = summary["plane"], summary["plane_tracking"], summary["egi"]
-        say(f"| {name} | {which_set(name, shape)} | {summary['refused']} of {summary['poses']} | {cell(plane['alpha'])} "
+        say(f"| {name} | {which_set(name, shape, own)} | {summary['refused']} of {summary['poses']} | {cell(plane['alpha'])} "
             f"| {cell(plane['beta'])} | {plane['sign_errors']} of {plane['signs_checked']} | "
             f"{cell(tracking['alpha'])}, {cell(tracking['beta'])} | {cell(egi['alpha'])}, {cell(egi['beta'])} | "
             f"{cell(summary['gamma_compensated'])} | {summary['frames_first']['mean']:.0f} |")
@@ -97,7 +104,7 @@ def print_table(shape: str, results: dict) -> None:
         say(f"\n{name} refused: {why[0]}" + (f" (and {len(why) - 1} more alike)" if len(why) > 1 else ""))
 
 
-def print_scan(shape: str, scans: dict) -> None:
+def print_scan(shape: str, scans: dict, own: frozenset[str] = frozenset()) -> None:
     say(f"\n### Depth of field, {shape} defocus: plane fit |error| mean / max (degrees); sign errors; refused\n")
     factors = [row["depth_of_field_um"] for row in next(iter(scans.values()))]
     say("| image | set | " + " | ".join(f"{value:g} um" for value in factors) + " |")
@@ -106,7 +113,7 @@ def print_scan(shape: str, scans: dict) -> None:
         cells = [("-" if not math.isfinite(row["mean"]) else f"{row['mean']:.3f} / {row['max']:.3f}")
                  + f", {row['sign_errors']} signs" + (f", {row['refused']} of {row['poses']} refused" if row["refused"]
                                                        else "") for row in rows]
-        say(f"| {name} | {which_set(name, shape)} | " + " | ".join(cells) + " |")
+        say(f"| {name} | {which_set(name, shape, own)} | " + " | ".join(cells) + " |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,7 +121,12 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--poses", type=int, default=30, help="random poses besides the paper's three")
     parser.add_argument("--dof-poses", type=int, default=10, help="poses for the depth-of-field scan (0: none)")
-    parser.add_argument("--images", nargs="+", choices=IMAGES, default=list(IMAGES))
+    parser.add_argument("--images", nargs="+", choices=IMAGES, default=None,
+                        help="of the six in ../shared/data/sem-images (default: all six, or none with --image-files)")
+    parser.add_argument("--image-files", nargs="+", type=Path, default=[], metavar="FILE",
+                        help="SEM pictures of your own (PNG or TIFF, 8 or 16 bit, a vendor's file with its data "
+                             "bar), each the texture of the plane as the six are (one of its pixels a frame pixel; "
+                             "mirrored beyond its edges), named by the file's stem; their rows say 'yours'")
     parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFOCUS_SHAPES))
     parser.add_argument("--seed", type=int, default=15)
     parser.add_argument("--reference-sweeps", type=int, default=MAX_TEACH_SWEEPS,
@@ -129,11 +141,21 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     poses = PAPER_POSES + [(float(rng.uniform(-15, 15)), float(rng.uniform(-15, 15)), float(rng.uniform(-90, 90)))
                            for _ in range(args.poses)]
-    textures = {name: grey(read_sem_image(find_sem_images() / f"{name}.tif").pixels) for name in args.images}
+    images = args.images if args.images is not None else ([] if args.image_files else list(IMAGES))
+    textures = {name: grey(read_sem_image(find_sem_images() / f"{name}.tif").pixels) for name in images}
+    for path in args.image_files:
+        if path.stem in textures:
+            parser.error(f"two pictures named {path.stem!r}: rename one")
+        try:
+            textures[path.stem] = grey(read_sem_image(path).pixels)
+        except (OSError, ValueError) as error:
+            parser.error(f"cannot read {path}: {error}")
+    own = frozenset(path.stem for path in args.image_files)
     output = {"poses": poses, "reference_sweeps": args.reference_sweeps, "pose_sweeps": args.pose_sweeps,
               "field_um": FIELD_UM, "field_px": FIELD_PX,
               "depth_of_field_um": DEPTH_OF_FIELD_UM,
               "electrons": ELECTRONS, "developed_on": [f"{name} ({DEVELOPED_WITH})" for name in DEVELOPED_ON],
+              "yours": {path.stem: str(path) for path in args.image_files},
               "table_one": {}, "depth_of_field": {}}
     started = time.monotonic()
     for shape in args.models:
@@ -153,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"({sum(row['sweeps'] for row in pooled)} sweeps), {sum(not row['refused'] for row in pooled)} of them "
                 "measured")
         output["table_one"][shape] = results
-        print_table(shape, results)
+        print_table(shape, results, own)
         if args.dof_poses:
             scans = {}
             for name, texture in textures.items():
@@ -163,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                                               factor),
                                                   reference_sweeps=args.reference_sweeps)
             output["depth_of_field"][shape] = scans
-            print_scan(shape, scans)
+            print_scan(shape, scans, own)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(output, indent=1, default=float))
     say(f"\nwrote {args.out}")
