@@ -425,11 +425,7 @@ def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations:
     ``uncertainties`` (each depth's standard error, :func:`focus_peak_uncertainties`;
     only their ratios matter): each kernel weighs 1 / uncertainty^2 besides its biweight,
     which then reads its residual in its own standard errors. None: all alike."""
-    grid_y, grid_x = kernel_centres(depths.shape, kernel, pixel_size)
-    finite = np.isfinite(depths)
-    design = np.column_stack([np.ones(finite.sum()), grid_x[finite], grid_y[finite]])
-    values = depths[finite]
-    errors = np.ones(values.size) if uncertainties is None else np.asarray(uncertainties, dtype=np.float64)[finite]
+    finite, design, values, errors = _plane_problem(depths, kernel, pixel_size, uncertainties)
     fits = _robust_planes(design, values, errors, np.ones((1, values.size), dtype=bool), iterations)
     coefficients, weights, scale = fits.coefficients[0], fits.weights[0], float(fits.scales[0])
     all_weights = np.zeros(depths.shape)
@@ -444,6 +440,19 @@ def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations:
         # The scale above is in each kernel's standard errors; the plane's is in depth.
         scale = 1.4826 * float(np.median(np.abs(values - design @ coefficients)[used]))
     return PlaneFit(coefficients, all_weights, scale, covariance)
+
+
+def _plane_problem(depths: np.ndarray, kernel: int, pixel_size: float, uncertainties: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The kernels with a depth (a mask of ``depths``' shape) and, for them, the plane's
+    design (1, x, y at each kernel's centre, :func:`kernel_centres`), their depths and
+    their standard errors (``uncertainties``, or ones)."""
+    grid_y, grid_x = kernel_centres(depths.shape, kernel, pixel_size)
+    finite = np.isfinite(depths)
+    design = np.column_stack([np.ones(finite.sum()), grid_x[finite], grid_y[finite]])
+    errors = (np.ones(design.shape[0]) if uncertainties is None
+              else np.asarray(uncertainties, dtype=np.float64)[finite])
+    return finite, design, depths[finite], errors
 
 
 class _Planes(NamedTuple):
@@ -609,15 +618,12 @@ def jackknife_slopes_covariance(depths: np.ndarray, kernel: int, pixel_size: flo
     and 0.8-1.45 on the grid, the FIB-SEM slice, the aperture and the hole (the
     aperture under the disc the highest either way). Its cost: a refit per kernel,
     all fitted at once (:func:`_robust_planes`). ``uncertainties``: as :func:`robust_plane` weighs them."""
-    finite = np.isfinite(depths)
-    count = int(finite.sum())
+    _, design, values, errors = _plane_problem(depths, kernel, pixel_size, uncertainties)
+    count = len(values)
     if count < MIN_KERNELS:
         return np.full((2, 2), np.inf)
-    grid_y, grid_x = kernel_centres(depths.shape, kernel, pixel_size)
-    design = np.column_stack([np.ones(count), grid_x[finite], grid_y[finite]])
-    errors = np.ones(count) if uncertainties is None else np.asarray(uncertainties, dtype=np.float64)[finite]
     # Every refit at once, each without one kernel (one row of the identity's complement).
-    slopes = _robust_planes(design, depths[finite], errors, ~np.eye(count, dtype=bool)).coefficients[:, 1:]
+    slopes = _robust_planes(design, values, errors, ~np.eye(count, dtype=bool)).coefficients[:, 1:]
     deviations = slopes - slopes.mean(axis=0)
     return (count - 1) / count * (deviations.T @ deviations)
 
@@ -628,15 +634,13 @@ def fit_plane(depths: np.ndarray, kernel: int, pixel_size: float) -> tuple[np.nd
     ``pixel_size``), refitted once without the kernels off it by more than
     ``OUTLIER_SIGMAS`` robust standard deviations. Returns ((c, gx, gy), the mask of
     kernels used, RMS residual)."""
-    grid_y, grid_x = kernel_centres(depths.shape, kernel, pixel_size)
-    finite = np.isfinite(depths)
-    design = np.column_stack([np.ones(finite.sum()), grid_x[finite], grid_y[finite]])
-    coefficients, kept = _least_squares_planes(design, depths[finite], np.ones((1, finite.sum()), dtype=bool))
+    finite, design, values, _ = _plane_problem(depths, kernel, pixel_size)
+    coefficients, kept = _least_squares_planes(design, values, np.ones((1, values.size), dtype=bool))
     coefficients = coefficients[0]
     used = np.zeros(depths.shape, dtype=bool)
     used[finite] = kept[0]
-    residuals = depths - (coefficients[0] + coefficients[1] * grid_x + coefficients[2] * grid_y)
-    rms = float(np.sqrt(np.mean(residuals[used] ** 2))) if used.any() else float("nan")
+    residuals = values[kept[0]] - design[kept[0]] @ coefficients
+    rms = float(np.sqrt(np.mean(residuals**2))) if kept[0].any() else float("nan")
     return coefficients, used, rms
 
 
