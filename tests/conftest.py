@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import pytest
@@ -10,7 +11,7 @@ import zmq
 from semservo.config import find_recorded_run, find_sem_images
 from semservo.launcher import PORT_SETTINGS, faster_lab_environment, free_port, fresh_port_environment, simulated_system
 
-__all__ = ["PORT_SETTINGS", "choose_ports", "free_port", "run_lab_faster", "simulated_stack"]
+__all__ = ["PORT_SETTINGS", "choose_ports", "free_port", "run_lab_faster", "serve_until", "simulated_stack"]
 
 
 @pytest.fixture(scope="session")
@@ -63,3 +64,14 @@ def context():
 
 #: The whole system on simulated hardware, on fresh ports (the library's helper).
 simulated_stack = simulated_system
+
+
+def serve_until(server, stop: threading.Event) -> int:
+    """Answer every request to a :class:`~semservo.transport.ControlServer`, as a service
+    does, until ``stop``; returns how many."""
+    handled = 0
+    while not stop.is_set():
+        if server.socket.poll(50):
+            server.handle_one()
+            handled += 1
+    return handled

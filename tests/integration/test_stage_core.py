@@ -766,6 +766,7 @@ def test_a_run_start_waits_for_an_estimator_busy_past_the_loops_timeouts(turning
     from semservo.errors import BadRequest
     from semservo.transport import ControlClient, ControlServer
     from services.controller.main import estimator_ports
+    from tests.conftest import serve_until
 
     stage, _ = turning_stage
     server = ControlServer("tcp://127.0.0.1:*", max_message_bytes=65536, context=context)
@@ -777,13 +778,7 @@ def test_a_run_start_waits_for_an_estimator_busy_past_the_loops_timeouts(turning
 
     server.register("measure", measure)
     stop = threading.Event()
-
-    def serve() -> None:
-        while not stop.is_set():
-            if server.socket.poll(50):
-                server.handle_one()
-
-    thread = threading.Thread(target=serve, daemon=True)
+    thread = threading.Thread(target=serve_until, args=(server, stop), daemon=True)
     thread.start()
     client = ControlClient(server.endpoint, timeout_s=1.0, retries=2, context=context)
     try:

@@ -21,6 +21,7 @@ from semservo.transport import (
     ServiceUnavailable,
 )
 from semservo.wire import encode_frame, frame_header
+from tests.conftest import serve_until
 
 METADATA = dict(pixel_size_nm=100.0, magnification=2123.0, dwell_ns=720.0, source="test")
 LIMIT = 2**20
@@ -118,16 +119,6 @@ def test_malformed_messages_are_dropped_counted_and_the_subscriber_goes_on(conte
         assert subscriber.counters[f"dropped_{reason}"] == 1, reason
     assert subscriber.last_error is not None
     raw.close(), subscriber.close()
-
-
-def serve_until(server: ControlServer, stop: threading.Event) -> int:
-    """Answer every request, as a service does, until ``stop``; returns how many."""
-    handled = 0
-    while not stop.is_set():
-        if server.socket.poll(50):
-            server.handle_one()
-            handled += 1
-    return handled
 
 
 @pytest.fixture
