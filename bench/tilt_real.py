@@ -1,6 +1,7 @@
 """Tilts from focus on real textures (issue #27): paper Table I and the depth-of-field
-scan on focus sweeps made from the six real SEM images of ``../shared/data/sem-images``,
-per image and per defocus model, beside the simulator's (``bench/tilt.py``).
+scan on focus sweeps made from the six real SEM images of ``../shared/data/sem-images``
+(or pictures of your own, ``--image-files``), per image and per defocus model, beside
+the simulator's (``bench/tilt.py``).
 
 The sweeps (``semservo.focus_sweeps``, written apart from ``semservo.simulation``): each
 image is the texture of a plane tilted by (alpha, beta) and turned by gamma, seen
@@ -166,9 +167,13 @@ def main(argv: list[str] | None = None) -> int:
                               reference_sweeps=args.reference_sweeps, sweeps_when_refused=args.pose_sweeps)
             results[name] = {"table": table, "summary": summarize(table)}
             summary = results[name]["summary"]
-            say(f"    taught from {table['taught_sweeps']} sweep(s): alpha {table['taught'][0]:+.3f}, beta "
-                f"{table['taught'][1]:+.3f} (true 0), pinned to +-{table['taught_uncertainty'][0]:.3f}, "
-                f"+-{table['taught_uncertainty'][1]:.3f}")
+            pinned = f"+-{table['taught_uncertainty'][0]:.3f}, +-{table['taught_uncertainty'][1]:.3f}"
+            if table["taught_reason"]:
+                say(f"    refused at the teach after {table['taught_sweeps']} sweep(s) (pinned to {pinned}): every "
+                    "pose is refused with it")
+            else:
+                say(f"    taught from {table['taught_sweeps']} sweep(s): alpha {table['taught'][0]:+.3f}, beta "
+                    f"{table['taught'][1]:+.3f} (true 0), pinned to {pinned}")
             pooled = [row for row in table["rows"] if row["sweeps"] > 1]
             say(f"    plane fit alpha {cell(summary['plane']['alpha'])}, beta {cell(summary['plane']['beta'])}, "
                 f"refused {summary['refused']} of {summary['poses']}; {len(pooled)} poses swept again and pooled "
