@@ -696,3 +696,20 @@ def test_the_plane_weighs_kernels_by_their_uncertainty():
     effective = with_excess_scatter(depths, noise_um, KERNEL, PIXEL_UM)
     assert effective.max() / effective.min() < 1.5  # evened out, not 10 x apart
     assert np.median(effective) == pytest.approx(0.05, rel=0.3)  # and in depth, the scatter's size
+
+
+def test_a_teach_summary_reads_errors_in_standard_errors_and_counts_refusals():
+    """bench/teach.py's summary: the errors in their standard errors (RMS and largest) per
+    tilt, the sweeps, and a refused teach counted, not averaged in."""
+    from semservo.reproduce.tilts import summarize_teaches
+
+    teaches = [{"error_deg": [0.02, -0.04], "uncertainty_deg": [0.02, 0.04], "z": [1.0, -1.0], "sweeps": 1},
+               {"error_deg": [-0.06, 0.0], "uncertainty_deg": [0.02, 0.04], "z": [-3.0, 0.0], "sweeps": 3},
+               {"refused": "the reference's focus sweep cannot tell the tilts"}]
+    summary = summarize_teaches(teaches)
+    assert summary["teaches"] == 3 and summary["refused"] == 1 and summary["sweeps_mean"] == 2.0
+    assert summary["alpha"]["rms_z"] == pytest.approx(np.sqrt(5.0)) and summary["alpha"]["max_abs_z"] == 3.0
+    assert summary["alpha"]["mean_error_deg"] == pytest.approx(-0.02)
+    assert summary["beta"]["rms_z"] == pytest.approx(np.sqrt(0.5)) and summary["beta"]["mean_uncertainty_deg"] == 0.04
+    everything_refused = summarize_teaches([{"refused": "no"}])
+    assert everything_refused["refused"] == 1 and np.isnan(everything_refused["alpha"]["rms_z"])
