@@ -25,6 +25,7 @@ simulated scene; these are simulated results, not a real instrument's.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import tempfile
 import time
@@ -314,17 +315,59 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
     (``truth``: the stage against the taught pose; ``view_error_px``: how far the content
     at the taught view's centre is from the centre, what the image shows, the tilt
     cradle's pivot included) and the trajectory."""
-    from semservo.client import Client
-    from semservo.config import connect
-    from semservo.launcher import simulated_system
-    from semservo.transport import ControlClient
-
     if folder is None:
         with tempfile.TemporaryDirectory() as temporary:
             return five_dof_runs(initial, Path(temporary), speedup, say, environment=environment,
                                  run_settings=run_settings)
     settings_of_runs = {**RUN_SETTINGS, **(run_settings or {})}
     results = []
+    with _tilts_stack(folder, speedup, environment) as (lab, fakelab):
+        reference = lab.teach(frames=4, tilts=True)
+        taught_tilt = reference.tilt or {}
+        say(f"  taught: {taught_tilt.get('sweeps', 1)} focus sweep(s) of {taught_tilt.get('frames')} frames read the "
+            f"plane's tilts {taught_tilt.get('alpha_deg', math.nan):+.3f}, {taught_tilt.get('beta_deg', math.nan):+.3f}"
+            f" deg, pinned to +-{taught_tilt.get('alpha_uncertainty_deg', math.nan):.3f} and "
+            f"+-{taught_tilt.get('beta_uncertainty_deg', math.nan):.3f}")
+        taught_pose = _taught_pose(fakelab, reference)
+        taught = lab.stage()
+        angles, positions = taught["rotation"]["angles_deg"], taught["positions_um"]
+        for index, (alpha, beta, gamma, x_um, y_um) in enumerate(initial, 1):
+            # From the taught pose (not from where the last run ended): absolute targets.
+            _move_to(lab, positions["x"] + x_um, positions["y"] + y_um)
+            targets = {"rotation_deg": gamma, "tilt_x_deg": alpha, "tilt_y_deg": beta}
+            lab.rotate(relative=False, **{key: angles[key] + value for key, value in targets.items()})
+            time.sleep(25.0 / speedup + 0.5)  # let the stage arrive (4 degrees per second at most)
+            started = time.monotonic()
+            run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
+            record = lab.wait(run["run_id"], timeout=900)
+            truth = record.get("truth") or {}
+            view = _view_error(fakelab, record, taught_pose)
+            results.append({"initial": [alpha, beta, gamma, x_um, y_um], "state": record["state"],
+                            "reason": record.get("reason"), "iterations": record["iterations"],
+                            "wall_s": time.monotonic() - started, "truth": truth, "view_error_px": view,
+                            "tilt_iterations": sum(1 for r in record["trajectory"] if r.get("tilt_action") == "moved"),
+                            "trajectory": record["trajectory"]})
+            error = truth.get("error_deg", {})
+            view_text = f"view {math.hypot(*view):.3f} px" if view else "view unknown"
+            say(f"  run {index:2d}/{len(initial)} from ({alpha:+.1f}, {beta:+.1f}, {gamma:+.1f}) deg, ({x_um:+.1f}, "
+                f"{y_um:+.1f}) um: {record['state']} after {record['iterations']} iterations, "
+                f"{results[-1]['wall_s']:.0f} s; true error alpha {error.get('tilt_x_deg', math.nan):+.3f}, beta "
+                f"{error.get('tilt_y_deg', math.nan):+.3f}, gamma {error.get('rotation_deg', math.nan):+.4f} deg, "
+                f"stage {truth.get('error_norm_px', math.nan):.2f} px, {view_text}"
+                + ("" if record["state"] == "converged" else f"\n    reason: {record.get('reason')}"))
+    return results
+
+
+@contextlib.contextmanager
+def _tilts_stack(folder: Path, speedup: float, environment: dict[str, str] | None):
+    """The whole stack on simulated hardware under the tilts preset (``environment``: more
+    SEMSERVO_* settings), its records in ``folder``, once frames flow: yields the gateway's
+    client and the fake lab's control client."""
+    from semservo.client import Client
+    from semservo.config import connect
+    from semservo.launcher import simulated_system
+    from semservo.transport import ControlClient
+
     variables = {"SEMSERVO_FAKELAB__PRESET": "tilts", **(environment or {})}
     with simulated_system(folder, speedup=speedup, **variables) as (_launcher, settings):
         lab = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=60)
@@ -333,45 +376,17 @@ def five_dof_runs(initial: list[tuple], folder: Path | None = None, speedup: flo
             deadline = time.monotonic() + 60
             while lab.status()["latest_frame_seq"] is None and time.monotonic() < deadline:
                 time.sleep(0.2)
-            reference = lab.teach(frames=4, tilts=True)
-            taught_tilt = reference.tilt or {}
-            say(f"  taught: {taught_tilt.get('sweeps', 1)} focus sweep(s) of {taught_tilt.get('frames')} frames read the "
-                f"plane's tilts {taught_tilt.get('alpha_deg', math.nan):+.3f}, {taught_tilt.get('beta_deg', math.nan):+.3f}"
-                f" deg, pinned to +-{taught_tilt.get('alpha_uncertainty_deg', math.nan):.3f} and "
-                f"+-{taught_tilt.get('beta_uncertainty_deg', math.nan):.3f}")
-            # The taught pose: over the scans of the frames the reference was made from.
-            scanned = reference.get("source_interval_s") or (reference.get("detail") or {}).get("source_interval_s")
-            taught_pose = _pose(fakelab.request("pose", interval_s=scanned)) if scanned else None
-            taught = lab.stage()
-            angles, positions = taught["rotation"]["angles_deg"], taught["positions_um"]
-            for index, (alpha, beta, gamma, x_um, y_um) in enumerate(initial, 1):
-                # From the taught pose (not from where the last run ended): absolute targets.
-                _move_to(lab, positions["x"] + x_um, positions["y"] + y_um)
-                targets = {"rotation_deg": gamma, "tilt_x_deg": alpha, "tilt_y_deg": beta}
-                lab.rotate(relative=False, **{key: angles[key] + value for key, value in targets.items()})
-                time.sleep(25.0 / speedup + 0.5)  # let the stage arrive (4 degrees per second at most)
-                started = time.monotonic()
-                run = lab.start(dofs=["x", "y", "gamma", "alpha", "beta"], **settings_of_runs)
-                record = lab.wait(run["run_id"], timeout=900)
-                truth = record.get("truth") or {}
-                view = _view_error(fakelab, record, taught_pose)
-                results.append({"initial": [alpha, beta, gamma, x_um, y_um], "state": record["state"],
-                                "reason": record.get("reason"), "iterations": record["iterations"],
-                                "wall_s": time.monotonic() - started, "truth": truth, "view_error_px": view,
-                                "tilt_iterations": sum(1 for r in record["trajectory"] if r.get("tilt_action") == "moved"),
-                                "trajectory": record["trajectory"]})
-                error = truth.get("error_deg", {})
-                view_text = f"view {math.hypot(*view):.3f} px" if view else "view unknown"
-                say(f"  run {index:2d}/{len(initial)} from ({alpha:+.1f}, {beta:+.1f}, {gamma:+.1f}) deg, ({x_um:+.1f}, "
-                    f"{y_um:+.1f}) um: {record['state']} after {record['iterations']} iterations, "
-                    f"{results[-1]['wall_s']:.0f} s; true error alpha {error.get('tilt_x_deg', math.nan):+.3f}, beta "
-                    f"{error.get('tilt_y_deg', math.nan):+.3f}, gamma {error.get('rotation_deg', math.nan):+.4f} deg, "
-                    f"stage {truth.get('error_norm_px', math.nan):.2f} px, {view_text}"
-                    + ("" if record["state"] == "converged" else f"\n    reason: {record.get('reason')}"))
+            yield lab, fakelab
         finally:
             fakelab.close()
             lab.close()
-    return results
+
+
+def _taught_pose(fakelab, reference) -> Pose | None:
+    """The simulator's true pose over the scans of the frames ``reference`` was made from;
+    None when the reference does not say when they were scanned."""
+    scanned = reference.get("source_interval_s") or (reference.get("detail") or {}).get("source_interval_s")
+    return _pose(fakelab.request("pose", interval_s=scanned)) if scanned else None
 
 
 def repeated_teaches(count: int, speedup: float = 20.0, say: Callable[[str], None] = print, *,
@@ -386,46 +401,30 @@ def repeated_teaches(count: int, speedup: float = 20.0, say: Callable[[str], Non
     by every run from it; its standard error says how far that may be, and a run's
     tolerance should be read against it (issue #27's closed loop read its teaches 1.3-2.8
     standard errors off)."""
-    from semservo.client import Client, SemservoError
-    from semservo.config import connect
-    from semservo.launcher import simulated_system
-    from semservo.transport import ControlClient
+    from semservo.client import SemservoError
 
     results = []
-    variables = {"SEMSERVO_FAKELAB__PRESET": "tilts", **(environment or {})}
-    with tempfile.TemporaryDirectory() as folder, \
-            simulated_system(Path(folder), speedup=speedup, **variables) as (_launcher, settings):
-        lab = Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=60)
-        fakelab = ControlClient(connect(settings.fakelab.host, settings.fakelab.control_port), timeout_s=10, retries=2)
-        try:
-            deadline = time.monotonic() + 60
-            while lab.status()["latest_frame_seq"] is None and time.monotonic() < deadline:
-                time.sleep(0.2)
-            for index in range(1, count + 1):
-                try:
-                    reference = lab.teach(frames=4, tilts=True)
-                except SemservoError as error:  # e.g. a texture whose sweeps cannot pin the tilts
-                    results.append({"refused": error.message})
-                    say(f"  teach {index:2d}/{count}: refused: {error.message}")
-                    continue
-                tilt = reference.tilt or {}
-                scanned = reference.get("source_interval_s") or (reference.get("detail") or {}).get("source_interval_s")
-                # The truth over the taught frames' scans; unknown (NaN) without them.
-                truth = _pose(fakelab.request("pose", interval_s=scanned)) if scanned else \
-                    Pose(tilt_x_deg=math.nan, tilt_y_deg=math.nan)
-                reading = (tilt.get("alpha_deg", math.nan), tilt.get("beta_deg", math.nan))
-                spread = (tilt.get("alpha_uncertainty_deg", math.nan), tilt.get("beta_uncertainty_deg", math.nan))
-                error = (reading[0] - truth.tilt_x_deg, reading[1] - truth.tilt_y_deg)
-                z = (error[0] / spread[0], error[1] / spread[1])
-                results.append({"reading_deg": list(reading), "uncertainty_deg": list(spread),
-                                "sweeps": tilt.get("sweeps", 1), "true_deg": [truth.tilt_x_deg, truth.tilt_y_deg],
-                                "error_deg": list(error), "z": list(z)})
-                say(f"  teach {index:2d}/{count}: {tilt.get('sweeps', 1)} sweep(s), alpha {error[0]:+.3f} "
-                    f"(+-{spread[0]:.3f}, {z[0]:+.2f} standard errors), beta {error[1]:+.3f} (+-{spread[1]:.3f}, "
-                    f"{z[1]:+.2f})")
-        finally:
-            fakelab.close()
-            lab.close()
+    with tempfile.TemporaryDirectory() as folder, _tilts_stack(Path(folder), speedup, environment) as (lab, fakelab):
+        for index in range(1, count + 1):
+            try:
+                reference = lab.teach(frames=4, tilts=True)
+            except SemservoError as error:  # e.g. a texture whose sweeps cannot pin the tilts
+                results.append({"refused": error.message})
+                say(f"  teach {index:2d}/{count}: refused: {error.message}")
+                continue
+            tilt = reference.tilt or {}
+            # The truth over the taught frames' scans; unknown (NaN) without them.
+            truth = _taught_pose(fakelab, reference) or Pose(tilt_x_deg=math.nan, tilt_y_deg=math.nan)
+            reading = (tilt.get("alpha_deg", math.nan), tilt.get("beta_deg", math.nan))
+            spread = (tilt.get("alpha_uncertainty_deg", math.nan), tilt.get("beta_uncertainty_deg", math.nan))
+            error = (reading[0] - truth.tilt_x_deg, reading[1] - truth.tilt_y_deg)
+            z = (error[0] / spread[0], error[1] / spread[1])
+            results.append({"reading_deg": list(reading), "uncertainty_deg": list(spread),
+                            "sweeps": tilt.get("sweeps", 1), "true_deg": [truth.tilt_x_deg, truth.tilt_y_deg],
+                            "error_deg": list(error), "z": list(z)})
+            say(f"  teach {index:2d}/{count}: {tilt.get('sweeps', 1)} sweep(s), alpha {error[0]:+.3f} "
+                f"(+-{spread[0]:.3f}, {z[0]:+.2f} standard errors), beta {error[1]:+.3f} (+-{spread[1]:.3f}, "
+                f"{z[1]:+.2f})")
     return results
 
 
