@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import time
 from pathlib import Path
@@ -20,6 +19,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from semservo import jsontext
 from semservo.config import Settings
 from semservo.launcher import Launcher
 
@@ -75,7 +75,7 @@ def main() -> int:
     for r in results:
         print(f"{r['path']:<10} {r['clients']:>7} {r['requests']:>9} {r['requests_per_s']:>8.0f} {r['p50_ms']:>8.1f} "
               f"{r['p90_ms']:>8.1f} {r['p99_ms']:>8.1f} {r['max_ms']:>8.1f} {r['errors']}")
-    (args.out / "api.json").write_text(json.dumps(results, indent=1))
+    (args.out / "api.json").write_text(jsontext.dumps(results, indent=1))
     print(f"wrote {args.out / 'api.json'}")
     return 0
 

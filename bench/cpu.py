@@ -13,12 +13,12 @@ one core per service, and writes ``bench/results/cpu.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import tempfile
 import time
 from pathlib import Path
 
+from semservo import jsontext
 from semservo.client import Client
 from semservo.launcher import simulated_system
 
@@ -65,7 +65,7 @@ def main() -> int:
         print(f"{name:<12} {at_rest:6.1f}% {busy:6.1f}%")
     print(f"{'all':<12} {sum(idle.values()):6.1f}% {sum(running.values()):6.1f}%   (the run ended {state})")
     OUT.mkdir(exist_ok=True)
-    (OUT / "cpu.json").write_text(json.dumps({"seconds": args.seconds, "idle": idle, "run": running}, indent=1))
+    (OUT / "cpu.json").write_text(jsontext.dumps({"seconds": args.seconds, "idle": idle, "run": running}, indent=1))
     return 0
 
 

@@ -44,6 +44,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
 
+from semservo import jsontext  # noqa: E402
 from semservo.config import find_recorded_run  # noqa: E402
 from semservo.estimation import MotionEstimator, rotate_about_centre  # noqa: E402
 from semservo.pairs import poisson_gaussian, shifted_pair  # noqa: E402
@@ -375,7 +376,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.timing_only:  # the child process of timed_in_clean_process
         reference, frames = load_frames(args.data)
-        print(json.dumps(run_timing(reference, frames[::6], args.repeats, lambda text: None)))
+        print(jsontext.dumps(run_timing(reference, frames[::6], args.repeats, lambda text: None)))
         return 0
     if args.quick:
         args.pairs, args.repeats = 9, 2
@@ -397,7 +398,7 @@ def main(argv=None) -> int:
     }
     print_tables(results)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "estimator.json").write_text(json.dumps(results, indent=2))
+    (args.out / "estimator.json").write_text(jsontext.dumps(results, indent=2))
     plot(results, args.out / "estimator.png")
     print(f"\nwrote {args.out / 'estimator.json'} and {args.out / 'estimator.png'}")
     return 0

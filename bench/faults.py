@@ -14,7 +14,6 @@ converged, amplifier within its limits) and writes it with the details as JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -22,6 +21,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from semservo import jsontext
 from semservo.client import Client
 from semservo.config import Settings
 from semservo.faults import Campaign, table
@@ -81,7 +81,7 @@ def main() -> int:
     print(table(results))
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "faults.json"
-    path.write_text(json.dumps({"speedup": args.speedup, "cases": [asdict(result) for result in results]}, indent=1))
+    path.write_text(jsontext.dumps({"speedup": args.speedup, "cases": [asdict(result) for result in results]}, indent=1))
     print(f"\nwritten: {path}")
     return 0 if all(result.passed for result in results) else 1
 

@@ -47,6 +47,7 @@ from fibsem import utils  # noqa: E402
 from fibsem.alignment import AlignmentSubsystem, beam_shift_alignment_v2  # noqa: E402
 from fibsem.structures import BeamType, ImageSettings  # noqa: E402
 
+from semservo import jsontext  # noqa: E402
 from semservo.openfibsem import Positioner, SimulatedDemoFrames  # noqa: E402
 from semservo.reproduce.loop import run_trial  # noqa: E402
 
@@ -172,8 +173,8 @@ def main() -> int:
         converged = f"{row['converged']}/{row['trials']}" if not name.startswith("fibsem") else "n/a (fixed steps)"
         say(f"| {name} | {converged} | {row['within_0_1_px']}/{row['trials']} | {row['x_mean_px']:.3f} / "
             f"{row['x_max_px']:.3f} | {row['y_mean_px']:.3f} / {row['y_max_px']:.3f} | {row['iterations_median']:g} |")
-    (args.out / "openfibsem.json").write_text(json.dumps({"cases": [[s, o.tolist()] for s, o in cases],
-                                                          "results": results}, indent=1))
+    (args.out / "openfibsem.json").write_text(jsontext.dumps({"cases": [[s, o.tolist()] for s, o in cases],
+                                                              "results": results}, indent=1))
     say(f"\nwrote {args.out / 'openfibsem.json'}")
     return 0
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 import argparse
 import base64
 import io
-import json
 import os
 import sys
 import time
@@ -44,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semservo import jsontext
 from semservo.config import Settings, connect
 from semservo.launcher import Launcher, fresh_port_environment, stage_rate_for
 from semservo.simulation.sample_image import find_picture, scan_pixel_um
@@ -474,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
             say(f"{rate['offered_fps']:11.0f} {rate['published_per_s']:11.1f} {rate['estimates_handled_per_s']:11.1f} "
                 f"{rate['moves_per_s']:8.1f} {rate['latency_p50_ms'] or float('nan'):7.2f} "
                 f"{rate['latency_p99_ms'] or float('nan'):7.2f}")
-    (args.out / f"{name}.json").write_text(json.dumps({"run_settings": run_settings, "results": results,
+    (args.out / f"{name}.json").write_text(jsontext.dumps({"run_settings": run_settings, "results": results,
                                                        "throughput": loop}, indent=1))
     if results:
         plot(results, args.out / f"{name}.png")

@@ -58,6 +58,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).parent))
 import estimator as peers  # noqa: E402  (the methods of bench/estimator.py, the same code)
 
+from semservo import jsontext  # noqa: E402
 from semservo.config import find_recorded_run, find_sem_images  # noqa: E402
 from semservo.estimation import MotionEstimator, rotate_about_centre  # noqa: E402
 from semservo.imagefiles import read_sem_image  # noqa: E402
@@ -481,7 +482,7 @@ def main(argv=None) -> int:
     if "timing" in results:
         print_timing(results["timing"])
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2))
+    args.out.write_text(jsontext.dumps(results, indent=2))
     print(f"\nwrote {args.out}")
     return 0
 

@@ -23,6 +23,7 @@ import argparse
 import json
 from pathlib import Path
 
+from semservo import jsontext
 from semservo.reproduce.tilts import repeated_teaches, summarize_teaches
 
 RESULTS = Path(__file__).parent / "results"
@@ -59,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
                                    environment=environment)
         output["scenes"][name] = {"summary": summarize_teaches(teaches), "teaches": teaches}
         RESULTS.mkdir(exist_ok=True)
-        (RESULTS / "teach.json").write_text(json.dumps(output, indent=1))
+        (RESULTS / "teach.json").write_text(jsontext.dumps(output, indent=1))
     print("\n| scene | taught | sweeps | alpha error mean / sd (deg) | its standard error | RMS / max z "
           "| beta error mean / sd (deg) | its standard error | RMS / max z |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")

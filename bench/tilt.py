@@ -38,13 +38,13 @@ simulated scene; these are simulated results, not a real instrument's.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 from pathlib import Path
 
 import numpy as np
 
+from semservo import jsontext
 from semservo.reproduce.tilts import (DEPTH_OF_FIELD_UM, FIG8_START, PAPER_POSES, PAPER_WORST_DEG,
                                       depth_of_field_scan, five_dof_runs, plot_fig8, random_starts, summarize,
                                       table_one)
@@ -159,7 +159,7 @@ def sample_image_runs(args, rng: np.random.Generator) -> int:
             f"gamma {summary['gamma_deg']}, view {summary['view_px']} px")
         output["scenes"][name] = {"summary": summary, "runs": [{key: value for key, value in run.items()
                                                                  if key != "trajectory"} for run in runs]}
-        (RESULTS / f"tilt-sample-images-{args.converge_on}.json").write_text(json.dumps(output, indent=1, default=float))
+        (RESULTS / f"tilt-sample-images-{args.converge_on}.json").write_text(jsontext.dumps(output, indent=1))
     say("\n| scene | converged | iterations | true final tilts mean / max (deg) | gamma mean / max (deg) | "
         "view x, y mean / max (px) |")
     say("| --- | --- | --- | --- | --- | --- |")
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         print_runs(runs)
         output["runs"] = [{key: value for key, value in run.items() if key != "trajectory" or index == 0}
                           for index, run in enumerate(runs)]
-    (RESULTS / "tilt.json").write_text(json.dumps(output, indent=1, default=float))
+    (RESULTS / "tilt.json").write_text(jsontext.dumps(output, indent=1))
     say(f"\nwrote {RESULTS / 'tilt.json'}")
     return 0
 

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semservo import jsontext
 from semservo.config import find_sem_images
 from semservo.estimation.tilt import MAX_TEACH_SWEEPS
 from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel
@@ -192,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             output["depth_of_field"][shape] = scans
             print_scan(shape, scans, own)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(output, indent=1, default=float))
+    args.out.write_text(jsontext.dumps(output, indent=1))
     say(f"\nwrote {args.out}")
     return 0
 

@@ -19,10 +19,10 @@ are kept per trial: an interrupted run resumes where it stopped (``--fresh`` sta
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
+from semservo import jsontext
 from semservo import reproduce
 from semservo.reproduce import loop, report
 
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         trials=args.trials, cases=args.presets, models=args.models, baseline=not args.no_baseline)
     result.update(quick=args.quick, seconds=round(time.monotonic() - started, 1),
                   finished_at=time.strftime("%Y-%m-%d %H:%M:%S"))
-    (results / "time_to_target.json").write_text(json.dumps(result, default=reproduce._jsonable))
+    (results / "time_to_target.json").write_text(jsontext.dumps(result))
     print("\n".join(report.time_to_target_headline_lines(result)))
     print()
     print("\n".join(report.time_to_target_targets(result)))

@@ -15,7 +15,6 @@ Target (issue 2): at least 1000 frames/s and p99 under 2 ms for 512 x 512.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import socket
 import sys
@@ -24,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semservo import jsontext
 from semservo.transport import FramePublisher, FrameSubscriber
 
 SIZES = {"512x512": (512, 512), "1536x1024": (1024, 1536)}
@@ -128,7 +128,7 @@ def main(argv=None) -> int:
             print(f"{result['size']} {result['mode']}: p99 of each run (ms): {runs}")
     print(f"target (512x512: >= 1000 frames/s, p99 < 2 ms at 1000/s, median run): {'met' if verdict else 'NOT met'}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"results": results, "target_met": verdict}, indent=2))
+    args.out.write_text(jsontext.dumps({"results": results, "target_met": verdict}, indent=2))
     print(f"wrote {args.out}")
     return 0
 

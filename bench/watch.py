@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semservo import jsontext
 from semservo.instruments import NotReady
 from services.fakelab.acquisition import encode_fei_tiff, fei_metadata_text, with_data_bar
 from services.imageserver.watch import WatchSource
@@ -100,7 +101,7 @@ def main() -> None:
         print(f"| {row['mode']} | {row['frames']} | {row['missing']} | {row['repeated']} | {row['in_order']} | "
               f"{row['p50_ms']:.1f} ms | {row['p99_ms']:.1f} ms | {row['max_ms']:.1f} ms |")
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2))
+        args.json.write_text(jsontext.dumps(rows, indent=2))
 
 
 if __name__ == "__main__":

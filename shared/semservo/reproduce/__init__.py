@@ -46,6 +46,7 @@ from typing import Callable
 
 import numpy as np
 
+from semservo import jsontext
 from semservo.reproduce import loop, methods, tilts
 
 #: The paper's cases 1-6 (Table III, IV) as the fake lab's presets.
@@ -367,7 +368,7 @@ def experiment_time_to_target(quick: bool, progress: Callable[[int], Progress], 
         done[row["key"]] = row
         if checkpoint is not None:
             with checkpoint.open("a") as file:
-                file.write(json.dumps(row, default=_jsonable) + "\n")
+                file.write(jsontext.dumps(row) + "\n")
         bar.step(f"{row['case']} {row['law']}/{row['method']} {row['stage_model']}: {row['fresh_frames']} frames")
 
     # Trials of one preset and seed share what teaching left (the same lab until the jog).
@@ -459,7 +460,7 @@ def run(out: Path, *, quick: bool = False, only: list[str] | None = None, fresh:
         result = RUNNERS[name](quick, lambda total, name=name: Progress(name, total, quiet), **extra)
         result.update(quick=quick, seconds=round(time.monotonic() - started, 1),
                       finished_at=time.strftime("%Y-%m-%d %H:%M:%S"))
-        path.write_text(json.dumps(result, default=_jsonable))
+        path.write_text(jsontext.dumps(result))
         say(f"{name}: done in {result['seconds']:.0f} s")
     return report.write(out, say=say)
 
@@ -468,12 +469,3 @@ def load(out: Path, name: str) -> dict | None:
     path = out / "results" / f"{name}.json"
     return json.loads(path.read_text()) if path.is_file() else None
 
-
-def _jsonable(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
