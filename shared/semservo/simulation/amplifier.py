@@ -14,11 +14,11 @@ to pull the cable or turn a knob.
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar
+from typing import ClassVar
 
-from semservo.instruments import DeviceError, LinkError, LogEntry
+from semservo.instruments import DeviceError
+from semservo.simulation.in_memory import InMemoryDriver
 
 CHANNELS = (0, 1, 2)
 OUTPUT_RANGE = (-20.0, 130.0)
@@ -35,32 +35,13 @@ class SimulatedDevice:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
-class SimulatedAmplifier:
+class SimulatedAmplifier(InMemoryDriver):
     """A three-channel amplifier with the :class:`~semservo.instruments.StageDriver`
     methods, held in memory."""
 
+    device_type = SimulatedDevice
+    what = "simulated amplifier"
     devices: ClassVar[dict[str, SimulatedDevice]] = {}
-
-    def __init__(self, device: SimulatedDevice):
-        self.device = device
-        self.log: list[LogEntry] = []
-        self.on_entry: Callable[[LogEntry], None] | None = None
-
-    @classmethod
-    def open(cls, url: str) -> "SimulatedAmplifier":
-        device = cls.devices.setdefault(url, SimulatedDevice())
-        if not device.plugged:
-            raise LinkError(f"cannot open {url}: the simulated amplifier is unplugged")
-        return cls(device)
-
-    def _exchange(self, sent: str, received: str) -> None:
-        if not self.device.plugged:
-            raise LinkError("the simulated amplifier is unplugged")
-        for direction, text in (("sent", sent), ("received", received)):
-            entry = LogEntry(time.time_ns(), direction, text)
-            self.log.append(entry)
-            if self.on_entry is not None:
-                self.on_entry(entry)
 
     def identify(self) -> dict:
         self._exchange("identify", "simulated amplifier")

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar
+from typing import ClassVar
 
-from semservo.instruments import PHYSICAL, Axis, DeviceError, LinkError, LogEntry
+from semservo.instruments import PHYSICAL, Axis, DeviceError
+from semservo.simulation.in_memory import InMemoryDriver
 
 #: The simulated device's axes: a closed-loop stage with 100 um of travel, and a beam
 #: shift of +-5 um.
@@ -40,32 +40,13 @@ class SimulatedPositionerDevice:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
-class SimulatedPositioner:
+class SimulatedPositioner(InMemoryDriver):
     """A :class:`~semservo.instruments.MotionDriver` held in memory."""
 
     kind = PHYSICAL
+    device_type = SimulatedPositionerDevice
+    what = "simulated positioner"
     devices: ClassVar[dict[str, SimulatedPositionerDevice]] = {}
-
-    def __init__(self, device: SimulatedPositionerDevice):
-        self.device = device
-        self.log: list[LogEntry] = []
-        self.on_entry: Callable[[LogEntry], None] | None = None
-
-    @classmethod
-    def open(cls, url: str) -> "SimulatedPositioner":
-        device = cls.devices.setdefault(url, SimulatedPositionerDevice())
-        if not device.plugged:
-            raise LinkError(f"cannot open {url}: the simulated positioner is unplugged")
-        return cls(device)
-
-    def _exchange(self, sent: str, received: str) -> None:
-        if not self.device.plugged:
-            raise LinkError("the simulated positioner is unplugged")
-        for direction, text in (("sent", sent), ("received", received)):
-            entry = LogEntry(time.time_ns(), direction, text)
-            self.log.append(entry)
-            if self.on_entry is not None:
-                self.on_entry(entry)
 
     def identify(self) -> dict:
         self._exchange("identify", "simulated positioner")
