@@ -32,7 +32,6 @@ Writes bench/results/openfibsem.json.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import tempfile

@@ -1,7 +1,9 @@
 """How far a teach's tilts are off, against what their standard errors say: teaches with
 tilts through the whole stack (real services on loopback, the fake lab's tilts preset sped
-up), the stage at rest at its start pose, on the simulator's scene and on real SEM
+up), the stage untilted at its start pose, on the simulator's scene and on real SEM
 pictures as the sample (``--scenes``: names in ``../shared/data/sem-images`` or files).
+Before each teach the stage undoes the drift since the first (as an operator re-centres
+the view), so every teach sees the same part of the picture.
 
 Why it matters: a run servoes the tilts onto the taught reading, so the teach's error is
 carried by every run from it, and the standard errors the teach reports
@@ -20,7 +22,6 @@ Writes bench/results/teach.json.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from semservo import jsontext

@@ -36,7 +36,6 @@ bench/results/tilt_real.json.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import time

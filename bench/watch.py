@@ -15,7 +15,6 @@ repeated (both must be 0).
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import threading
 import time

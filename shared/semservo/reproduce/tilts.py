@@ -392,25 +392,33 @@ def _taught_pose(fakelab, reference) -> Pose | None:
 def repeated_teaches(count: int, speedup: float = 20.0, say: Callable[[str], None] = print, *,
                      environment: dict[str, str] | None = None) -> list[dict]:
     """``count`` teaches with tilts through the whole stack (started here, on fresh
-    loopback ports) at the start pose, the stage at rest: is each taught reading within
-    what its standard errors say? Per teach: the readings (alpha, beta), their standard
-    errors, the sweeps pooled, the simulator's true tilts over the taught frames' scans,
-    the errors and the errors in standard errors (``z``), or ``refused`` with the reason.
+    loopback ports) at the start pose, the stage untilted: is each taught reading within
+    what its standard errors say? Before each teach the stage undoes the drift since the
+    first, as an operator re-centres the view, so every teach sees the same part of the
+    sample. Per teach: the readings (alpha, beta), their standard errors, the sweeps
+    pooled, the simulator's true tilts over the taught frames' scans, the errors and the
+    errors in standard errors (``z``), where the view was (``view_um``: the true x, y
+    offset from the start), or ``refused`` with the reason.
 
     Why: a run servoes the tilts onto the taught reading, so the teach's error is carried
     by every run from it; its standard error says how far that may be, and a run's
     tolerance should be read against it (issue #27's closed loop read its teaches 1.3-2.8
-    standard errors off)."""
+    standard errors off). Why re-centre: the tilts preset drifts 2.5 nm/s, about 12 um
+    (half the field) over 12 teaches at 20 times the speed; on a picture whose texture is
+    in one part (the aperture's ring on black) the later teaches saw less of it and were
+    refused from their first sweep."""
     from semservo.client import SemservoError
 
     results = []
     with tempfile.TemporaryDirectory() as folder, _tilts_stack(Path(folder), speedup, environment) as (lab, fakelab):
+        start = _pose(fakelab.request("pose"))
         for index in range(1, count + 1):
+            view = _recentre(lab, fakelab, start)
             try:
                 reference = lab.teach(frames=4, tilts=True)
             except SemservoError as error:  # e.g. a texture whose sweeps cannot pin the tilts
-                results.append({"refused": error.message})
-                say(f"  teach {index:2d}/{count}: refused: {error.message}")
+                results.append({"refused": error.message, "view_um": view})
+                say(f"  teach {index:2d}/{count}: refused (view at {view[0]:+.2f}, {view[1]:+.2f} um): {error.message}")
                 continue
             tilt = reference.tilt or {}
             # The truth over the taught frames' scans; unknown (NaN) without them.
@@ -421,11 +429,26 @@ def repeated_teaches(count: int, speedup: float = 20.0, say: Callable[[str], Non
             z = (error[0] / spread[0], error[1] / spread[1])
             results.append({"reading_deg": list(reading), "uncertainty_deg": list(spread),
                             "sweeps": tilt.get("sweeps", 1), "true_deg": [truth.tilt_x_deg, truth.tilt_y_deg],
-                            "error_deg": list(error), "z": list(z)})
+                            "error_deg": list(error), "z": list(z), "view_um": view,
+                            "kernels_used": tilt.get("kernels_used")})
             say(f"  teach {index:2d}/{count}: {tilt.get('sweeps', 1)} sweep(s), alpha {error[0]:+.3f} "
                 f"(+-{spread[0]:.3f}, {z[0]:+.2f} standard errors), beta {error[1]:+.3f} (+-{spread[1]:.3f}, "
-                f"{z[1]:+.2f})")
+                f"{z[1]:+.2f}); {tilt.get('kernels_used')} kernels; view at {view[0]:+.2f}, {view[1]:+.2f} um")
     return results
+
+
+def _recentre(lab, fakelab, start: Pose, within_um: float = 0.05) -> list[float]:
+    """Move the stage so that the view is back at ``start`` (the simulator's true x, y),
+    undoing the drift since; returns the view's true x, y offset from ``start`` (um)
+    after the move."""
+    now = _pose(fakelab.request("pose"))
+    offset = (now.x_um - start.x_um, now.y_um - start.y_um)
+    if math.hypot(*offset) > within_um:
+        here = lab.stage()["positions_um"]
+        _move_to(lab, here["x"] - offset[0], here["y"] - offset[1])
+        time.sleep(0.5)  # settled, before the teach's frames
+        now = _pose(fakelab.request("pose"))
+    return [now.x_um - start.x_um, now.y_um - start.y_um]
 
 
 def summarize_teaches(teaches: list[dict]) -> dict:
