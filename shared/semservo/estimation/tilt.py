@@ -88,9 +88,8 @@ DEPTH_UNCERTAINTY_FLOOR_STEPS = 0.02
 #: tilts' uncertainty by about 1 / sqrt(n) only while the kernels' depth noise dominates.
 MAX_TEACH_SWEEPS = 4
 
-#: A view refused for its uncertainty is swept again while 1 / sqrt(n) projects its
-#: standard error within this factor of ``MAX_TILT_UNCERTAINTY_DEG`` (:func:`wants_another_sweep`):
-#: the standard error is itself estimated, from a few dozen kernels' residuals.
+#: Once a view is being pooled, it is swept again while 1 / sqrt(n) projects its
+#: standard error within this factor of ``MAX_TILT_UNCERTAINTY_DEG`` (:func:`wants_another_sweep`).
 POOLING_SLACK = 1.25
 
 #: The taught pose's tilts are swept again while either is pinned less tightly than this
@@ -889,9 +888,10 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
     (:func:`pooled_tilt`): while fewer than ``max_sweeps`` are taken, when either tilt's
     standard error is above ``TEACH_UNCERTAINTY_DEG`` (or the estimate is refused for
     its uncertainty, above ``MAX_TILT_UNCERTAINTY_DEG``), and pooling ``max_sweeps``
-    could bring a refused estimate under the line at the best rate, 1 / sqrt(n), give
-    or take ``POOLING_SLACK``: a texture hopeless at that rate is refused at once (the
-    estimate's reason stands), not swept again. An estimate refused for another reason
+    could bring a refused estimate under the line at the best rate, 1 / sqrt(n): a
+    texture hopeless at that rate after its first sweep is refused at once (the
+    estimate's reason stands), not swept again; once pooling has begun, the projection
+    may be up to ``POOLING_SLACK`` over the line. An estimate refused for another reason
     (too few kernels with a clear peak, depths that are not one plane) is not swept again
     either."""
     if estimate.sweeps >= max_sweeps:
@@ -904,13 +904,14 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
     if worst <= MAX_TILT_UNCERTAINTY_DEG or estimate.kernels_used < MIN_KERNELS:
         return False  # refused for another reason than its uncertainty
     best_reachable = worst * np.sqrt(estimate.sweeps / max_sweeps)
-    # A projection a little over the line is not a verdict: the standard error is itself
-    # estimated, from a few dozen kernels' residuals, and pooling is not exactly
-    # 1 / sqrt(n). Through the whole stack a teach of the aperture read +-0.12 after 3
-    # sweeps, projecting 0.104 for 4, where another teach's 4 sweeps had read +-0.09; and
-    # 1 teach in 12 read +-0.21 from its first sweep and was refused at once, projecting
-    # 0.105, where the other 11 teaches' 4 sweeps pooled read +-0.05-0.08.
-    return best_reachable <= POOLING_SLACK * MAX_TILT_UNCERTAINTY_DEG
+    if estimate.sweeps > 1:
+        # Once pooling has begun, a projection a little over the line is not a verdict:
+        # the pooled standard error is itself estimated, from a few dozen kernels'
+        # residuals, and pooling is not exactly 1 / sqrt(n) (a teach of the aperture read
+        # +-0.12 after 3 sweeps, projecting 0.104 for 4, and was refused where another
+        # teach's 4 sweeps had read +-0.09).
+        return best_reachable <= POOLING_SLACK * MAX_TILT_UNCERTAINTY_DEG
+    return best_reachable <= MAX_TILT_UNCERTAINTY_DEG
 
 
 # --------------------------------------------------------------------------------------
