@@ -475,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{rate['moves_per_s']:8.1f} {rate['latency_p50_ms'] or float('nan'):7.2f} "
                 f"{rate['latency_p99_ms'] or float('nan'):7.2f}")
     (args.out / f"{name}.json").write_text(jsontext.dumps({"run_settings": run_settings, "results": results,
-                                                       "throughput": loop}, indent=1))
+                                                           "throughput": loop}, indent=1))
     if results:
         plot(results, args.out / f"{name}.png")
     say(f"wrote {args.out / f'{name}.json'} and {args.out / f'{name}.png'}")

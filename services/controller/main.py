@@ -35,17 +35,16 @@ def build_parser() -> argparse.ArgumentParser:
 def estimator_ports(client: ControlClient) -> tuple[ServicePort, ServicePort]:
     """The controller's two ports onto the estimator's control socket (one client): the
     running loop's, whose commands give up after the client's tries (1 s each) but for
-    ``report``, and a run start's, more patient with ``measure`` too.
+    those that declare longer (``report``, :mod:`semservo.protocol.estimator`), and a run
+    start's, more patient with ``measure`` too.
 
-    An estimator busy planning a new reference's transforms answers ``report`` late, but
-    answers. Right after a teach (its transforms planned, its focus sweeps' planes fitted
-    in another thread), with a benchmark on the other core, it answered a start's
+    Right after a teach (its transforms planned, its focus sweeps' planes fitted in
+    another thread), with a benchmark on the other core, the estimator answered a start's
     ``measure`` past 2 tries of 1 s: the run was refused for nothing. Two tries of 4 s
     keep a start within the gateway's 15 s for it; the loop and a run's end (when the
     estimator may be dead) keep their 1 s.
     """
-    return (ServicePort(client, timeouts={"report": 5.0}),
-            ServicePort(client, timeouts={"report": 5.0, "measure": 4.0}))
+    return ServicePort(client), ServicePort(client, timeouts={"measure": 4.0})
 
 
 def main(argv: list[str] | None = None) -> int:

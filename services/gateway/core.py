@@ -450,7 +450,7 @@ class GatewayCore:
         estimator then sweeps the focus at the taught pose, in the background (the
         reference's ``tilt_teach`` says how far)."""
         self._refuse_during_run("teaching a new reference")
-        self.ask("estimator", estimator_protocol.REPORT)  # a dead estimator is named at once, not after a timeout
+        self.ask("estimator", estimator_protocol.REPORT)  # a dead estimator named in seconds, not after the teach's 60
         latest = self.latest
         if tilts and (image is not None or mask is not None or polygon is not None or dwell_ns is not None):
             raise BadRequest("tilts are taught with the live frames (a focus sweep at the taught pose), not with an "

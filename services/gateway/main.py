@@ -24,7 +24,6 @@ from semservo.config import Settings, connect
 from semservo.logs import configure
 from semservo.messages import CONTROLLER_TOPIC, ControllerEvent
 from semservo.protocol import ServicePort
-from semservo.protocol import estimator as estimator_protocol
 from semservo.security import is_loopback
 from semservo.service import ServiceRuntime
 from semservo.transport import ControlClient, FrameSubscriber, MessageSubscriber
@@ -46,10 +45,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
 
-#: How long the gateway waits for the estimator's report (seconds; see ``main``).
-ESTIMATOR_REPORT_TIMEOUT_S = 5.0
-
-
 def main(argv: list[str] | None = None) -> int:
     build_parser().parse_args(argv)
     settings = Settings()
@@ -63,20 +58,15 @@ def main(argv: list[str] | None = None) -> int:
     runtime = ServiceRuntime("gateway", settings, settings.bind(config.control_port))
     timeout = min(settings.request_timeout_s, 1.0)
 
-    def port(host: str, control_port: int, timeouts: dict[str, float] | None = None) -> ServicePort:
+    def port(host: str, control_port: int) -> ServicePort:
         # Shared: HTTP requests arrive on many threads, a ZeroMQ socket serves one at a time.
         return ServicePort(ControlClient(connect(host, control_port), timeout_s=timeout, retries=1,
-                                         context=runtime.context), shared=True, timeouts=timeouts)
+                                         context=runtime.context), shared=True)
 
     ports = {
         "fakelab": port(settings.fakelab.host, settings.fakelab.control_port),
         "imageserver": port(settings.imageserver.host, settings.imageserver.control_port),
-        # The estimator serves its socket between frames, so on a busy machine its report
-        # can wait over a second. A teach asks for it first, to name a dead estimator in
-        # seconds rather than after the teach's own 60 s; at 1 s a live one was named
-        # dead and the teach answered 503 (schemathesis's teaches back to back, in CI).
-        "estimator": port(settings.estimator.host, settings.estimator.control_port,
-                          timeouts={estimator_protocol.REPORT.name: max(timeout, ESTIMATOR_REPORT_TIMEOUT_S)}),
+        "estimator": port(settings.estimator.host, settings.estimator.control_port),
         "stage": port(settings.stage.host, settings.stage.control_port),
         "controller": port(settings.controller.host, settings.controller.control_port),
     }

@@ -45,6 +45,28 @@ def test_the_architecture_map_shows_the_tables_generated_from_the_declarations()
     assert shown == markdown().strip(), "run: python -m semservo.protocol --write docs/architecture.md"
 
 
+def test_the_estimators_report_gets_longer_than_a_ports_default_from_every_caller():
+    """A teach asks the estimator's report first (a dead one named in seconds); a busy,
+    live estimator answered it past 1 s and the teach was a 503. The command declares its
+    own timeout, so the gateway's and the controller's ports both give it 5 s."""
+    from semservo.protocol import ServicePort
+
+    asked = []
+
+    class Client:
+        endpoint = "tcp://127.0.0.1:1"
+
+        def request(self, name, *, timeout_s=None, **args):
+            asked.append((name, timeout_s))
+            return {"reference": None, "rotation": False, "measure_rotation": False, "measure_tilts": False,
+                    "tilt_reference": None, "last_tilt": None, "tilt_error": None, "precision": "single",
+                    "latest_frame_seq": None, "last_estimate": None}
+
+    ServicePort(Client(), shared=True).call(estimator.REPORT)
+    ServicePort(Client(), timeouts={"measure": 4.0}).call(estimator.REPORT)
+    assert asked == [("report", 5.0), ("report", 5.0)]
+
+
 @pytest.mark.parametrize("args, field", [
     ({"targets": {"x": float("nan")}}, "targets.x"),
     ({"targets": {"x": True}}, "targets.x"),

@@ -149,7 +149,13 @@ TEACH = COMMANDS.add("teach", TeachRequest, Reference,
                      "teach the reference (a refused teach keeps the previous one; `not_enough_frames` while fewer "
                      "frames have arrived than asked to average)", timeout_s=60.0)
 CLEAR = COMMANDS.add("clear", NoArguments, ClearReply, "forget the reference (nothing is published)")
-REPORT = COMMANDS.add("report", NoArguments, Report, "the reference, what is measured, the last tilt measurement")
+# The estimator serves its socket between frames: just after a teach (a new reference's
+# transforms planned, its focus sweeps' planes fitted in another thread) on a busy
+# machine, its report came past 1 s, to the controller's run start and to the gateway's
+# teach (which asks it first, to name a dead estimator in seconds, not after 60 s): both
+# refused for nothing, the teach as a 503 in CI. So every caller gives it 5 s.
+REPORT = COMMANDS.add("report", NoArguments, Report, "the reference, what is measured, the last tilt measurement",
+                      timeout_s=5.0)
 MEASURE = COMMANDS.add("measure", MeasureRequest, MeasureReply,
                        "what to measure per frame (a run without the rotation DOF skips it; a run with the tilts "
                        "starts the tilt tracker: `no_tilt_reference` without a taught sweep)")

@@ -44,8 +44,8 @@ class SimulatedAmplifier(InMemoryDriver):
     devices: ClassVar[dict[str, SimulatedDevice]] = {}
 
     def identify(self) -> dict:
-        self._exchange("identify", "simulated amplifier")
-        return {"model": "simulated amplifier", "channels": len(CHANNELS)}
+        self._exchange("identify", self.what)
+        return {"model": self.what, "channels": len(CHANNELS)}
 
     def take_control(self, channels: list[int]) -> None:
         with self.device.lock:

@@ -49,8 +49,8 @@ class SimulatedPositioner(InMemoryDriver):
     devices: ClassVar[dict[str, SimulatedPositionerDevice]] = {}
 
     def identify(self) -> dict:
-        self._exchange("identify", "simulated positioner")
-        return {"model": "simulated positioner"}
+        self._exchange("identify", self.what)
+        return {"model": self.what}
 
     def axes(self) -> dict[str, Axis]:
         return dict(AXES)
