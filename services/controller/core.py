@@ -214,12 +214,16 @@ class ControllerCore:
     def stop(self, reason: str = "stop requested") -> dict:
         """Stop at once: the stage is told to stop first (it refuses further moves until
         resumed), then the run ends as ``stopped``."""
+        stage_reachable = True
         try:
             self.stage.call(stage_protocol.STOP, reason=reason)
         except (CommandError, ServiceUnavailable) as error:
             log.error("could not tell the stage to stop: %s", error)
+            # A stage that did not answer the stop is not asked for its log as well:
+            # that would only delay the run's end (and a stopping controller's exit).
+            stage_reachable = not isinstance(error, ServiceUnavailable)
         if self.state == "servoing":
-            self._finish("stopped", reason)
+            self._finish("stopped", reason, stage_reachable=stage_reachable)
         return self.status()
 
     def _estimator_measures(self, rotation: bool | None, tilts: bool | None = None, required: bool = False,

@@ -246,6 +246,10 @@ class ControlClient:
         self.socket: zmq.Socket | None = None
         #: Asked while waiting for any reply: True abandons it (e.g. the process is stopping).
         self.cancelled: Callable[[], bool] | None = None
+        #: No reply is waited for longer than this, whatever its command declares (a
+        #: stopping service bounds every last call: a command's own 5 s would outlast
+        #: the launcher's patience with a dead peer). None: no bound.
+        self.max_timeout_s: float | None = None
 
     def _open(self) -> zmq.Socket:
         socket = self.context.socket(zmq.REQ)
@@ -268,6 +272,8 @@ class ControlClient:
         is abandoned (the socket replaced) and :class:`RequestCancelled` raised.
         """
         timeout_s = timeout_s or self.timeout_s
+        if self.max_timeout_s is not None:
+            timeout_s = min(timeout_s, self.max_timeout_s)
         cancelled = cancelled or self.cancelled
         for attempt in range(1, (retries or self.retries) + 1):
             if self.socket is None:

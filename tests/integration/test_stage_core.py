@@ -11,7 +11,7 @@ import pytest
 
 from semservo import nv40
 from semservo.control import CameraToStage
-from semservo.errors import CommandError
+from semservo.errors import CommandError, ServiceUnavailable
 from semservo.messages import MotionEstimate
 from semservo.protocol import LocalPort
 from semservo.protocol import estimator as estimator_protocol
@@ -252,6 +252,30 @@ def test_controller_converges_and_stop_stops_the_stage(stage, tmp_path):
     core.start(RunSettings(), "ref")
     core.stop("operator pressed stop")
     assert core.state == "stopped" and stage.state == "stopped"
+
+
+def test_a_stop_the_stage_does_not_answer_ends_the_run_without_asking_the_stage_again(stage, tmp_path):
+    """A controller stopping (Ctrl-C) during a run whose stage service had died: asking
+    the dead stage for its log too (a command of 5 s) outlasted the launcher's patience
+    and the controller was killed. A stage that missed the stop is asked nothing more."""
+
+    class DyingStage:
+        def __init__(self, port):
+            self.port, self.dead, self.asked = port, False, []
+
+        def call(self, command, request=None, /, **fields):
+            if self.dead:
+                self.asked.append(command.name)
+                raise ServiceUnavailable("no reply from the stage after 1 tries")
+            return self.port.call(command, request, **fields)
+
+    port = DyingStage(LocalStage(stage))
+    core = ControllerCore(port, runs_dir=tmp_path)
+    core.start(RunSettings(), "ref")
+    port.dead = True
+    core.stop("controller shutting down")
+    assert core.state == "stopped" and port.asked == ["stop"]
+    assert "unreachable" in core.run.outcome["stage_log_error"]
 
 
 def test_a_start_the_stage_refuses_is_named_the_stages_and_the_controllers_own_refusals_keep_their_codes(

@@ -192,6 +192,18 @@ def test_lazy_pirate_gives_up_in_bounded_time_when_nobody_answers(context):
     client.close()
 
 
+def test_a_clients_bound_caps_what_a_command_declares(context):
+    """A stopping service bounds its last calls (``max_timeout_s``): a command's own
+    longer timeout (the stage's log declares 5 s) must not outlast the launcher's patience."""
+    client = ControlClient("tcp://127.0.0.1:1", timeout_s=0.1, retries=1, context=context)
+    client.max_timeout_s = 0.1
+    started = time.monotonic()
+    with pytest.raises(ServiceUnavailable, match="after 1 tries"):
+        client.request("log", timeout_s=60.0)
+    assert time.monotonic() - started < 30.0
+    client.close()
+
+
 def test_lazy_pirate_retries_until_a_late_server_answers(context):
     from tests.conftest import free_port
 
