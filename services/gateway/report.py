@@ -7,11 +7,10 @@ from __future__ import annotations
 import io
 import math
 import textwrap
+from typing import TYPE_CHECKING
 
-import matplotlib
-
-matplotlib.use("Agg")
-from matplotlib.figure import Figure  # noqa: E402  (after the backend is chosen)
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 ANGULAR = ("rotation", "alpha", "beta")
 ANGLE_LABELS = {"rotation": "γ (rotation)", "alpha": "α (tilt about x)", "beta": "β (tilt about y)"}
@@ -49,6 +48,11 @@ def report_png(run: dict) -> bytes:
 def report_figure(run: dict) -> Figure:
     """The report's figure: error (px), angle errors (deg, when the run servoes an
     angle), cost and voltages, one panel each."""
+    # Imported here, not at the top: matplotlib is a second of the gateway's start, and
+    # most gateways never draw a report. A bare Figure needs no backend (it saves
+    # through Agg by itself).
+    from matplotlib.figure import Figure
+
     moved = [r for r in run.get("trajectory", []) if r.get("error") is not None and r.get("action", "moved") == "moved"]
     dofs = run_dofs(run)
     angular = [dof for dof in dofs if dof in ANGULAR]

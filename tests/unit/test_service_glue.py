@@ -201,3 +201,28 @@ def test_the_stage_state_folder_of_a_fresh_system_is_removed_when_the_process_ex
     folder = Path(done.stdout.strip())
     assert folder.name.startswith("semservo-stage-")
     assert not folder.exists()
+
+
+def test_the_launcher_stops_a_service_only_after_those_that_call_it_while_stopping():
+    """The controller ends a run through the stage and the estimator, the stage lets go
+    of the (emulated) amplifier: each group stops together, after the one before."""
+    from semservo.launcher import SERVICES, _stop_groups
+
+    groups = _stop_groups([service.name for service in SERVICES])
+    assert groups == [["gateway", "controller"], ["estimator", "imageserver", "stage"], ["fakelab"]]
+    assert sorted(name for group in groups for name in group) == sorted(service.name for service in SERVICES)
+    assert _stop_groups(["fakelab", "imageserver", "stage"]) == [["imageserver", "stage"], ["fakelab"]]
+    assert _stop_groups(["fakelab", "other"]) == [["fakelab"], ["other"]]
+
+
+def test_the_controller_and_the_gateway_start_without_the_estimators_libraries():
+    """Most of a service's start is imports: the controller and the gateway use the
+    estimation package for constants and conventions only, and the gateway draws a report
+    only when asked; numba, FFTW and matplotlib are seconds of their start."""
+    import subprocess
+    import sys
+
+    code = ("import sys, services.controller.main, services.gateway.main; "
+            "print(' '.join(name for name in ('numba', 'pyfftw', 'matplotlib') if name in sys.modules))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert loaded.stdout.strip() == ""

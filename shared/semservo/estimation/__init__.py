@@ -52,15 +52,38 @@ the image's correlation peaks in the angle (the refinement on the image, :meth:`
 a scene whose turns all look alike has its estimate refused rather than guessed.
 """
 
-from semservo.estimation.common import MIN_SIZE, Motion, as_image
-from semservo.estimation.estimator import MotionEstimator
-from semservo.estimation.masks import mask_reference, polygon_mask
-from semservo.estimation.rotation import rotate_about_centre
-from semservo.estimation.snr import DEFAULT_SNR_THRESHOLD_DB, estimate_snr_db
+from __future__ import annotations
 
-# What lab scripts use; every step's function stays importable from its module
-# (``semservo.estimation.translation.refine_on_band``, ...).
-__all__ = [
-    "DEFAULT_SNR_THRESHOLD_DB", "MIN_SIZE", "Motion", "MotionEstimator", "as_image", "estimate_snr_db",
-    "mask_reference", "polygon_mask", "rotate_about_centre",
-]
+import importlib
+from typing import TYPE_CHECKING
+
+# What lab scripts use, and the module each comes from; every step's function stays
+# importable from its module (``semservo.estimation.translation.refine_on_band``, ...).
+# Loaded on first use (PEP 562), as scikit-image's lazy_loader does: importing one light
+# module of this package (a constant of the raster's, the tilts' conventions) must not
+# pull in numba and FFTW, a second or two of every service's start.
+_EXPORTS = {
+    "DEFAULT_SNR_THRESHOLD_DB": "snr", "MIN_SIZE": "common", "Motion": "common", "MotionEstimator": "estimator",
+    "as_image": "common", "estimate_snr_db": "snr", "mask_reference": "masks", "polygon_mask": "masks",
+    "rotate_about_centre": "rotation",
+}
+__all__ = sorted(_EXPORTS)
+
+if TYPE_CHECKING:
+    from semservo.estimation.common import MIN_SIZE, Motion, as_image
+    from semservo.estimation.estimator import MotionEstimator
+    from semservo.estimation.masks import mask_reference, polygon_mask
+    from semservo.estimation.rotation import rotate_about_centre
+    from semservo.estimation.snr import DEFAULT_SNR_THRESHOLD_DB, estimate_snr_db
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+        globals()[name] = value  # once loaded, an ordinary attribute
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -82,7 +82,6 @@ from typing import Callable, NamedTuple, Sequence
 import cv2
 import numpy as np
 
-from semservo.estimation.rotation import rotate_about_centre
 
 #: Rows per band: 32 rows are 10-30 ms of scan at the paper's dwell times, shorter than a
 #: period of the vibration a frame cannot average (a few to tens of Hz), and enough
@@ -228,6 +227,10 @@ def predicted_frame(reference: ScanReference, dx: float, dy: float, rotation_deg
     shape = rows, cols = reference.smoothed.shape
     spectrum = reference.spectrum
     if rotation_deg != 0.0:
+        # Imported here: the rotation module loads numba and FFTW, and the controller and
+        # the gateway import this module for its constants alone.
+        from semservo.estimation.rotation import rotate_about_centre
+
         spectrum = np.fft.rfft2(rotate_about_centre(reference.smoothed, rotation_deg, interpolation=cv2.INTER_CUBIC))
     predicted = _moved(spectrum, shape, dx, dy)
     # Within the smoothing's reach of either image's border, the smoothing saw the border's

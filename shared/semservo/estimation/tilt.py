@@ -35,7 +35,6 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from semservo.estimation import _kernels
 
 #: A kernel whose focus curve peaks by less than this factor over its lowest value has
 #: no clear peak (flat content, or a kernel out of focus over the whole sweep): on a
@@ -251,6 +250,10 @@ def noise_free_focus_curves(sweep: np.ndarray, kernel: int) -> FocusCurves:
     sweep = np.asarray(sweep)
     frames, rows, cols = sweep.shape
     kernel_rows, kernel_cols = rows // kernel, cols // kernel
+    # Imported here: the controller imports this module for the tilts' conventions
+    # (foreshortening), and numba is a second of its start.
+    from semservo.estimation import _kernels
+
     statistics = np.empty((frames, kernel_rows, kernel_cols, 4))
     for index in range(frames):  # one frame at a time in float32: a sweep can be large
         frame = np.ascontiguousarray(sweep[index], dtype=np.float32)
