@@ -17,7 +17,7 @@ import json
 import logging
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -85,6 +85,8 @@ CONTROLLER_LOST_AFTER_S = 5.0
 #: A stored target's file: a TIFF of the reference's pixels whose description holds the
 #: target as JSON under this key.
 TARGET_FILE_KEY = "semservo_target"
+#: Finished runs' report PNGs kept drawn (:meth:`GatewayCore.run_report`): about 60 kB each.
+REPORTS_KEPT = 32
 
 
 def to_png(pixels: np.ndarray, *, signed: bool = False) -> bytes:
@@ -157,6 +159,7 @@ class GatewayCore:
         self._controller_silent_since: float | None = None
         self._truth_attempts: dict[str, int] = {}
         self._pending_truth: dict[str, dict] = {}  # a reference taught from a stored target: its target's truth
+        self._reports: OrderedDict[tuple, bytes] = OrderedDict()  # finished runs' report PNGs, newest last
         saved = store.reference()
         if saved is not None:  # a restarted gateway knows the last reference and its truth
             self.reference, self.taught_truth = saved
@@ -522,6 +525,28 @@ class GatewayCore:
                                run_id=run_id)
 
     # -- stored targets --------------------------------------------------------------
+    def run_report(self, run: dict) -> bytes:
+        """A run's report (PNG, :func:`services.gateway.report.report_png`). A finished
+        run's is drawn once and kept (the last ``REPORTS_KEPT``): the dashboard and scripts
+        ask again, and drawing takes a few tenths of a second of the gateway's CPU. Kept
+        under what the picture shows (the run, its state, reason and iterations), so a
+        record completed later is drawn anew."""
+        from services.gateway.report import report_png
+
+        if run.get("state") not in FINISHED:
+            return report_png(run)
+        key = (run.get("id"), run.get("state"), run.get("iterations"), (run.get("outcome") or {}).get("reason"),
+               len(run.get("trajectory") or []))
+        with self.lock:
+            kept = self._reports.get(key)
+        if kept is None:
+            kept = report_png(run)
+            with self.lock:
+                self._reports[key] = kept
+                while len(self._reports) > REPORTS_KEPT:
+                    self._reports.popitem(last=False)
+        return kept
+
     def save_target(self, name: str, note: str = "", replace: bool = False) -> dict:
         """The taught reference stored under ``name`` with the stage's pose now and the
         acquisition it was taught at (its pixels, for a run that comes back to it)."""

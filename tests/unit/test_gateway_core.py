@@ -148,3 +148,18 @@ def test_a_tilted_runs_truth_is_the_error_the_image_shows_not_the_stages_alone()
     # not on target, and the view error says by how much.
     lever = view_error_px({**taught, "tilt_x_deg": 0.2}, taught, 0.1)
     assert np.hypot(*lever) > 0.5
+
+
+def test_a_finished_runs_report_is_drawn_once_and_anew_when_its_record_changes(monkeypatch):
+    import services.gateway.report as report
+
+    drawn = []
+    monkeypatch.setattr(report, "report_png", lambda run: drawn.append(run["state"]) or f"png {len(drawn)}".encode())
+    core = core_with()
+    run = {"id": "r1", "state": "converged", "iterations": 2, "outcome": {"reason": "within 0.1 px"},
+           "trajectory": [{"iteration": 1}, {"iteration": 2}]}
+    assert core.run_report(run) == core.run_report(dict(run)) == b"png 1"
+    assert core.run_report({**run, "iterations": 3, "trajectory": [*run["trajectory"], {"iteration": 3}]}) == b"png 2"
+    servoing = {**run, "id": "r2", "state": "servoing"}
+    assert core.run_report(servoing) == b"png 3" and core.run_report(servoing) == b"png 4"  # still changing: drawn
+    assert drawn == ["converged", "converged", "servoing", "servoing"]

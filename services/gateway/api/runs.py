@@ -16,7 +16,6 @@ from semservo.errors import CommandError
 from semservo.protocol import carryable_text
 from services.gateway.api.deps import Core, require_token
 from services.gateway.core import reference_view
-from services.gateway.report import report_png
 
 router = APIRouter(tags=["runs"])
 
@@ -133,7 +132,7 @@ def run_csv(run_id: str, core: Core) -> Response:
 @router.get("/runs/{run_id}/report.png", response_class=Response, responses=PNG,
             summary="Error, cost and voltages per iteration (Fig. 9)")
 def run_report(run_id: str, core: Core) -> Response:
-    return Response(report_png(run_or_404(core, run_id)), media_type="image/png")
+    return Response(core.run_report(run_or_404(core, run_id)), media_type="image/png")
 
 
 @router.get("/runs/{run_id}", response_model=RunRecord, summary="A run's full record")
