@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             # Bounded: a launcher stopping everything gives each service a few seconds,
             # and a peer that is already gone must not use them all up.
             for client in (stage_client, estimator_client):
-                client.timeout_s, client.max_timeout_s, client.retries, client.cancelled = 0.3, 0.3, 1, None
+                client.max_timeout_s, client.retries, client.cancelled = 0.3, 1, None
             core.stop("controller shutting down")
         events.close()
         motion.close()

@@ -524,7 +524,6 @@ class GatewayCore:
             raise CommandError("run_active", f"{what} is refused while run {run_id} is servoing; POST /stop first",
                                run_id=run_id)
 
-    # -- stored targets --------------------------------------------------------------
     def run_report(self, run: dict) -> bytes:
         """A run's report (PNG, :func:`services.gateway.report.report_png`). A finished
         run's is drawn once and kept (the last ``REPORTS_KEPT``): the dashboard and scripts
@@ -547,6 +546,7 @@ class GatewayCore:
                     self._reports.popitem(last=False)
         return kept
 
+    # -- stored targets --------------------------------------------------------------
     def save_target(self, name: str, note: str = "", replace: bool = False) -> dict:
         """The taught reference stored under ``name`` with the stage's pose now and the
         acquisition it was taught at (its pixels, for a run that comes back to it)."""

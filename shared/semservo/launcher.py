@@ -229,15 +229,15 @@ class Launcher:
             time.sleep(0.05)
 
     def start(self, timeout_s: float = 30.0) -> None:
-        """Start every service at once, then wait until each reports healthy, in start
-        order (each within ``timeout_s`` of its turn).
+        """Start the hardware (the fake lab) and wait until it is healthy, then every
+        other service at once, and wait until each reports healthy, in start order (each
+        within ``timeout_s`` of its turn).
 
-        At once, not one after another: most of a service's start is importing its
-        libraries (FastAPI, numba, FFTW), and spawned together they share the cores
-        instead of queueing on one. Only the fake lab, the hardware, is up first, as a
-        lab's instruments are on before the software: the stage reads the rotation stage
-        once, at its first connection. The others connect lazily and say in their health
-        what they still wait for."""
+        The hardware first, as a lab's instruments are on before its software: the stage
+        reads the rotation stage once, at its first connection. The rest at once, not one
+        after another: most of a service's start is importing its libraries (FastAPI,
+        numba, FFTW), and spawned together they share the cores instead of queueing on
+        one; they connect lazily and say in their health what they still wait for."""
         try:
             for wave in ([s for s in self.specs if s.hardware], [s for s in self.specs if not s.hardware]):
                 for service in wave:
