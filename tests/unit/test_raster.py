@@ -216,3 +216,18 @@ def test_lines_that_wander_a_little_still_help_and_a_still_stage_has_none():
     ready = ScanReference.of(reference)
     assert vibration_lines(ready, still, [(0.0, 0.0)] * 4, LINE_TIME_S) == ()
     assert MotionEstimator(reference, rotation=False).learn_vibration(at_rest, LINE_TIME_S) == ()  # no scan averaging
+
+
+def test_the_vibration_lines_threshold_is_scipys_chi_square_without_scipy():
+    """``./dev up`` installs no scipy (only the OpenFIBSEM extra brings it): learning the
+    vibration lines at a teach of several frames failed with "No module named 'scipy'"."""
+    from scipy.special import chdtri
+
+    from semservo.estimation.raster import chi_square_threshold
+
+    for degrees_of_freedom in (4, 16, 64):
+        for probability in (0.5, 1e-3, 1e-9):
+            assert chi_square_threshold(degrees_of_freedom, probability) == pytest.approx(
+                chdtri(degrees_of_freedom, probability), rel=1e-9)
+    with pytest.raises(ValueError):
+        chi_square_threshold(5, 0.01)

@@ -521,6 +521,36 @@ def _explained_with(sums: RowSums, line_time_s: float, lines_hz: Sequence[float]
     return explained
 
 
+
+def chi_square_threshold(degrees_of_freedom: int, probability: float) -> float:
+    """The value a chi-square of ``degrees_of_freedom`` (even) exceeds with ``probability``
+    (its inverse survival function, scipy's ``chdtri``), without scipy, which is not a
+    runtime dependency: for 2k degrees of freedom the survival function is
+    exp(-x/2) sum_{i<k} (x/2)^i / i!, decreasing in x, so bisection finds it (in logs:
+    the probabilities asked for are far in the tail)."""
+    if degrees_of_freedom <= 0 or degrees_of_freedom % 2 or not 0 < probability < 1:
+        raise ValueError(f"need an even, positive number of degrees of freedom and 0 < probability < 1, got "
+                         f"{degrees_of_freedom}, {probability}")
+    terms = np.arange(degrees_of_freedom // 2)
+    log_factorials = np.concatenate(([0.0], np.cumsum(np.log(np.maximum(terms[1:], 1)))))
+
+    def log_survival(x: float) -> float:
+        half = x / 2
+        logs = terms * math.log(half) - log_factorials
+        top = logs.max()
+        return -half + top + math.log(np.exp(logs - top).sum())
+
+    target = math.log(probability)
+    low, high = 1e-9, float(degrees_of_freedom)
+    while log_survival(high) > target:
+        high *= 2
+    for _ in range(200):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if log_survival(middle) > target else (low, middle)
+        if high - low <= 1e-12 * high:
+            break
+    return 0.5 * (low + high)
+
 def vibration_lines(reference: ScanReference, frames: Sequence[np.ndarray], shifts: Sequence[tuple[float, float]],
                     line_time_s: float, *, max_lines: int = MAX_VIBRATION_LINES,
                     false_alarm: float = LINE_FALSE_ALARM,
@@ -539,15 +569,13 @@ def vibration_lines(reference: ScanReference, frames: Sequence[np.ndarray], shif
     nothing stands out (no vibration, or none a frame's rows can resolve). ``cancelled``:
     asked between frames of the search; when it says True, the search stops and returns
     None (a teach superseded by the next one need not finish learning)."""
-    from scipy.special import chdtri  # the chi-square's inverse survival function
-
     sums = [row_sums(smoothed(frame), *predicted_frame(reference, dx, dy)) for frame, (dx, dy) in zip(frames, shifts)]
     if not sums or line_time_s <= 0:
         return ()
     scan_s = len(frames[0]) * line_time_s
     lowest, highest = 1.0 / scan_s, 1.0 / (2 * SAMPLE_STEP * line_time_s)
     candidates = np.arange(lowest, highest, 1.0 / (LINE_OVERSAMPLING * scan_s))
-    threshold = chdtri(4 * len(sums), false_alarm / len(candidates))
+    threshold = chi_square_threshold(4 * len(sums), false_alarm / len(candidates))
 
     lines: tuple[float, ...] = ()
     while len(lines) < max_lines:
