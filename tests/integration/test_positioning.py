@@ -63,6 +63,25 @@ def pose_after(fakelab: ControlClient, since_s: float, span_s: float = 0.5, sett
     return true_pose(fakelab, span_s)
 
 
+def settled_error_px(fakelab: ControlClient, record: dict, taught: tuple[float, float]) -> list[float]:
+    """The true |x|, |y| error (px) where a run ended: the pose over the scans of the fresh
+    frames after its last move, where the stage rests (the frames the law converged on).
+
+    Not the last frames whatever their action: the frame a move was made from was
+    scanned before that move, and a window straddling the move reads a mix of both poses
+    (a 0.4 px "error" from a run whose stage rested within 0.05 px). Not read later
+    either: creep of the return move, 1.5 % per decade of time, moves the stage on by
+    tens of nm, and at 20x speed a busy machine's seconds are decades."""
+    records = record["records"]
+    last_move = max(index for index, r in enumerate(records) if r["action"] == "moved")
+    scans = [r["frame_source_interval_s"] for r in records[last_move + 1:]
+             if "frame_source_interval_s" in r and not r["action"].startswith("held: stale")]
+    assert scans, [r["action"] for r in records]
+    pose = fakelab.request("pose", interval_s=[scans[0][0], scans[-1][1]])
+    pixel_um = records[-1]["pixel_size_nm"] / 1000
+    return [abs((pose["x_um"], pose["y_um"])[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
+
+
 def teach_after_frames(lab) -> dict:
     wait_for(lambda: lab["estimator"].request("report")["latest_frame_seq"] is not None, 30, "a frame")
     return lab["estimator"].request("teach")
@@ -83,18 +102,8 @@ def test_positions_from_a_displaced_start_to_the_taught_pose(lab):
     assert status["state"] == "converged", status
     assert status["run_id"] == run["run_id"]
     record = lab["controller"].request("run")
-    pixel_um = record["records"][-1]["pixel_size_nm"] / 1000
-    # The truth where the run ended: over the scans of the fresh frames since its last
-    # move, where the stage rests (the frames the law converged on). (Read later, creep
-    # of the 7 um return move, 1.5 % per decade of time, has moved the stage on by tens
-    # of nm: at 20x speed a busy machine's seconds are decades.)
-    last_move = max(index for index, r in enumerate(record["records"]) if r["action"] == "moved")
-    scans = [r["frame_source_interval_s"] for r in record["records"][last_move + 1:]
-             if "frame_source_interval_s" in r and not r["action"].startswith("held: stale")]
-    pose = lab["fakelab"].request("pose", interval_s=[scans[0][0], scans[-1][1]])
-    final = pose["x_um"], pose["y_um"]
-    error_px = [abs(final[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
-    assert max(error_px) < 0.4, f"true final error {error_px} px"
+    error_px = settled_error_px(lab["fakelab"], record, taught)
+    assert max(error_px) < 0.25, f"true final error {error_px} px"  # 0.02-0.05 px seen; the run's tolerance is 0.15
     moved = [r for r in record["records"] if r["action"] == "moved"]
     assert moved and all(r["latency_ms"] > 0 for r in moved)
     assert any(r["action"].startswith("held: stale") for r in record["records"])  # in-flight frames are not acted on
@@ -121,12 +130,8 @@ def test_the_position_law_reaches_the_taught_pose_in_a_few_moves(lab):
     moved = [r for r in record["records"] if r["action"] == "moved"]
     assert 1 <= len(moved) <= 8, [r["action"] for r in record["records"]]
     assert moved[0]["gain"] > 0.5  # the first move commands most of the measured displacement
-    pixel_um = record["records"][-1]["pixel_size_nm"] / 1000
-    scans = [r["frame_source_interval_s"] for r in record["records"]
-             if "frame_source_interval_s" in r and not r["action"].startswith("held: stale")][-2:]
-    pose = lab["fakelab"].request("pose", interval_s=[scans[0][0], scans[-1][1]])
-    error_px = [abs((pose["x_um"], pose["y_um"])[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
-    assert max(error_px) < 0.4, f"true final error {error_px} px"
+    error_px = settled_error_px(lab["fakelab"], record, taught)
+    assert max(error_px) < 0.25, f"true final error {error_px} px"  # 0.02-0.05 px seen; the run's tolerance is 0.15
 
 
 def test_servoes_the_rotation_about_the_beam_through_the_stage_service(lab):
