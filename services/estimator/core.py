@@ -57,6 +57,7 @@ class NotEnoughFrames(TeachError):
     """Fewer frames have arrived than the teach asks to average: ask again shortly."""
 
     code_name = "not_enough_frames"
+    transient = True
 
 
 class NoTiltReference(TeachError):

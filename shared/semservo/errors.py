@@ -17,7 +17,12 @@ import pydantic
 
 class CommandError(RuntimeError):
     """A refusal: ``code`` for programs, ``message`` for people, ``extra`` for details a
-    caller may use (e.g. ``run_id`` of the run that is in the way)."""
+    caller may use (e.g. ``run_id`` of the run that is in the way).
+
+    ``transient``: the refusal means "ask again shortly" (a teach waiting for frames), a
+    normal step of a caller's polling: servers log it at DEBUG, not as a warning."""
+
+    transient = False
 
     def __init__(self, code: str, message: str, **extra: Any):
         super().__init__(f"{code}: {message}")

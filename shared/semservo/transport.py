@@ -349,10 +349,17 @@ class ControlServer:
     def register(self, command: str, handler: Handler) -> None:
         self.handlers[command] = handler
 
-    def _reject(self, code: str, message: str, details: dict[str, Any] | None = None) -> Reply:
+    def _reject(self, code: str, message: str, details: dict[str, Any] | None = None,
+                transient: bool = False) -> Reply:
         self.counters[f"rejected_{code}"] += 1
-        self.last_error = f"{code}: {message}"
-        log.warning("rejected a request: %s: %s", code, message)
+        # A caller polling ("not enough frames yet") is not a problem to warn about nor
+        # to show in health: a teach of 4 frames on a slow source logged fifteen
+        # warnings while it waited.
+        if transient:
+            log.debug("rejected a request: %s: %s", code, message)
+        else:
+            self.last_error = f"{code}: {message}"
+            log.warning("rejected a request: %s: %s", code, message)
         return Reply.failure(code, message, details)
 
     def _answer(self, parts: list[bytes]) -> Reply:
@@ -375,7 +382,7 @@ class ControlServer:
         try:
             return Reply.success(handler(request.args))
         except CommandError as error:  # a refusal with its code (bad_request, or a rule such as a stage limit)
-            return self._reject(error.code, error.message, error.extra)
+            return self._reject(error.code, error.message, error.extra, transient=error.transient)
         except Exception as error:  # a handler bug must not take the service down
             log.exception("command %s failed", request.command)
             return self._reject("internal", f"{type(error).__name__}: {error}")

@@ -183,6 +183,29 @@ def test_command_error_carries_code_and_message(control_server, context):
     client.close()
 
 
+def test_a_transient_refusal_is_not_a_warning_nor_the_last_error(control_server, context, caplog):
+    """"Ask again shortly" (a teach waiting for frames) is a caller's polling, not a
+    problem: logged at DEBUG, counted, and not shown as the service's last error; a real
+    refusal still is both."""
+    from services.estimator.core import NotEnoughFrames  # the estimator's teach, waiting
+
+    control_server.register("not_yet", lambda args: (_ for _ in ()).throw(NotEnoughFrames("only 2 frames; 4 asked")))
+    client = ControlClient(control_server.endpoint, timeout_s=1, context=context)
+    with caplog.at_level("DEBUG", logger="semservo.transport"):
+        for _ in range(3):
+            with pytest.raises(CommandError) as caught:
+                client.request("not_yet")
+            assert caught.value.code == "not_enough_frames"
+        assert control_server.counters["rejected_not_enough_frames"] == 3
+        assert control_server.last_error is None
+        assert [r.levelname for r in caplog.records if "not_enough_frames" in r.getMessage()] == ["DEBUG"] * 3
+        with pytest.raises(CommandError):
+            client.request("strict")
+    assert control_server.last_error.startswith("bad_request")
+    assert any(r.levelname == "WARNING" and "bad_request" in r.getMessage() for r in caplog.records)
+    client.close()
+
+
 def test_lazy_pirate_gives_up_in_bounded_time_when_nobody_answers(context):
     client = ControlClient("tcp://127.0.0.1:1", timeout_s=0.1, retries=3, context=context)
     started = time.monotonic()
