@@ -414,8 +414,10 @@ def _run_binding(name: str, main, argv: list[str]) -> int:
 
 
 def command_service(args: argparse.Namespace) -> int:
+    from semservo.service import end_process
+
     module = importlib.import_module(spec(args.name).module)
-    return _run_binding(args.name, module.main, args.service_args)
+    end_process(_run_binding(args.name, module.main, args.service_args))
 
 
 def command_fakelab(args: argparse.Namespace) -> int:

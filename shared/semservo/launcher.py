@@ -332,8 +332,10 @@ class Launcher:
 #: The order :meth:`Launcher.stop` stops the services in, a group at a time: a service
 #: stops only once those it talks to while stopping are still up (the controller ends a
 #: run through the stage and the estimator; the stage releases the amplifier, which the
-#: fake lab emulates). A group stops together: each service takes a second or so to end
-#: (threads, sockets, the interpreter), and one by one that was six seconds per stack.
+#: fake lab emulates). A group stops together: each service takes a few tenths of a
+#: second to end (threads, sockets; :func:`semservo.service.end_process` skips the
+#: interpreter's teardown, which took as long again), and one by one that was six
+#: seconds per stack.
 STOP_ORDER: tuple[tuple[str, ...], ...] = (("gateway", "controller"), ("estimator", "imageserver", "stage"),
                                            ("fakelab",))
 
