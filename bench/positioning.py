@@ -46,6 +46,7 @@ import numpy as np
 from semservo import jsontext
 from semservo.config import Settings, connect
 from semservo.launcher import Launcher, fresh_port_environment, stage_rate_for
+from semservo.runs import resting_interval
 from semservo.simulation.sample_image import find_picture, scan_pixel_um
 from semservo.messages import ScanRequest
 from semservo.simulation.world import PRESETS
@@ -173,18 +174,6 @@ def sample_environment(image: Path, preset_name: str) -> dict[str, str]:
     preset = PRESETS[preset_name]
     pixel_nm = scan_pixel_um(preset.magnification, 512) * 1000
     return {"SEMSERVO_FAKELAB__SAMPLE_IMAGE": str(image), "SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM": f"{pixel_nm:.6g}"}
-
-
-def resting_interval(records: list[dict]) -> tuple[float, float]:
-    """The simulated interval over which a finished run's stage rests: the scans of the
-    frames after its last move that were not scanned during it; the last frame's scan
-    when there are none."""
-    last_move = max((index for index, r in enumerate(records) if r["action"] == "moved"), default=-1)
-    after = [r["frame_source_interval_s"] for r in records[last_move + 1:]
-             if r.get("frame_source_interval_s") and not r["action"].startswith("held")]
-    if not after:
-        after = [r["frame_source_interval_s"] for r in records[-1:] if r.get("frame_source_interval_s")]
-    return after[0][0], after[-1][1]
 
 
 def run_preset(name: str, trials: int, rng: np.random.Generator, out: Path, run_settings: dict,

@@ -15,6 +15,7 @@ import pytest
 
 from semservo.config import Settings, connect
 from semservo.launcher import Launcher
+from semservo.runs import resting_frames, resting_interval
 from semservo.transport import CommandError, ControlClient
 from tests.conftest import run_lab_faster
 from tests.integration.helpers import wait_for
@@ -65,19 +66,12 @@ def pose_after(fakelab: ControlClient, since_s: float, span_s: float = 0.5, sett
 
 def settled_error_px(fakelab: ControlClient, record: dict, taught: tuple[float, float]) -> list[float]:
     """The true |x|, |y| error (px) where a run ended: the pose over the scans of the fresh
-    frames after its last move, where the stage rests (the frames the law converged on).
-
-    Not the last frames whatever their action: the frame a move was made from was
-    scanned before that move, and a window straddling the move reads a mix of both poses
-    (a 0.4 px "error" from a run whose stage rested within 0.05 px). Not read later
-    either: creep of the return move, 1.5 % per decade of time, moves the stage on by
-    tens of nm, and at 20x speed a busy machine's seconds are decades."""
+    frames after its last move, where the stage rests (:func:`semservo.runs.resting_frames`:
+    not the frame the last move was made from, scanned before it)."""
     records = record["records"]
     last_move = max(index for index, r in enumerate(records) if r["action"] == "moved")
-    scans = [r["frame_source_interval_s"] for r in records[last_move + 1:]
-             if "frame_source_interval_s" in r and not r["action"].startswith("held: stale")]
-    assert scans, [r["action"] for r in records]
-    pose = fakelab.request("pose", interval_s=[scans[0][0], scans[-1][1]])
+    assert any(r is resting_frames(records)[0] for r in records[last_move + 1:]), [r["action"] for r in records]
+    pose = fakelab.request("pose", interval_s=list(resting_interval(records)))
     pixel_um = records[-1]["pixel_size_nm"] / 1000
     return [abs((pose["x_um"], pose["y_um"])[axis] - taught[axis]) / pixel_um for axis in (0, 1)]
 

@@ -40,6 +40,7 @@ from semservo.estimation import MotionEstimator
 from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
                                       kernel_depths,
                                       plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, wants_another_sweep)
+from semservo.runs import resting_frames, resting_interval
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
 
@@ -501,15 +502,10 @@ def _view_error(fakelab, record: dict, taught: Pose | None) -> list[float] | Non
     from semservo.simulation.sem import view_error_px
 
     records = record.get("trajectory", [])
-    last_move = max((index for index, r in enumerate(records) if r.get("action") == "moved"
-                     or r.get("tilt_action") == "moved"), default=-1)
-    resting = [r for r in records[last_move + 1:] if r.get("frame_source_interval_s")
-               and not str(r.get("action", "")).startswith("held")] or \
-        [r for r in records[-1:] if r.get("frame_source_interval_s")]
+    resting = resting_frames(records)
     if taught is None or not resting or not resting[-1].get("pixel_size_nm"):
         return None
-    final = _pose(fakelab.request("pose", interval_s=[resting[0]["frame_source_interval_s"][0],
-                                                      resting[-1]["frame_source_interval_s"][1]]))
+    final = _pose(fakelab.request("pose", interval_s=list(resting_interval(records))))
     return list(view_error_px(final, taught, resting[-1]["pixel_size_nm"] / 1000))
 
 
