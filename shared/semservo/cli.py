@@ -24,6 +24,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 import pydantic
@@ -413,7 +414,7 @@ def _run_binding(name: str, main, argv: list[str]) -> int:
         return 1
 
 
-def command_service(args: argparse.Namespace) -> int:
+def command_service(args: argparse.Namespace) -> NoReturn:
     from semservo.service import end_process
 
     module = importlib.import_module(spec(args.name).module)

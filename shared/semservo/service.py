@@ -9,6 +9,7 @@ does its periodic work. The service's core logic stays free of sockets.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import logging
 import os
 import signal
@@ -135,11 +136,9 @@ def end_process(code: int) -> NoReturn:
     for thread in threading.enumerate():
         if thread is not current and not thread.daemon:
             thread.join()
+    # CPython's own exit runs this: the handlers registered, logging's shutdown among them.
     atexit._run_exitfuncs()
-    logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
-        try:
+        with contextlib.suppress(OSError, ValueError):  # a closed or broken pipe: nothing left to say there
             stream.flush()
-        except (OSError, ValueError):  # a closed or broken pipe: nothing left to say there
-            pass
-    os._exit(code if isinstance(code, int) else 1)
+    os._exit(code)

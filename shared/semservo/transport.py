@@ -355,11 +355,9 @@ class ControlServer:
         # A caller polling ("not enough frames yet") is not a problem to warn about nor
         # to show in health: a teach of 4 frames on a slow source logged fifteen
         # warnings while it waited.
-        if transient:
-            log.debug("rejected a request: %s: %s", code, message)
-        else:
+        if not transient:
             self.last_error = f"{code}: {message}"
-            log.warning("rejected a request: %s: %s", code, message)
+        log.log(logging.DEBUG if transient else logging.WARNING, "rejected a request: %s: %s", code, message)
         return Reply.failure(code, message, details)
 
     def _answer(self, parts: list[bytes]) -> Reply:
