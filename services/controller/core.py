@@ -530,6 +530,11 @@ class ControllerCore:
     # -- records -----------------------------------------------------------------------
     def _record(self, record: IterationRecord, action: str) -> None:
         record.action = action
+        if record.tilt_action == "moved" and action != "moved":
+            # The tilt law decided a move (tilt_step) but the iteration ended without one
+            # (the run converged on this frame, held, or the stage refused): the record
+            # must not say the tilts moved, nor count it as the run's last move.
+            record.tilt_action = f"not moved: {action}"
         record.t_ns = time.time_ns()
         record.iteration = self.run.iterations
         data = record.to_json()

@@ -751,6 +751,28 @@ def test_the_tilts_are_servoed_once_per_fresh_sweep_and_saturated(turning_stage,
     assert ("measure", {"rotation": None, "tilts": None}) in estimator.asked, "the estimator is told the run ended"
 
 
+def test_a_tilt_move_decided_on_the_frame_the_run_converges_on_is_not_recorded_as_made(turning_stage, tmp_path):
+    """Tilts within tolerance but over half of it: the tilt law decides a move, and the
+    run converges on the same frame (x, y, gamma and the tilts within tolerance), so the
+    move is not made. The record says so: a "moved" there was counted as the run's last
+    move (where its stage came to rest) and as a tilt move the estimator was not told of."""
+    import time
+
+    from semservo.runs import resting_frames
+
+    stage, world = turning_stage
+    estimator = TiltingEstimator()
+    core = ControllerCore(LocalStage(stage), estimator=estimator, runs_dir=tmp_path)
+    core.start(RunSettings(dofs=["x", "y", "gamma", "alpha", "beta"], converge_frames=1, tolerance_tilt_deg=0.1), "ref")
+    before = world.goniometer.targets()
+    now = time.time_ns()
+    done = core.on_estimate(with_tilt(estimate(1, 0.01, 0.0, scan_started_at_ns=now), 1, 0.08, -0.02, now))
+    assert core.state == "converged", core.reason
+    assert done["tilt_action"] == f"not moved: {done['action']}"
+    assert world.goniometer.targets() == before and not any(command == "tilted" for command, _ in estimator.asked)
+    assert resting_frames(core.run.records) == [core.run.records[-1]]
+
+
 def test_an_estimator_that_does_not_hear_of_a_tilt_move_costs_time_not_the_run(turning_stage, tmp_path):
     """Telling the estimator of a tilt move only saves the sweep it is scanning: an
     estimator that does not answer it leaves the run servoing (that sweep is then held
