@@ -21,7 +21,10 @@ The model
   the blur is 1 px half a depth of field away. ``"gaussian"``: a Gaussian probe whose
   standard deviation is ``probe_px + width_px``. ``"disc"``: a uniform disc (pillbox) of
   radius ``width_px`` (the geometric cone of a beam of half-angle 2 pixels / depth of
-  field), convolved with the in-focus Gaussian probe of ``probe_px``. The blur varies
+  field), convolved with the in-focus Gaussian probe of ``probe_px``. ``"quadrature"``: a
+  Gaussian whose standard deviation is ``sqrt(probe_px^2 + width_px^2)`` (the focused
+  probe and the defocus adding in quadrature: as wide as ``"gaussian"`` far from focus,
+  but with a smooth, round peak where ``"gaussian"`` has a cusp). The blur varies
   across the frame with the depth: the frame is blended, pixel by pixel, from the view
   blurred at neighbouring widths (linearly; widths 0.25 px apart up to 2 px, then 10 %
   apart).
@@ -39,7 +42,7 @@ import numpy as np
 
 from semservo.pairs import poisson_gaussian
 
-DEFOCUS_SHAPES = ("gaussian", "disc")
+DEFOCUS_SHAPES = ("gaussian", "disc", "quadrature")
 
 
 @dataclass(frozen=True)
@@ -73,8 +76,8 @@ def _transfer(shape_name: str, probe_px: float, width_px: float, shape: tuple[in
     v = np.fft.fftfreq(shape[0])[:, None]
     u = np.fft.rfftfreq(shape[1])[None, :]
     radius_squared = u * u + v * v
-    if shape_name == "gaussian":
-        sigma = probe_px + width_px
+    if shape_name in ("gaussian", "quadrature"):
+        sigma = probe_px + width_px if shape_name == "gaussian" else np.hypot(probe_px, width_px)
         transfer = np.exp(-2 * np.pi**2 * sigma**2 * radius_squared)
     else:
         transfer = np.exp(-2 * np.pi**2 * probe_px**2 * radius_squared)
@@ -203,3 +206,58 @@ class TiltedTexture:
               read_noise: float = 2.0) -> np.ndarray:
         """The frames at each working distance (frames, rows, cols)."""
         return np.stack([self.frame(float(distance), rng, electrons, read_noise) for distance in working_distances_um])
+
+
+def tilt_bound(scene: TiltedTexture, working_distances_um, kernel: int = 32, electrons: float = 1000.0,
+               read_noise: float = 2.0, shift_um: float = 0.05) -> tuple[float, float]:
+    """The Cramer-Rao bound of the tilts from one focus sweep of ``scene``: the smallest
+    standard errors (alpha, beta; degrees) that any unbiased reading of the kernels'
+    depths from eq. 13's measure (each ``kernel`` x ``kernel`` block's variance over its
+    mean, frame by frame) and a plane through them can have, under this module's noise.
+
+    Each kernel's depth is pinned by the Fisher information of its focus curve,
+    sum over the frames of (dS / dz)^2 / var(S): S the noise-free measure, its change with
+    the kernel's depth z read off the noiseless frames with the plane moved ``shift_um``
+    deeper and nearer (the same as every working distance moved the other way), and
+    var(S) the sample variance's, (2 N^2 + 4 S N) / pixels, for the pixels' noise N (shot
+    noise of ``electrons`` per grey level at full scale and ``read_noise``, over the
+    kernel's mean). The plane's slopes then have the covariance (X^T I X)^-1, X the
+    kernels' centres (1, x, y in um), and the tilts follow as the module's geometry
+    relates them (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx)).
+
+    Why: how well a texture can pin the tilts is a property of the texture, the blur and
+    the dose, not of the estimator; the bound says whether a refusal is the estimator's
+    or the picture's (a few dozen kernels of sparse particles in a corner cannot do
+    better than it, however their curves are read)."""
+    distances = np.asarray(working_distances_um, dtype=np.float64)
+    rows, cols = scene.shape[0] // kernel, scene.shape[1] // kernel
+
+    def measures(offset_um: float) -> tuple[np.ndarray, np.ndarray]:
+        """eq. 13's noise-free measure and the kernels' mean grey, frames x kernels."""
+        measure, mean = [], []
+        for distance in distances:
+            frame = scene.noiseless_frame(float(distance) - offset_um)[:rows * kernel, :cols * kernel].astype(np.float64)
+            blocks = frame.reshape(rows, kernel, cols, kernel)
+            block_mean = blocks.mean(axis=(1, 3))
+            measure.append((blocks.var(axis=(1, 3)) / np.maximum(block_mean, 1e-9)).ravel())
+            mean.append(block_mean.ravel())
+        return np.array(measure), np.array(mean)
+
+    measure, mean = measures(0.0)
+    deeper, _ = measures(shift_um)
+    nearer, _ = measures(-shift_um)
+    slope = (deeper - nearer) / (2 * shift_um)
+    noise = (np.maximum(mean, 0.0) * 255.0 / electrons + read_noise**2) / np.maximum(mean, 1e-9)
+    variance = (2 * noise**2 + 4 * np.maximum(measure, 0.0) * noise) / (kernel * kernel)
+    information = np.sum(slope**2 / variance, axis=0)  # per kernel, 1 / um^2
+    y = ((np.arange(rows) + 0.5) * kernel - rows * kernel / 2) * scene.pixel_um
+    x = ((np.arange(cols) + 0.5) * kernel - cols * kernel / 2) * scene.pixel_um
+    grid_y, grid_x = np.meshgrid(y, x, indexing="ij")
+    design = np.column_stack([np.ones(rows * cols), grid_x.ravel(), grid_y.ravel()])
+    covariance = np.linalg.pinv((design * information[:, None]).T @ design)
+    alpha, beta = np.radians(scene.pose[:2])
+    slope_y, slope_x = np.tan(alpha), -np.tan(beta) / np.cos(alpha)
+    cos_alpha = np.cos(alpha)
+    alpha_error = np.sqrt(covariance[2, 2]) / (1 + slope_y**2)
+    beta_error = np.sqrt(covariance[1, 1]) * cos_alpha / (1 + (cos_alpha * slope_x) ** 2)
+    return float(np.degrees(alpha_error)), float(np.degrees(beta_error))

@@ -121,3 +121,30 @@ def test_tilts_of_each_real_texture_under_a_disc_blur_are_measured_or_refused_wi
                                                     or "clear focus peak" in refused.reason), (name, refused.reason)
     measured = [name for name, outcome in outcomes.items() if not isinstance(outcome, str)]
     assert len(measured) >= 4, outcomes
+
+
+def test_the_tilts_bound_follows_the_dose_and_no_estimate_beats_it(fibsem):
+    """The Cramer-Rao bound of one sweep (tilt_bound): four times the electrons narrow it
+    two to four times (shot noise only: the measure's variance, (2 N^2 + 4 S N) / pixels,
+    falls as N and N^2), a texture of a tenth of the contrast
+    bounds the tilts worse, and the tilts estimated from sweeps of the flat view scatter
+    no less than it (a bound, not a guess)."""
+    from semservo.focus_sweeps import tilt_bound
+
+    model = DefocusModel("disc", depth_of_field_um=2.5)
+    pixel_um, side = 0.1, 256
+    distances = plan_sweep(0.0, model.depth_of_field_um, side * pixel_um)
+    scene = TiltedTexture(fibsem, model, pixel_um, shape=(side, side))
+    bound = np.array(tilt_bound(scene, distances, kernel=16, electrons=250.0, read_noise=0.0))
+    dosed = np.array(tilt_bound(scene, distances, kernel=16, electrons=1000.0, read_noise=0.0))
+    assert np.all((dosed < bound / 2) & (dosed > bound / 4))
+    faint = TiltedTexture(fibsem.mean() + (fibsem - fibsem.mean()) / 10, model, pixel_um, shape=(side, side))
+    assert np.all(np.array(tilt_bound(faint, distances, kernel=16, electrons=250.0, read_noise=0.0)) > 3 * bound)
+    rng = np.random.default_rng(2)
+    estimates = [estimate_tilt(scene.sweep(distances, rng, electrons=1000.0, read_noise=0.0), distances, pixel_um,
+                               kernel=16) for _ in range(8)]
+    tilts = np.array([[estimate.alpha_deg, estimate.beta_deg] for estimate in estimates])
+    claimed = np.array([[estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg] for estimate in estimates])
+    assert np.isfinite(tilts).all()
+    assert np.all(claimed >= dosed)  # no estimate claims more than the picture allows
+    assert np.all(np.sqrt(np.mean(tilts**2, axis=0)) > 0.5 * dosed)  # 8 draws: their RMS within chance of it

@@ -121,6 +121,14 @@ class TextureLab:
     def sweep(self, pose: tuple[float, float, float], working_distances) -> np.ndarray:
         return self._scene_at(pose).sweep(working_distances, self.rng, self.electrons, self.read_noise)
 
+    def tilt_bound(self, pose: tuple[float, float, float], working_distances) -> tuple[float, float]:
+        """The Cramer-Rao bound of the tilts from one sweep of ``pose``
+        (:func:`semservo.focus_sweeps.tilt_bound`): what no reading of this texture can beat."""
+        from semservo.focus_sweeps import tilt_bound
+
+        return tilt_bound(self._scene_at(pose), working_distances, electrons=self.electrons,
+                          read_noise=self.read_noise)
+
 
 def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
                     kernel: int = 32) -> tuple[TiltEstimate, np.ndarray]:
@@ -156,6 +164,8 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
     reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
     grid = (reference_sweep[0], reference_sweep[1] - reference_sweep[0])
     taught, taught_depths = teach_reference(lab, reference_sweep, reference_sweeps)
+    # The bound of one sweep of the taught view, where the lab can tell it (a texture's).
+    bound = lab.tilt_bound((0.0, 0.0, 0.0), reference_sweep) if hasattr(lab, "tilt_bound") else (math.nan, math.nan)
     reference_frame = lab.frame((0.0, 0.0, 0.0))
     rotation = MotionEstimator(reference_frame, rotation=True)
     frame_time = lab.frame_time_s
@@ -224,7 +234,8 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
             f"({left:.0f} s left)")
     return {"taught": [taught.alpha_deg, taught.beta_deg], "taught_reason": taught.reason, "frame_time_s": frame_time,
             "taught_sweeps": taught.sweeps,
-            "taught_uncertainty": [taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg], "rows": rows}
+            "taught_uncertainty": [taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg],
+            "taught_bound_one_sweep": list(bound), "rows": rows}
 
 
 def depth_of_field_scan(poses: list[tuple[float, float, float]], seed: int, factors=(1.0, 2.0, 4.0, 8.0),
