@@ -713,3 +713,96 @@ def test_a_teach_summary_reads_errors_in_standard_errors_and_counts_refusals():
     assert summary["beta"]["rms_z"] == pytest.approx(np.sqrt(0.5)) and summary["beta"]["mean_uncertainty_deg"] == 0.04
     everything_refused = summarize_teaches([{"refused": "no"}])
     assert everything_refused["refused"] == 1 and np.isnan(everything_refused["alpha"]["rms_z"])
+
+
+# --------------------------------------------------------------------------------------
+# A focus curve's centre read two ways: the mirror and the fitted symmetric curve
+
+
+def noisy_curves(shape_of_peak, centre: float, kernels: int = 400, frames: int = 21, noise: float = 0.3,
+                 pixels: int = 1024, seed: int = 1):
+    """FocusCurves of ``kernels`` draws of one noise-free curve ``shape_of_peak(distance in
+    samples from the centre)`` at sample ``centre``, with the measure's noise of
+    :func:`focus_peak_uncertainties`' model, (2 N^2 + 4 S N) / pixels."""
+    from semservo.estimation.tilt import FocusCurves
+
+    rng = np.random.default_rng(seed)
+    clean = shape_of_peak(np.arange(frames, dtype=float) - centre)[:, None] * np.ones((1, kernels))
+    spread = np.sqrt((2 * noise**2 + 4 * clean * noise) / pixels)
+    return FocusCurves(clean + rng.normal(size=clean.shape) * spread, np.full(clean.shape, noise), pixels)
+
+
+def broad(distance):
+    """A disc blur's curve: a round top, flanks 5-10 samples out (full width 15 samples)."""
+    return 10.0 / (1.0 + (distance / 7.5) ** 2)
+
+
+def cusp(distance):
+    """A Gaussian probe whose width grows linearly: a cusp, half height 1.2 samples out."""
+    return 10.0 / (1.0 + np.abs(distance) / 1.2) ** 2
+
+
+def test_a_broad_focus_peak_is_read_from_its_flanks():
+    """A broad, round-topped curve (a disc blur's), its centre between samples: the fitted
+    reading scatters well under the mirror's, both unbiased, and its standard error is
+    the scatter's size."""
+    from semservo.estimation.tilt import clear_focus_peaks, fitted_centres
+
+    curves = noisy_curves(broad, 10.3)
+    fitted, errors = fitted_centres(curves)
+    mirrored = clear_focus_peaks(curves, np.arange(21, dtype=float))
+    assert np.isfinite(fitted).all() and np.isfinite(mirrored).all()
+    assert np.std(fitted) < 0.6 * np.std(mirrored)
+    assert abs(np.mean(fitted) - 10.3) < 4 * np.std(fitted) / np.sqrt(fitted.size)
+    assert abs(np.mean(mirrored) - 10.3) < 4 * np.std(mirrored) / np.sqrt(mirrored.size)
+    assert np.median(errors) == pytest.approx(np.std(fitted), rel=0.35)
+
+
+def test_each_kernel_keeps_the_reading_its_noise_pins_better():
+    """Half the kernels broad, half a faint cusp whose flanks sink into the noise within
+    two samples: focus_peak_depths reads the broad ones by the fit and the cusps by the
+    mirror (the fit cannot tell them), each unbiased, its standard errors the scatter's
+    size."""
+    from semservo.estimation.tilt import FocusCurves, focus_peak_depths, focus_peak_uncertainties, fitted_centres
+
+    wide = noisy_curves(broad, 9.6, kernels=200)
+    sharp = noisy_curves(lambda distance: cusp(distance) / 15, 9.6, kernels=200, seed=2)
+    curves = FocusCurves(np.concatenate([wide.signal, sharp.signal], axis=1)[:, None, :],
+                         np.concatenate([wide.noise, sharp.noise], axis=1)[:, None, :], 1024)
+    distances = np.arange(21, dtype=float)
+    depths, errors = (values[0] for values in focus_peak_depths(curves, distances))
+    fitted_errors = fitted_centres(curves)[1][0]
+    mirror_errors = focus_peak_uncertainties(curves, distances)[0]
+    assert np.mean(fitted_errors[:200] < mirror_errors[:200]) > 0.9  # the broad ones: fitted
+    assert np.isinf(fitted_errors[200:]).all()  # the faint cusps: mirrored
+    for part in (slice(0, 200), slice(200, 400)):
+        assert np.all(np.isfinite(depths[part]))
+        assert abs(np.mean(depths[part]) - 9.6) < 4 * np.std(depths[part]) / np.sqrt(200)
+        assert np.median(errors[part]) == pytest.approx(np.std(depths[part]), rel=0.5)
+
+
+def test_a_cusp_is_read_as_well_by_the_fit_as_by_the_mirror():
+    """A Gaussian probe's cusp is in the fitted family too (1 / measure, quadratic in
+    |d - z|): fitted, its centre scatters no more than the mirror's, and the pull of where
+    the peak falls between samples stays within the floor the tilts' standard errors
+    keep for it (``SAMPLING_BIAS_STEPS``)."""
+    from semservo.estimation.tilt import SAMPLING_BIAS_STEPS, FocusCurves, clear_focus_peaks, fitted_centres
+
+    curves = noisy_curves(cusp, 9.6, seed=4)
+    fitted = fitted_centres(curves)[0]
+    assert np.std(fitted) <= np.nanstd(clear_focus_peaks(curves, np.arange(21, dtype=float)))
+    for fraction in (0.0, 0.13, 0.25, 0.37, 0.5):
+        clean = cusp(np.arange(21, dtype=float) - 9 - fraction)[:, None]
+        centre = fitted_centres(FocusCurves(clean, np.full(clean.shape, 0.3), 1024))[0][0]
+        assert abs(centre - 9 - fraction) < SAMPLING_BIAS_STEPS
+
+
+def test_a_faint_curve_is_not_fitted():
+    """Where too few samples about the peak stand over the noise, the fit does not tell
+    (NaN, an infinite error), and the mirror's reading stands."""
+    from semservo.estimation.tilt import fitted_centres
+
+    faint = noisy_curves(lambda distance: 0.02 / (1.0 + np.abs(distance) / 1.2) ** 2, 10.0, kernels=50)
+    centres, errors = fitted_centres(faint)
+    assert np.isnan(centres).all() and np.isinf(errors).all()
+
