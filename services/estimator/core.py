@@ -19,8 +19,9 @@ from semservo.estimation.common import MIN_SIZE
 from semservo.estimation.raster import (BAND_ROWS, PARTIAL_FRAME_FROM, SCAN_AVERAGED_FROM_S, rows_scanned_after,
                                        scan_lasted_s)
 from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, KernelDepths, TiltEstimate, check_sweep, content_shifts,
-                                      egi_tilt_between, kernel_depths, plan_sweep, pool_depths, pooled_tilt, rows_seen_square_on,
-                                      undo_foreshortening, undoes_foreshortening, wants_another_sweep)
+                                      egi_tilt_between, kernel_depths, line_against, measured_against, plan_sweep,
+                                      pool_depths, pooled_tilt, rows_seen_square_on, undo_foreshortening,
+                                      undoes_foreshortening, wants_another_sweep)
 from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
@@ -308,8 +309,9 @@ class EstimatorCore:
         reference = self.tilt_reference
         if reference is None or len(depth_maps) >= self.tilt_settings.teach_sweeps:
             return False
-        estimate = self.pooled_estimate(depth_maps, working_distances, pixel_size_nm)
-        if not wants_another_sweep(estimate, self.tilt_settings.teach_sweeps):
+        estimate = measured_against(self.pooled_estimate(depth_maps, working_distances, pixel_size_nm),
+                                    reference.estimate)
+        if not wants_another_sweep(estimate, self.tilt_settings.teach_sweeps, line_against(reference.estimate)):
             return False
         if estimate.confidence <= 0:
             return True
@@ -388,7 +390,9 @@ class EstimatorCore:
         this = sweep_depth_map if sweep_depth_map is not None else self.sweep_depths(sweep, working_distances,
                                                                                      pixel_size_nm, frame_times_ns)
         maps = [*(earlier or []), this]
-        estimate, depths = self.pooled_estimate(maps, working_distances, pixel_size_nm), pool_depths(maps).depths
+        # Refused where, against the taught reading, the tilts would be pinned too loosely.
+        estimate = measured_against(self.pooled_estimate(maps, working_distances, pixel_size_nm), reference.estimate)
+        depths = pool_depths(maps).depths
         if self.tilt_settings.method == "egi":
             alpha, beta, peak = egi_tilt_between(reference.depths, depths, self.tilt_settings.kernel_px,
                                                  reference.pixel_size_um)

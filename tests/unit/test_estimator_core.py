@@ -402,3 +402,34 @@ def test_a_teach_learns_the_stages_vibration_lines_from_the_frames_at_rest_in_th
         off.process(vibrating(seq)[0])
     assert off.teach_latest(frames=3)["vibration"]["reason"] == "vibration lines are off (settings)"
     assert off.estimator.vibration_hz == ()
+
+
+def test_a_sweep_measured_against_a_loosely_taught_plane_is_refused_when_both_together_miss_the_line():
+    """A teach pooled from faint sweeps, pinned to several hundredths of a degree: a
+    sweep that would be measured alone (+-0.07-0.08) is not, against it, for the two
+    standard errors together are over 0.1 degree; the tracker is told to sweep it again,
+    and a sweep pinned tightly is measured."""
+    from services.estimator.core import TiltSettings
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", tilt=TiltSettings(teach_sweeps=4))
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    distances, pixel_nm = list(WORKING_DISTANCES_UM), PIXEL_UM * 1000
+    faint = 100 + 3.5 * (texture() - 100) / 60
+    for seed in range(4):
+        if core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, seed), distances, pixel_nm) is not None:
+            break
+    taught = core.tilt_reference.estimate
+    taught_worst = max(taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg)
+    assert 0.05 < taught_worst < 0.1
+    loose_sweep = sweep_of_depths(plane_depths(2.0, -1.0), 100 + 4 * (texture() - 100) / 60, 7)
+    loose = core.sweep_depths(loose_sweep, distances, pixel_nm)
+    alone = core.pooled_estimate([loose], distances, pixel_nm)
+    alone_worst = max(alone.alpha_uncertainty_deg, alone.beta_uncertainty_deg)
+    assert alone.confidence > 0 and np.hypot(alone_worst, taught_worst) > 0.1  # measured alone, not against it
+    measured = core.tilt_from_sweep(loose_sweep, distances, pixel_nm, sweep_depth_map=loose)
+    assert measured["confidence"] == 0.0 and measured["alpha_deg"] is None and "taught plane" in measured["reason"]
+    assert core.sweep_again([loose], distances, pixel_nm)
+    measured = core.tilt_from_sweep(sweep_of_depths(plane_depths(2.0, -1.0), seed=8), distances, pixel_nm)
+    assert measured["confidence"] > 0 and abs(measured["alpha_deg"]) < 0.3

@@ -806,3 +806,28 @@ def test_a_faint_curve_is_not_fitted():
     centres, errors = fitted_centres(faint)
     assert np.isnan(centres).all() and np.isinf(errors).all()
 
+
+def test_a_measurement_against_a_loose_teach_is_refused_where_both_together_miss_the_line():
+    """The tilts a run acts on are a sweep's against the taught reading: where the two
+    standard errors together exceed the line, the measurement is refused with the
+    reason, and a run's pooling aims at what the teach leaves (line_against)."""
+    from semservo.estimation.tilt import (MAX_TILT_UNCERTAINTY_DEG, TiltEstimate, line_against, measured_against,
+                                          wants_another_sweep)
+
+    def reading(uncertainty: float, sweeps: int = 1) -> TiltEstimate:
+        return TiltEstimate(1.0, -2.0, 0.0, 40, 256, 0.01, 0.9, "", uncertainty, uncertainty, sweeps)
+
+    tight, loose = reading(0.03), reading(0.08)
+    assert line_against(tight) == pytest.approx(np.sqrt(MAX_TILT_UNCERTAINTY_DEG**2 - 0.03**2))
+    assert line_against(loose) == pytest.approx(0.06)
+    assert line_against(reading(MAX_TILT_UNCERTAINTY_DEG)) == 0.0
+    pose = reading(0.07)
+    assert measured_against(pose, tight) is pose  # together 0.076: measured
+    refused = measured_against(pose, loose)  # together 0.106: not
+    assert refused.confidence == 0.0 and np.isnan(refused.alpha_deg) and np.isnan(refused.beta_deg)
+    assert "taught plane" in refused.reason and "0.11" in refused.reason and "0.06" in refused.reason
+    assert refused.alpha_uncertainty_deg == 0.07  # its own, as the run's noise test needs
+    # Pooling 4 could bring 0.07 to 0.035, under the 0.06 the loose teach leaves: swept again;
+    # a sweep of 0.15 could not (0.075): refused at once.
+    assert wants_another_sweep(refused, 4, line_against(loose))
+    assert not wants_another_sweep(measured_against(reading(0.15), loose), 4, line_against(loose))

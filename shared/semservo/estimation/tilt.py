@@ -1074,17 +1074,19 @@ def pooled_tilt(depth_maps: Sequence[KernelDepths | np.ndarray], kernel: int, pi
     return estimate
 
 
-def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEEPS) -> bool:
+def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEEPS,
+                        line_deg: float = MAX_TILT_UNCERTAINTY_DEG) -> bool:
     """Whether a teach should sweep the same view once more and pool it
     (:func:`pooled_tilt`): while fewer than ``max_sweeps`` are taken, when either tilt's
     standard error is above ``TEACH_UNCERTAINTY_DEG`` (or the estimate is refused for
-    its uncertainty, above ``MAX_TILT_UNCERTAINTY_DEG``), and pooling ``max_sweeps``
-    could bring a refused estimate under the line at the best rate, 1 / sqrt(n): a
-    texture hopeless at that rate after its first sweep is refused at once (the
-    estimate's reason stands), not swept again; once pooling has begun, the projection
-    may be up to ``POOLING_SLACK`` over the line. An estimate refused for another reason
-    (too few kernels with a clear peak, depths that are not one plane) is not swept again
-    either."""
+    its uncertainty, above ``line_deg``: ``MAX_TILT_UNCERTAINTY_DEG``, or for a
+    measurement against the taught plane what :func:`line_against` leaves), and pooling
+    ``max_sweeps`` could bring a refused estimate under the line at the best rate,
+    1 / sqrt(n): a texture hopeless at that rate after its first sweep is refused at once
+    (the estimate's reason stands), not swept again; once pooling has begun, the
+    projection may be up to ``POOLING_SLACK`` over the line. An estimate refused for
+    another reason (too few kernels with a clear peak, depths that are not one plane) is
+    not swept again either."""
     if estimate.sweeps >= max_sweeps:
         return False
     worst = max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg)
@@ -1092,7 +1094,7 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
         return False
     if estimate.confidence > 0:
         return worst > TEACH_UNCERTAINTY_DEG
-    if worst <= MAX_TILT_UNCERTAINTY_DEG or estimate.kernels_used < MIN_KERNELS:
+    if worst <= line_deg or estimate.kernels_used < MIN_KERNELS:
         return False  # refused for another reason than its uncertainty
     best_reachable = worst * np.sqrt(estimate.sweeps / max_sweeps)
     if estimate.sweeps > 1:
@@ -1101,8 +1103,45 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
         # residuals, and pooling is not exactly 1 / sqrt(n) (a teach of the aperture read
         # +-0.12 after 3 sweeps, projecting 0.104 for 4, and was refused where another
         # teach's 4 sweeps had read +-0.09).
-        return best_reachable <= POOLING_SLACK * MAX_TILT_UNCERTAINTY_DEG
-    return best_reachable <= MAX_TILT_UNCERTAINTY_DEG
+        return best_reachable <= POOLING_SLACK * line_deg
+    return best_reachable <= line_deg
+
+
+def line_against(taught: TiltEstimate) -> float:
+    """The largest standard error (degrees, either tilt) a measurement may have for its
+    tilts against the ``taught`` reading to be within ``MAX_TILT_UNCERTAINTY_DEG``: the
+    difference of two readings has both their standard errors, in quadrature. 0 where
+    the teach alone takes the whole line."""
+    worst = max(taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg)
+    if not np.isfinite(worst):
+        return 0.0
+    return float(np.sqrt(max(MAX_TILT_UNCERTAINTY_DEG**2 - worst**2, 0.0)))
+
+
+def measured_against(estimate: TiltEstimate, taught: TiltEstimate) -> TiltEstimate:
+    """``estimate``, refused (confidence 0, NaN angles, the reason) where its tilts
+    against the ``taught`` reading would be pinned to worse than
+    ``MAX_TILT_UNCERTAINTY_DEG``: its own standard error over :func:`line_against`.
+    Its standard errors stay its own (a run's sweeps share the teach's error, so whether
+    one sweep differs from the next is a matter of theirs alone).
+
+    Why: a run servoes onto the taught reading, so what it is left with is the teach's
+    error and the last measurement's together. Each gated at 0.1 degree alone, a loose
+    teach of sparse particles (+-0.08, 4 sweeps pooled) and a pose pinned to +-0.1 read
+    0.33 degree off (drift_pair_before under the disc, ``bench/tilt_real.py``): a wrong
+    angle that a run would have acted on."""
+    if estimate.confidence <= 0:
+        return estimate
+    worst = max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg)
+    line = line_against(taught)
+    if worst <= line:
+        return estimate
+    taught_worst = max(taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg)
+    nan = float("nan")
+    return replace(estimate, alpha_deg=nan, beta_deg=nan, confidence=0.0,
+                   reason=(f"against the taught plane (pinned to +-{taught_worst:.2f} degree) the tilts would be pinned "
+                           f"to +-{np.hypot(worst, taught_worst):.2f} degree only (at most {MAX_TILT_UNCERTAINTY_DEG:g}): "
+                           f"this sweep's +-{worst:.2f} is over the +-{line:.2f} the teach leaves"))
 
 
 # --------------------------------------------------------------------------------------

@@ -38,8 +38,8 @@ import numpy as np
 from semservo.config import EstimatorSettings
 from semservo.estimation import MotionEstimator
 from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
-                                      kernel_depths,
-                                      plan_sweep, pool_depths, pooled_tilt, undo_foreshortening, wants_another_sweep)
+                                      kernel_depths, line_against, measured_against, plan_sweep, pool_depths, pooled_tilt,
+                                      undo_foreshortening, wants_another_sweep)
 from semservo.runs import resting_frames, resting_interval
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
@@ -181,20 +181,24 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         clock = time.perf_counter()
         plane = estimate_tilt(frames, first_sweep, lab.pixel_um)
         plane_ms = (time.perf_counter() - clock) * 1e3
+        # As the estimator service measures a pose: against the taught reading, the two
+        # readings' standard errors together within the line, else refused.
+        line = line_against(taught)
+        plane = measured_against(plane, taught)
         clock = time.perf_counter()
         egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep, 32, lab.pixel_um), 32,
                                                     lab.pixel_um)
         egi_ms = (time.perf_counter() - clock) * 1e3
         pose_sweeps = 1
-        if plane.confidence <= 0 and wants_another_sweep(plane, sweeps_when_refused):
+        if plane.confidence <= 0 and wants_another_sweep(plane, sweeps_when_refused, line):
             # As the estimator service does in a run: a sweep that cannot pin the tilts
             # is followed by more of the same plan, their depths pooled.
             step = float(first_sweep[1] - first_sweep[0])
             maps = [kernel_depths(frames, first_sweep, 32, lab.pixel_um)]
             while True:
                 maps.append(kernel_depths(lab.sweep(pose, first_sweep), first_sweep, 32, lab.pixel_um))
-                plane = pooled_tilt(maps, 32, lab.pixel_um, step)
-                if not wants_another_sweep(plane, sweeps_when_refused):
+                plane = measured_against(pooled_tilt(maps, 32, lab.pixel_um, step), taught)
+                if not wants_another_sweep(plane, sweeps_when_refused, line):
                     break
             pose_sweeps = len(maps)
         refused = plane.confidence <= 0 or taught.confidence <= 0
@@ -204,7 +208,7 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         else:
             tracking_sweep = plan_sweep(plane.centre_depth, depth_of_field, lab.field_um,
                                         tilt_deg=(plane.alpha_deg, plane.beta_deg), grid=grid)
-            tracked = estimate_tilt(lab.sweep(pose, tracking_sweep), tracking_sweep, lab.pixel_um)
+            tracked = measured_against(estimate_tilt(lab.sweep(pose, tracking_sweep), tracking_sweep, lab.pixel_um), taught)
         nominal = lab.frame(pose)
         raw = rotation.estimate(nominal).rotation_deg
         compensated = (rotation.estimate(undo_foreshortening(nominal, measured_alpha, measured_beta)).rotation_deg
@@ -254,7 +258,8 @@ def depth_of_field_scan(poses: list[tuple[float, float, float]], seed: int, fact
         taught, _ = teach_reference(lab, reference_sweep, reference_sweeps)
         errors, signs, refused = [], [], 0
         for alpha, beta, gamma in poses:
-            measured = estimate_tilt(lab.sweep((alpha, beta, gamma), reference_sweep), reference_sweep, lab.pixel_um)
+            measured = measured_against(estimate_tilt(lab.sweep((alpha, beta, gamma), reference_sweep), reference_sweep,
+                                                      lab.pixel_um), taught)
             if measured.confidence <= 0 or taught.confidence <= 0:
                 refused += 1
                 continue
