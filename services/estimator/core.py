@@ -18,10 +18,10 @@ from semservo.estimation import MotionEstimator
 from semservo.estimation.common import MIN_SIZE
 from semservo.estimation.raster import (BAND_ROWS, PARTIAL_FRAME_FROM, SCAN_AVERAGED_FROM_S, rows_scanned_after,
                                        scan_lasted_s)
-from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, KernelDepths, TiltEstimate, check_sweep, content_shifts,
-                                      egi_tilt_between, kernel_depths, line_against, measured_against, plan_sweep,
-                                      pool_depths, pooled_tilt, rows_seen_square_on, undo_foreshortening,
-                                      undoes_foreshortening, wants_another_sweep)
+from semservo.estimation.tilt import (MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, KernelDepths, TiltEstimate, as_taught,
+                                      check_sweep, content_shifts, egi_tilt_between, kernel_depths, line_against,
+                                      measured_against, plan_sweep, pool_depths, pooled_tilt, rows_seen_square_on,
+                                      undo_foreshortening, undoes_foreshortening, wants_another_sweep)
 from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
@@ -352,10 +352,11 @@ class EstimatorCore:
         pool.estimate = pooled_tilt(pool.depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000,
                                     float(np.mean(pool.steps)))
         estimate = pool.estimate
-        if wants_another_sweep(estimate, self.tilt_settings.teach_sweeps):
+        if wants_another_sweep(estimate, self.tilt_settings.teach_sweeps, MAX_TAUGHT_UNCERTAINTY_DEG):
             self.teach_pool = pool
             return None
         self.teach_pool = None
+        estimate = as_taught(estimate)  # refused where it would leave its runs less than it took
         if estimate.confidence <= 0:
             swept = "focus sweep" if estimate.sweeps == 1 else f"{estimate.sweeps} focus sweeps"
             raise NoTiltReference(f"the reference's {swept} cannot tell the tilts: {estimate.reason}")

@@ -468,10 +468,10 @@ def test_a_hopeless_texture_is_refused_at_once_with_how_well_it_pinned_the_tilts
 def test_the_benchmarks_teach_pools_its_reference_as_the_service_does():
     from semservo.reproduce.tilts import teach_reference
 
-    faint = 100 + 3 * (texture() - 100) / 60
+    faint = 100 + 3.5 * (texture() - 100) / 60
 
     class FaintLab:
-        """A flat view of a faint texture: one sweep pins its tilts to +-0.11-0.14 degree."""
+        """A flat view of a faint texture: one sweep pins its tilts to about a tenth of a degree."""
 
         pixel_um = PIXEL_UM
 
@@ -831,3 +831,24 @@ def test_a_measurement_against_a_loose_teach_is_refused_where_both_together_miss
     # a sweep of 0.15 could not (0.075): refused at once.
     assert wants_another_sweep(refused, 4, line_against(loose))
     assert not wants_another_sweep(measured_against(reading(0.15), loose), 4, line_against(loose))
+
+
+def test_a_teach_that_would_leave_its_runs_less_than_it_took_is_refused():
+    """A teach pinned to worse than 0.1 / sqrt(2) degree is refused with the reason (its
+    runs' sweeps would need to be pinned tighter than it), one within it is kept; a
+    teach's pooling aims at that line and gives up at once where 4 sweeps cannot reach it."""
+    from semservo.estimation.tilt import (MAX_TAUGHT_UNCERTAINTY_DEG, TiltEstimate, as_taught, line_against,
+                                          wants_another_sweep)
+
+    def reading(uncertainty: float, sweeps: int = 4) -> TiltEstimate:
+        return TiltEstimate(0.1, -0.2, 0.0, 40, 256, 0.01, 0.9, "", uncertainty, uncertainty, sweeps)
+
+    assert MAX_TAUGHT_UNCERTAINTY_DEG == pytest.approx(0.0707, abs=1e-4)
+    kept = reading(0.065)
+    assert as_taught(kept) is kept and line_against(kept) > 0.065
+    refused = as_taught(reading(0.085))
+    assert refused.confidence == 0.0 and np.isnan(refused.alpha_deg)
+    assert "after 4 sweeps pooled" in refused.reason and "at most +-0.07" in refused.reason
+    assert "+-0.05" in refused.reason  # what it would have left its runs
+    assert wants_another_sweep(reading(0.12, sweeps=1), 4, MAX_TAUGHT_UNCERTAINTY_DEG)  # 0.06 in reach
+    assert not wants_another_sweep(reading(0.16, sweeps=1), 4, MAX_TAUGHT_UNCERTAINTY_DEG)  # 0.08: hopeless

@@ -60,6 +60,11 @@ BIWEIGHT = 4.685
 #: :func:`jackknife_slopes_covariance`) an estimate may have: beyond, the kernels that see focus do
 #: not pin the plane (too few, bunched in a corner, or scattered), and it is refused.
 MAX_TILT_UNCERTAINTY_DEG = 0.1
+#: The largest standard error of either tilt a teach may keep (degrees): a run measures
+#: against the taught reading, and both readings' errors together must stay within
+#: ``MAX_TILT_UNCERTAINTY_DEG`` (:func:`measured_against`); past an equal share the
+#: teach would leave its runs less than it took itself (:func:`as_taught`).
+MAX_TAUGHT_UNCERTAINTY_DEG = MAX_TILT_UNCERTAINTY_DEG / math.sqrt(2.0)
 #: A kernel's depth is read between the samples of its focus curve (:func:`focus_peaks`);
 #: where the curve departs from straight lines between them its centre is pulled by a
 #: fraction of a step that depends on where it falls between samples, alike in
@@ -1078,9 +1083,10 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
                         line_deg: float = MAX_TILT_UNCERTAINTY_DEG) -> bool:
     """Whether a teach should sweep the same view once more and pool it
     (:func:`pooled_tilt`): while fewer than ``max_sweeps`` are taken, when either tilt's
-    standard error is above ``TEACH_UNCERTAINTY_DEG`` (or the estimate is refused for
-    its uncertainty, above ``line_deg``: ``MAX_TILT_UNCERTAINTY_DEG``, or for a
-    measurement against the taught plane what :func:`line_against` leaves), and pooling
+    standard error is above ``TEACH_UNCERTAINTY_DEG`` (or the estimate is over
+    ``line_deg``: ``MAX_TILT_UNCERTAINTY_DEG`` for a single estimate,
+    ``MAX_TAUGHT_UNCERTAINTY_DEG`` for a teach, what :func:`line_against` leaves for a
+    measurement against the taught plane), and pooling
     ``max_sweeps`` could bring a refused estimate under the line at the best rate,
     1 / sqrt(n): a texture hopeless at that rate after its first sweep is refused at once
     (the estimate's reason stands), not swept again; once pooling has begun, the
@@ -1092,9 +1098,10 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
     worst = max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg)
     if not np.isfinite(worst):
         return False
-    if estimate.confidence > 0:
+    over = worst > line_deg
+    if estimate.confidence > 0 and not over:
         return worst > TEACH_UNCERTAINTY_DEG
-    if worst <= line_deg or estimate.kernels_used < MIN_KERNELS:
+    if not over or estimate.kernels_used < MIN_KERNELS:
         return False  # refused for another reason than its uncertainty
     best_reachable = worst * np.sqrt(estimate.sweeps / max_sweeps)
     if estimate.sweeps > 1:
@@ -1105,6 +1112,28 @@ def wants_another_sweep(estimate: TiltEstimate, max_sweeps: int = MAX_TEACH_SWEE
         # teach's 4 sweeps had read +-0.09).
         return best_reachable <= POOLING_SLACK * line_deg
     return best_reachable <= line_deg
+
+
+def as_taught(estimate: TiltEstimate) -> TiltEstimate:
+    """``estimate`` (a teach's, pooled) refused (confidence 0, NaN angles, the reason)
+    where either tilt's standard error is over ``MAX_TAUGHT_UNCERTAINTY_DEG``: against it
+    a run's sweeps would have to be pinned more tightly than the teach itself, which the
+    same texture cannot give (:func:`line_against`).
+
+    Why: drift_pair_before taught to +-0.09 after 4 sweeps left its runs +-0.04; every
+    sweep of them was refused and each run ended at its iteration limit, 600 iterations
+    later, instead of the teach saying at once that this texture cannot pin the tilts."""
+    worst = max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg)
+    if estimate.confidence <= 0 or worst <= MAX_TAUGHT_UNCERTAINTY_DEG:
+        return estimate
+    swept = "1 sweep" if estimate.sweeps == 1 else f"{estimate.sweeps} sweeps pooled"
+    nan = float("nan")
+    return replace(estimate, alpha_deg=nan, beta_deg=nan, confidence=0.0,
+                   reason=(f"after {swept}, the {estimate.kernels_used} kernels that see focus pin the tilts to "
+                           f"+-{estimate.alpha_uncertainty_deg:.2f} and +-{estimate.beta_uncertainty_deg:.2f} degree "
+                           f"only (a teach may keep at most +-{MAX_TAUGHT_UNCERTAINTY_DEG:.2f}: against it a run's "
+                           f"sweeps would have to be pinned to +-{line_against(estimate):.2f}, tighter than the "
+                           "teach itself)"))
 
 
 def line_against(taught: TiltEstimate) -> float:

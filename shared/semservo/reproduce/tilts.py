@@ -37,7 +37,8 @@ import numpy as np
 
 from semservo.config import EstimatorSettings
 from semservo.estimation import MotionEstimator
-from semservo.estimation.tilt import (MAX_TEACH_SWEEPS, TiltEstimate, depth_map, egi_tilt_between, estimate_tilt,
+from semservo.estimation.tilt import (MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, TiltEstimate, as_taught, depth_map,
+                                      egi_tilt_between, estimate_tilt,
                                       kernel_depths, line_against, measured_against, plan_sweep, pool_depths, pooled_tilt,
                                       undo_foreshortening, wants_another_sweep)
 from semservo.runs import resting_frames, resting_interval
@@ -143,8 +144,8 @@ def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
         maps.append(kernel_depths(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel,
                               lab.pixel_um))
         estimate = pooled_tilt(maps, kernel, lab.pixel_um, step)
-        if not wants_another_sweep(estimate, max_sweeps):
-            return estimate, pool_depths(maps).depths
+        if not wants_another_sweep(estimate, max_sweeps, MAX_TAUGHT_UNCERTAINTY_DEG):
+            return as_taught(estimate), pool_depths(maps).depths
 
 
 def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print,
