@@ -155,6 +155,9 @@ class Tilts:
     since_move: list[tuple[dict[str, float], dict[str, float] | None]] = field(default_factory=list)
     #: Whether the last sweep's error was held as not yet told from zero (pooling).
     holding: bool = False
+    #: Fresh sweeps in a row that could not tell the tilts, and the last one's reason.
+    refused_in_row: int = 0
+    last_refusal: str = ""
     #: The foreshortening the estimator undid on the last frame (from the tilts it
     #: reported with it; :func:`foreshortening_changed`).
     undone: np.ndarray | None = None
@@ -405,7 +408,7 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
 
 
 def judge(run: Run, measurement: Measurement) -> Verdict | None:
-    """Converged, out of iterations, or no longer making progress; None: go on."""
+    """Converged, out of iterations, the tilts lost, or no longer making progress; None: go on."""
     settings = run.settings
     if measurement.within and not settings.hold:
         if law_judges_convergence(run):
@@ -418,6 +421,12 @@ def judge(run: Run, measurement: Measurement) -> Verdict | None:
                        f"under {settings.tolerance_px:g} px")
     if run.iterations >= settings.max_iterations:
         return Verdict(None, "failed", f"iteration limit ({settings.max_iterations}) reached")
+    if run.tilts is not None and run.tilts.refused_in_row >= settings.tilts_lost_after:
+        # Not the iteration limit hundreds of frames later: the tilts cannot be servoed
+        # on sweeps that cannot tell them, and the operator needs to know why.
+        return Verdict("held: tilts lost", "failed",
+                       f"tilts lost: {run.tilts.refused_in_row} focus sweeps in a row could not tell them "
+                       f"({run.tilts.last_refusal})")
     progress = run.progress
     if progress.since_best >= settings.stall_after and (
             run.tilts is None or (progress.sweeps_since_best >= STALL_SWEEPS and not run.tilts.deciding())):
@@ -554,7 +563,10 @@ def tilt_step(run: Run, estimate: MotionEstimate, record: IterationRecord) -> La
     if estimate.alpha_deg is None or estimate.beta_deg is None \
             or (estimate.tilt_confidence or 0.0) < settings.min_tilt_confidence:
         record.tilt_action = "held: tilts not measured with confidence"
+        tilts.refused_in_row += 1
+        tilts.last_refusal = estimate.tilt_reason or f"confidence {estimate.tilt_confidence or 0.0:.2f}"
         return None
+    tilts.refused_in_row = 0
     tilts.sweeps += 1
     errors = {"alpha": estimate.alpha_deg, "beta": estimate.beta_deg}
     record.tilt_frames, record.tilt_uncertainty_deg = estimate.tilt_frames, estimate.tilt_uncertainty_deg

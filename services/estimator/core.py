@@ -779,6 +779,7 @@ class EstimatorCore:
                 "tilt_seq": tilt["tilt_seq"], "tilt_scan_started_at_ns": tilt["scan_started_at_ns"],
                 "tilt_frames": tilt["frames"], "tilt_sweep_s": tilt["sweep_s"],
                 "tilt_source_interval_s": tilt["source_interval_s"],
+                "tilt_reason": (tilt["reason"] or None) if tilt["confidence"] <= 0 else None,
                 "tilt_uncertainty_deg": _finite_pair(tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"])}
 
     def describe_reference(self) -> dict | None:

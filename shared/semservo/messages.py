@@ -170,6 +170,8 @@ class MotionEstimate(_Message):
     tilt_frames: int | None = Field(None, ge=0, description="frames that sweep took")
     tilt_sweep_s: float | None = Field(None, ge=0, description="wall time that sweep took")
     tilt_source_interval_s: tuple[float, float] | None = Field(None, description="that sweep on the source's clock")
+    tilt_reason: str | None = Field(None, max_length=2000,
+                                    description="why that sweep could not tell the tilts (its confidence 0)")
     tilt_uncertainty_deg: tuple[float, float] | None = Field(
         None, description="that sweep's standard errors of alpha, beta (degrees; the taught sweep's not included: "
                           "a constant offset no further sweep averages away)")

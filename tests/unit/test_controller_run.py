@@ -183,6 +183,37 @@ def test_tilts_without_standard_errors_are_judged_on_the_latest_sweep_alone():
     assert sweep(run, 2, 0.04, 0.0, sigma=None).tilt_mean_deg == {"alpha": 0.04, "beta": 0.0}
 
 
+def test_a_run_whose_sweeps_cannot_tell_the_tilts_fails_saying_why_not_at_its_iteration_limit():
+    """Runs on sparse particles whose every sweep was refused (pinned too loosely against
+    the taught plane) ran to their 600-iteration limit; now the third fresh sweep in a
+    row that cannot tell the tilts ends the run with its reason. A sweep that can resets
+    the count; a stale one does not count."""
+    run = make_run(dofs=["x", "y", "alpha", "beta"], max_iterations=10_000)
+    why = "against the taught plane the tilts would be pinned to +-0.13 degree only"
+
+    def refused(seq: int, started_ns: int) -> None:
+        record = IterationRecord.of(estimate())
+        tilt_step(run, estimate(1.0, seq=seq, tilt_confidence=0.0, tilt_seq=seq, tilt_scan_started_at_ns=started_ns,
+                                tilt_reason=why), record)
+
+    def judged(seq: int):
+        return judge(run, measure(run, estimate(1.0, seq=seq), new_sweep=False))
+
+    refused(1, 10_000)
+    refused(2, 20_000)
+    assert judged(2) is None
+    sweep(run, 3, 2.0, -1.0, sigma=0.05)  # one that can: the count starts again
+    assert run.tilts.refused_in_row == 0
+    run.tilts.moved(settled_ns=100_000)
+    refused(4, 50_000)  # scanned during the move: stale, not counted
+    assert run.tilts.refused_in_row == 0
+    for seq in (5, 6, 7):
+        refused(seq, 100_000 * seq)
+    verdict = judged(7)
+    assert verdict.ending == "failed" and "tilts lost: 3 focus sweeps in a row" in verdict.reason
+    assert why in verdict.reason
+
+
 def test_decide_lets_the_position_law_chain_moves_and_the_papers_law_make_one():
     run = make_run(max_move_um=10.0, moves_per_frame=3)
     run.law = PositionLaw(("x", "y"))

@@ -75,6 +75,9 @@ class RunSettings(BaseModel):
     gain_max: PositiveFloat = Field(0.8, le=10, description="per second; at least gain_min")
     min_confidence: float = Field(0.5, ge=0, le=1, description="lower-confidence estimates hold the stage")
     lost_after: Count = Field(10, le=1000, description="low-confidence frames in a row: the scene is lost")
+    tilts_lost_after: Count = Field(3, le=100, description="fresh focus sweeps in a row that cannot tell the tilts "
+                                                           "(alpha, beta DOFs): the tilts are lost, the run fails "
+                                                           "with the last sweep's reason")
     max_move_um: PositiveFloat = Field(10.0, le=100, description="largest stage move per command (saturation)")
     moves_per_frame: Count = Field(
         3, le=10, description="the position law: once a move of the run has moved the content as commanded, a "
