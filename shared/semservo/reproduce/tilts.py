@@ -216,7 +216,7 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
                        if not refused else math.nan)
         rows.append({
             "pose": [alpha, beta, gamma],
-            "refused": bool(refused), "reason": plane.reason or taught.reason,
+            "refused": bool(refused), "reason": taught.reason if taught.confidence <= 0 else plane.reason,
             "plane": [measured_alpha - alpha, measured_beta - beta],
             "plane_uncertainty": [getattr(plane, "alpha_uncertainty_deg", math.nan),
                                   getattr(plane, "beta_uncertainty_deg", math.nan)],
@@ -232,7 +232,7 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
             "plane_ms": plane_ms, "egi_ms": egi_ms, "kernels_used": plane.kernels_used, "sweeps": pose_sweeps,
         })
         left = (time.monotonic() - started) / index * (len(poses) - index)
-        outcome = (f"refused ({plane.reason or taught.reason})" if refused else
+        outcome = (f"refused ({rows[-1]['reason']})" if refused else
                    f"plane {rows[-1]['plane'][0]:+.3f} {rows[-1]['plane'][1]:+.3f}")
         say(f"  pose {index:2d}/{len(poses)} ({alpha:6.2f}, {beta:6.2f}, {gamma:6.1f}): {outcome}, egi "
             f"{rows[-1]['egi'][0]:+.3f} {rows[-1]['egi'][1]:+.3f}, gamma {rows[-1]['gamma_compensated']:+.4f} "
