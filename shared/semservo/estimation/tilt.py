@@ -95,8 +95,8 @@ FIT_DEGREE = 3
 FIT_HALF_WINDOW = 8
 #: Candidate centres of the fitted reading, within this many steps of the highest sample
 #: (a broad, flat-topped peak's highest sample wanders more than one step with the noise),
-#: ``SYMMETRY_CANDIDATES_PER_STEP / 2`` per step, then refined by a parabola through the
-#: fit's chi-square.
+#: ``SYMMETRY_CANDIDATES_PER_STEP`` per step, then refined by a parabola through the fit's
+#: chi-square (at half as many, a cusp's centre was pulled by up to 0.011 step).
 FIT_REACH_STEPS = 2
 #: The fitted reading uses the samples about the peak whose measure stands this many of
 #: its noise's standard deviations above 0 (:func:`fitted_centres`).
@@ -441,10 +441,10 @@ def fitted_centres(curves: FocusCurves, half_window: int = FIT_HALF_WINDOW,
     once the blur outgrows its particles, full widths at half maximum of 15-18 um at a
     2.5 um depth of field), those samples sit on the flat top, and the flanks that pin
     the centre are left out: on drift_pair_before's flat view under the disc, 8 sweeps,
-    the kernels' depths scattered 0.082 um (median) read so and 0.044 um fitted, against
-    0.032 um that the noise allows (the Cramer-Rao bound). Where the peak is a cusp (a
-    Gaussian probe whose width grows linearly) the mirror is as good or better:
-    :func:`focus_peak_depths` keeps, per kernel, the more precise of the two."""
+    the kernels' depths scattered 0.082 um (median) read so and 0.046 um fitted, 1.06-1.15
+    times what the noise allows each kernel (its Cramer-Rao bound). Where too few samples
+    stand over the noise (a faint cusp) the fit cannot tell and the mirror's reading
+    stands: :func:`focus_peak_depths` keeps, per kernel, the more precise of the two."""
     signal = curves.signal
     frames = signal.shape[0]
     flat = signal.reshape(frames, -1)
@@ -561,7 +561,7 @@ def focus_peak_depths(curves: FocusCurves, working_distances: np.ndarray) -> Ker
     (:func:`fitted_centres`), which reads a broad peak from its flanks.
 
     Why both: on drift_pair_before under the disc (flat view, 8 sweeps) the fit read the
-    kernels' depths twice as precisely (0.044 against 0.082 um, median scatter) and the
+    kernels' depths nearly twice as precisely (0.046 against 0.082 um, median scatter) and the
     tilts' standard errors fell from 0.24-0.39 to 0.15-0.24 degree; under the Gaussian
     probe the two scattered alike (0.032 um) and either one alone did worse on some
     texture (``bench/tilt_real.py``). Each reading's standard error comes from the same
