@@ -54,6 +54,7 @@ from semservo.config import find_sem_images
 from semservo.estimation.tilt import MAX_TEACH_SWEEPS
 from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel
 from semservo.imagefiles import read_sem_image
+from semservo.reproduce import Progress
 from semservo.reproduce.tilts import PAPER_POSES, TextureLab, depth_of_field_scan, summarize, table_one
 
 RESULTS = Path(__file__).parent / "results"
@@ -66,6 +67,8 @@ DEVELOPED_WITH = ("gaussian", "quadrature")
 #: The tables' models by default: the two of issue #27.
 DEFAULT_MODELS = ("gaussian", "disc")
 FIELD_PX, FIELD_UM, DEPTH_OF_FIELD_UM = 512, 25.0, 2.5
+#: The depth-of-field scan's depths of field, in units of DEPTH_OF_FIELD_UM.
+DEPTH_OF_FIELD_FACTORS = (1.0, 2.0, 4.0, 8.0)
 ELECTRONS, READ_NOISE = 1000.0, 2.0
 
 
@@ -182,8 +185,11 @@ def main(argv: list[str] | None = None) -> int:
         results = {}
         for name, texture in textures.items():
             say(f"[{time.monotonic() - started:6.0f} s] Table I, {name}, {shape} defocus ({len(poses)} poses)")
-            table = table_one(poses, args.seed, say=lambda text: None, lab=lab(texture, shape, args.seed),
-                              reference_sweeps=args.reference_sweeps, sweeps_when_refused=args.pose_sweeps)
+            bar = Progress(f"{name}, {shape}", len(poses))  # a pose of a sparse texture may take a minute
+            table = table_one(poses, args.seed, say=lambda text: bar.step(text.split("): ", 1)[-1].rsplit(" (", 1)[0]),
+                              lab=lab(texture, shape, args.seed), reference_sweeps=args.reference_sweeps,
+                              sweeps_when_refused=args.pose_sweeps)
+            bar.close()
             results[name] = {"table": table, "summary": summarize(table)}
             summary = results[name]["summary"]
             pinned = f"+-{table['taught_uncertainty'][0]:.3f}, +-{table['taught_uncertainty'][1]:.3f}"
@@ -207,10 +213,13 @@ def main(argv: list[str] | None = None) -> int:
             scans = {}
             for name, texture in textures.items():
                 say(f"[{time.monotonic() - started:6.0f} s] depth of field, {name}, {shape} defocus")
-                scans[name] = depth_of_field_scan(poses[:args.dof_poses], args.seed, say=lambda text: None,
+                bar = Progress(f"{name}, {shape}", len(DEPTH_OF_FIELD_FACTORS))
+                scans[name] = depth_of_field_scan(poses[:args.dof_poses], args.seed, DEPTH_OF_FIELD_FACTORS,
+                                                  say=lambda text: bar.step(text.strip()),
                                                   lab_for=lambda factor, texture=texture: lab(texture, shape, args.seed,
                                                                                               factor),
                                                   reference_sweeps=args.reference_sweeps)
+                bar.close()
             output["depth_of_field"][shape] = scans
             print_scan(shape, scans, own)
     args.out.parent.mkdir(parents=True, exist_ok=True)
