@@ -271,13 +271,16 @@ class Verdict:
 class Measurement:
     """The errors of one fresh estimate as the run judges them."""
 
-    error_px: float
-    mean: tuple[float, float, float]  # mean translation size (px), 0, mean turn size (degrees) of the recent fresh frames
+    error_px: float  # the fresh frame's whole translation error (px), servoed or not
+    mean: tuple[float, float, float]  # mean translation size (px, the servoed axes), 0, mean turn size (degrees) of the recent fresh frames
     within: bool  # converged, if the run is not holding
+    planar: bool = True  # the run servoes x or y (else no translation is judged)
 
     @property
-    def mean_error_px(self) -> float:
-        return float(math.hypot(self.mean[0], self.mean[1]))
+    def mean_error_px(self) -> float | None:
+        """The translation error as the run judges it (px, over the axes it servoes);
+        None where it servoes neither x nor y."""
+        return float(math.hypot(self.mean[0], self.mean[1])) if self.planar else None
 
 
 @dataclass(frozen=True)
@@ -340,11 +343,21 @@ def seen_from_ns(estimate: MotionEstimate) -> int:
     return estimate.rows_scanned_from_ns or estimate.frame_scan_started_at_ns or estimate.frame_acquired_at_ns
 
 
+def servoed_planar_px(dofs, dx_px: float, dy_px: float) -> float:
+    """The translation error along the planar axes a run servoes (px): x, y or both; 0
+    where it servoes neither."""
+    return math.hypot(dx_px if "x" in dofs else 0.0, dy_px if "y" in dofs else 0.0)
+
+
+def servoes_planar(dofs) -> bool:
+    return "x" in dofs or "y" in dofs
+
+
 def within_tolerance(run: Run, dx_px: float, dy_px: float, rotation_deg: float) -> bool:
-    """The translation error, the turn when rotation is servoed, and the last fresh tilts
-    when they are, under tolerance."""
+    """The translation error along the servoed planar axes, the turn when rotation is
+    servoed, and the last fresh tilts when they are, under tolerance."""
     settings, dofs = run.settings, run.settings.dofs
-    within = (("x" not in dofs and "y" not in dofs) or math.hypot(dx_px, dy_px) <= settings.tolerance_px) \
+    within = servoed_planar_px(dofs, dx_px, dy_px) <= settings.tolerance_px \
         and ("rotation" not in dofs or abs(rotation_deg) <= settings.tolerance_deg)
     if within and run.tilts is not None:
         within = run.tilts.within is not None and all(
@@ -357,7 +370,7 @@ def normalized_error(run: Run, mean: tuple[float, float, float]) -> float:
     the tilts count once a sweep has measured them."""
     settings, dofs = run.settings, run.settings.dofs
     parts = [0.0]
-    if "x" in dofs or "y" in dofs:
+    if servoes_planar(dofs):
         parts.append(math.hypot(mean[0], mean[1]) / settings.tolerance_px)
     if "rotation" in dofs:
         parts.append(abs(mean[2]) / settings.tolerance_deg)
@@ -388,7 +401,9 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
     run.recent.append((estimate.dx_px, estimate.dy_px, estimate.rotation_deg))
     while len(run.recent) > settings.converge_frames:
         run.recent.popleft()
-    sizes = [(math.hypot(dx, dy), abs(rotation)) for dx, dy, rotation in run.recent]
+    # The sizes along the servoed axes only: an axis the run leaves alone is not judged
+    # (a turn-only run's view may stay far off in x, y).
+    sizes = [(servoed_planar_px(settings.dofs, dx, dy), abs(rotation)) for dx, dy, rotation in run.recent]
     mean_size, mean_turn = (float(value) for value in np.mean(sizes, axis=0))
     mean = (mean_size, 0.0, mean_turn)  # sizes: a translation's along x, the turn's magnitude
     within = len(run.recent) == settings.converge_frames and within_tolerance(run, *mean)
@@ -404,21 +419,14 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
             mean = (estimated, 0.0, mean_turn)
     if run.tilts is None or run.tilts.last_error is not None:
         run.progress.update(normalized_error(run, mean), new_sweep)
-    return Measurement(math.hypot(estimate.dx_px, estimate.dy_px), mean, within)
+    return Measurement(math.hypot(estimate.dx_px, estimate.dy_px), mean, within, servoes_planar(settings.dofs))
 
 
 def judge(run: Run, measurement: Measurement) -> Verdict | None:
     """Converged, out of iterations, the tilts lost, or no longer making progress; None: go on."""
     settings = run.settings
     if measurement.within and not settings.hold:
-        if law_judges_convergence(run):
-            error, spread = run.law.planar_estimate()
-            return Verdict("within tolerance", "converged",
-                           f"the position law's estimate {error:.3f} px (one standard deviation {spread:.3f} px) "
-                           f"within {settings.tolerance_px:g} px, from {run.fresh_frames} fresh frames")
-        return Verdict("within tolerance", "converged",
-                       f"mean error of the last {len(run.recent)} fresh frames {measurement.mean_error_px:.3f} px, "
-                       f"under {settings.tolerance_px:g} px")
+        return Verdict("within tolerance", "converged", converged_reason(run, measurement))
     if run.iterations >= settings.max_iterations:
         return Verdict(None, "failed", f"iteration limit ({settings.max_iterations}) reached")
     if run.tilts is not None and run.tilts.refused_in_row >= settings.tilts_lost_after:
@@ -434,12 +442,43 @@ def judge(run: Run, measurement: Measurement) -> Verdict | None:
     return None
 
 
+def converged_reason(run: Run, measurement: Measurement) -> str:
+    """What a converged run judged, in its own words: for the planar axes it servoes
+    (named when only one) the position law's estimate or the paper's law's mean over its
+    last fresh frames, the turn and the tilts where they are servoed, and the planar
+    axes it left alone with how far the view is off along them (never an error of 0 for
+    an axis nobody measured)."""
+    settings, dofs = run.settings, run.settings.dofs
+    planar_axes = [axis for axis in ("x", "y") if axis in dofs]
+    named = "" if len(planar_axes) != 1 else f" in {planar_axes[0]}"
+    said = []
+    if planar_axes and law_judges_convergence(run):
+        error, spread = run.law.planar_estimate()
+        said.append(f"the position law's estimate {error:.3f} px{named} (one standard deviation {spread:.3f} px) "
+                    f"within {settings.tolerance_px:g} px, from {run.fresh_frames} fresh frames")
+    elif planar_axes:
+        said.append(f"mean error of the last {len(run.recent)} fresh frames {measurement.mean_error_px:.3f} px{named}, "
+                    f"under {settings.tolerance_px:g} px")
+    if "rotation" in dofs:
+        said.append(f"the turn's mean error {measurement.mean[2]:.3f} deg, under {settings.tolerance_deg:g} deg")
+    if run.tilts is not None and run.tilts.within:
+        said.append("tilts " + ", ".join(f"{dof} {value:+.3f}" for dof, value in run.tilts.within.items())
+                    + f" deg, within {settings.tolerance_tilt_deg:g} deg")
+    left = [axis for axis in ("x", "y") if axis not in dofs]
+    if left and run.recent:
+        dx, dy, _ = run.recent[-1]
+        off = {"x": dx, "y": dy}
+        said.append(f"not servoed: {', '.join(left)} (the view is "
+                    + ", ".join(f"{off[axis]:+.2f} px in {axis}" for axis in left) + " off)")
+    return "; ".join(said)
+
+
 def stall_reason(run: Run, measurement: Measurement) -> str:
     """Why a run that makes no progress is stopped, in the words an operator needs."""
     settings = run.settings
     what = [f"the error has not fallen below {PROGRESS_FACTOR:g} x its best for {run.progress.since_best} fresh "
             f"frames"]
-    if "x" in settings.dofs or "y" in settings.dofs:
+    if measurement.mean_error_px is not None:
         what.append(f"translation {measurement.mean_error_px:.3f} px (tolerance {settings.tolerance_px:g})")
     if run.tilts is not None and run.tilts.last_error:
         what.append("tilts " + ", ".join(f"{dof} {value:+.3f} deg" for dof, value in run.tilts.last_error.items())

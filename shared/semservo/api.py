@@ -202,7 +202,8 @@ class RunSummary(Response):
     state: str
     reason: str
     iterations: int
-    final_error_px: float | None
+    final_error_px: float | None = Field(description="the translation error the run judged last (px, along the planar "
+                                                     "axes it servoes); null for a run that servoes neither x nor y")
     truth: dict | None
     dofs: list[str] = Field(default_factory=list)
     duration_s: float | None = Field(None, description="from start to end (or to now, for a run still servoing)")

@@ -1104,9 +1104,10 @@ class PositionLaw:
         return LawStep(_floats(error), cost(error), fraction, (), move)
 
     def planar_estimate(self) -> tuple[float, float]:
-        """The planar error as the law estimates it (px) and its spread (one standard
-        deviation, px), at the last frame; (nan, nan) before the first."""
-        if self.state is None:
+        """The planar error as the law estimates it (px: over the planar DOFs it servoes)
+        and its spread (one standard deviation, px), at the last frame; (nan, nan) before
+        the first, and for a law that servoes no planar DOF (it estimates none)."""
+        if self.state is None or self._rotation.all():
             return math.nan, math.nan
         position, spread = self._forecast(None)
         return self._norms(position), self._norms(spread) / math.sqrt(max(sum(~self._rotation), 1))

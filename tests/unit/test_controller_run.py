@@ -303,3 +303,35 @@ def test_a_new_foreshortening_undone_by_the_estimator_restarts_what_the_position
     restarted.view_moved()
     step = restarted.step(0.01, -0.01, -0.08, 70.0, frame_interval_s=(7.2, 7.56), now_s=7.6)
     assert step.move["rotation_deg"] == pytest.approx(0.08, rel=0.25) and not restarted.converged
+
+
+def test_a_run_that_leaves_x_and_y_alone_never_reports_a_translation_error_it_did_not_judge():
+    """A turn-only run judges the turn: its records carry no translation error (None, not
+    the 0.000 px a law without planar DOFs would estimate), and its reason says the view
+    is still off in x and y, by how much (a new user's turn-only run reported 'converged:
+    0.000 px' with the view 22.6 px off)."""
+    run = make_run(dofs=["rotation"], converge_frames=2)
+    verdict = None
+    for seq in (1, 2):
+        measurement = measure(run, estimate(20.0, -15.0, seq=seq, rotation_deg=0.01))
+        assert measurement.mean_error_px is None
+        verdict = judge(run, measurement)
+    assert verdict.ending == "converged"
+    assert "0.000 px" not in verdict.reason and "turn's mean error 0.010 deg" in verdict.reason
+    assert "not servoed: x, y (the view is +20.00 px in x, -15.00 px in y off)" in verdict.reason
+    turning = PositionLaw(("rotation",))
+    turning.step(20.0, -15.0, 0.5, 100.0, 1.0, frame_interval_s=(0.0, 0.5), now_s=0.6, scan_time_s=0.5)
+    assert all(math.isnan(value) for value in turning.planar_estimate()), "it estimates no planar error"
+
+
+def test_a_run_along_x_alone_judges_x_and_says_how_far_off_y_is():
+    """An x-only run converges on x (before, the paper's law asked the whole translation of
+    it and could never converge; the position law's estimate already was x's alone), and
+    its reason names the axis and the view's error along the one it left."""
+    run = make_run(dofs=["x"], converge_frames=2)
+    verdict = feed(run, [0.03, -0.02], dy=27.0)
+    assert verdict is not None and verdict.ending == "converged"
+    assert "fresh frames 0.025 px in x, under 0.1 px" in verdict.reason
+    assert "not servoed: y (the view is +27.00 px in y off)" in verdict.reason
+    assert judge(make_run(dofs=["x", "y"], converge_frames=1),
+                 measure(make_run(dofs=["x", "y"]), estimate(0.03, 27.0))) is None, "x and y: y is judged"

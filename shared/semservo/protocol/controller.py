@@ -131,9 +131,12 @@ class ControllerStatus(CommandReply):
     dofs: list[str] = Field(default_factory=list, description="the run's degrees of freedom (gamma as rotation)")
     started_at_ns: int | None = None
     iteration: int = Field(0, description="moves made")
-    error_px: float | None = Field(None, description="the last fresh frame's translation error")
-    mean_error_px: float | None = Field(None, description="the error convergence is judged on: the mean over the "
-                                                          "last converge_frames fresh frames")
+    error_px: float | None = Field(None, description="the last fresh frame's translation error (the whole view's, "
+                                                     "servoed or not)")
+    mean_error_px: float | None = Field(None, description="the translation error convergence is judged on, along the "
+                                                          "planar axes the run servoes: the position law's estimate, or "
+                                                          "the paper's law's mean over the last converge_frames fresh "
+                                                          "frames; null for a run that servoes neither x nor y")
     error_um: float | None = None
     cost: float | None = None
     rotation_deg: float | None = Field(None, description="the last rotation error about the beam (gamma)")
