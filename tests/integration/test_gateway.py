@@ -258,6 +258,34 @@ def test_the_examples_run(system, script, args, expect, tmp_path):
     assert re.search(expect, done.stdout), done.stdout
 
 
+def test_the_hold_example_ends_with_its_run_and_leaves_an_operators_stop_alone(system, tmp_path):
+    """examples/hold_against_drift.py once waited forever when its run ended early (it
+    looked at the clock only when an event came, and none come after a run ends), and it
+    ended with a resume that would have undone the operator's stop."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    lab = system["client"]
+    frames_flowing(lab)
+    env = {**os.environ, "SEMSERVO_URL": str(lab.http.base_url).rstrip("/")}
+    script = Path(__file__).parents[2] / "examples" / "hold_against_drift.py"
+    process = subprocess.Popen([sys.executable, str(script), "600"], env=env, cwd=tmp_path, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        wait_for(lambda: lab.status()["state"] == "servoing", 60, "the example's run")
+        lab.stop("operator emergency")
+        out, _ = process.communicate(timeout=60)
+        assert process.returncode == 1, out
+        assert "before the hold was over (stopped: operator emergency)" in out, out
+        assert lab.stage().state == "stopped", "the operator's stop stands"
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        lab.resume()  # the next test's stage may move
+
+
 def test_a_teach_right_after_a_jog_averages_only_frames_scanned_after_it(system):
     """examples/visit_targets.py once taught two of its targets from frames scanned while
     the stage was still moving: the reference was a blend of two views, and the runs to
