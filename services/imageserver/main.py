@@ -170,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     fps = WATCH_MAX_FPS if not getattr(source, "paced", True) else args.fps or config.fps
     core = ImageServerCore(source, fps=fps)
     publisher = FramePublisher(settings.bind(config.frames_port), context=runtime.context)
-    log.info("publishing %s on %s at %.1f fps", source.describe(), publisher.endpoint, core.pacer.fps)
+    # A cap: a source slower than it (a simulated or real scan of seconds) sets the pace.
+    log.info("publishing %s on %s, at most %.1f fps", source.describe(), publisher.endpoint, core.pacer.fps)
     server = ImageServer(core, frames_endpoint=connect(config.host, config.frames_port),
                          published=lambda: publisher.sent)
     handlers.bind(runtime.control, server)

@@ -58,7 +58,7 @@ class ReplaySource:
         self,
         folder: str | Path,
         *,
-        pattern: str = "*",
+        pattern: str | None = None,
         loop: bool = True,
         overrides: dict | None = None,
         fallbacks: dict | None = None,
@@ -66,9 +66,13 @@ class ReplaySource:
     ):
         self.folder = Path(folder)
         self.loop = loop
-        self.paths = list_frames(self.folder, pattern)
+        self.paths = list_frames(self.folder, pattern or "*")
+        #: Left out by default (no ``pattern``): the taught image a recording keeps beside
+        #: its frames, ``reference.*`` (the 2013 run's reference.png is not one of its frames).
+        self.left_out = [] if pattern else [path.name for path in self.paths if path.stem.lower() == "reference"]
+        self.paths = [path for path in self.paths if path.name not in self.left_out]
         if not self.paths:
-            raise FileNotFoundError(f"no PNG or TIFF frames matching {pattern!r} in {self.folder}")
+            raise FileNotFoundError(f"no PNG or TIFF frames matching {pattern or '*'!r} in {self.folder}")
         self.images: list[tuple[np.ndarray, ImageMetadata]] = []
         for path in self.paths:
             image = read_sem_image(path, data_bar=data_bar)
@@ -104,6 +108,7 @@ class ReplaySource:
             "source": self.name,
             "folder": str(self.folder),
             "frames": len(self.paths),
+            **({"left_out": self.left_out} if self.left_out else {}),
             "shape": list(pixels.shape),
             "dtype": str(pixels.dtype),
             "loop": self.loop,

@@ -87,7 +87,9 @@ class ImageServerSettings(BaseModel):
         "sim", description="sim: the fake lab's SEM; replay: a folder, again and again; watch: the folder an SEM "
                            "saves its frames into; adapter: a lab's own source (see adapter)")
     replay_dir: Path = Field(default_factory=find_recorded_run, description="folder of PNG/TIFF frames")
-    replay_glob: str = Field("*", description="which files of the folder to replay, e.g. 'frame*'")
+    replay_glob: str | None = Field(None, description="which files of the folder to replay, e.g. 'frame*' (by default "
+                                                      "every PNG/TIFF but a reference.*: the taught image a "
+                                                      "recording keeps beside its frames)")
     fps: PositiveFloat = Field(10.0, le=10_000, description="frames published per second (replay, sim)")
     loop: bool = Field(True, description="replay again from the first frame at the end")
     watch_dir: Path | None = Field(None, description="watch: the folder the SEM's software saves frames into")

@@ -44,8 +44,9 @@ def test_real_frames_arrive_with_correct_header_and_pixels(imageserver, ports, r
         assert header.acquired_at_ns <= header.published_at_ns
         expected = np.asarray(Image.open(recorded_run / header.label))
         np.testing.assert_array_equal(frame.pixels, expected)
-    # name order: sequence n shows file n of the folder (55 files, looping)
-    names = sorted(p.name for p in recorded_run.glob("*.png"))
+    # name order: sequence n shows file n of the folder (its 54 frames, looping; not the
+    # taught image beside them, reference.png)
+    names = sorted(p.name for p in recorded_run.glob("frame*.png"))
     assert all(frame.header.label == names[frame.header.seq % len(names)] for frame in frames)
 
 
@@ -53,7 +54,8 @@ def test_control_socket_answers_and_survives_malformed_requests(imageserver):
     process, control = imageserver
     client = ControlClient(control, timeout_s=1)
     info = client.request("info")
-    assert info["source"] == "replay" and info["frames"] == 55 and info["fps"] == 40
+    assert info["source"] == "replay" and info["frames"] == 54 and info["fps"] == 40
+    assert info["left_out"] == ["reference.png"]
     assert client.request("set_fps", fps=25) == {"fps": 25}
     with pytest.raises(CommandError, match="fps"):
         client.request("set_fps", fps=-1)

@@ -25,9 +25,14 @@ def test_replays_the_real_recording_in_name_order(recorded_run):
     assert not first_pixels.flags.writeable  # published zero-copy, so frozen
 
 
-def test_default_folder_includes_the_reference_last(recorded_run):
+def test_the_recording_is_replayed_without_its_taught_image_unless_a_pattern_asks_for_it(recorded_run):
+    """The 2013 run keeps its taught image, reference.png, beside frame00-53: not a frame
+    of the run (replayed, the view jumped to the taught pose after the last frame)."""
     source = ReplaySource(recorded_run)
-    assert len(source.paths) == 55 and source.paths[-1].name == "reference.png"
+    assert len(source.paths) == 54 and source.paths[-1].name == "frame53.png"
+    assert source.describe()["left_out"] == ["reference.png"]
+    every = ReplaySource(recorded_run, pattern="*")
+    assert len(every.paths) == 55 and every.paths[-1].name == "reference.png" and "left_out" not in every.describe()
 
 
 def test_loop_starts_again_and_once_stops(tmp_path):
