@@ -21,6 +21,7 @@ import abc
 import asyncio
 import json
 import logging
+import math
 import os
 import time
 from collections.abc import AsyncIterator, Iterator
@@ -54,6 +55,13 @@ def _worth_asking_again(error: "SemservoError") -> bool:
     """A wait's poll that may answer next time: the run not recorded yet (404), the
     gateway unreachable or restarting (0, 5xx)."""
     return error.status in (0, 404) or error.status >= 500
+
+
+def _not_yet_recorded(error: "SemservoError", current_run_id: str | None, run_id: str) -> bool:
+    """Whether a wait's 404 is a run started but not recorded yet (the gateway records a
+    run at its first event, a moment after its start): only if it is the run the status
+    names. Any other 404 is a run nobody started (a typo waited out a 300 s timeout)."""
+    return error.status != 404 or current_run_id == run_id
 
 
 class SemservoError(Exception):
@@ -268,6 +276,23 @@ def save(content: bytes, path: str | Path) -> Path:
     return path
 
 
+def _checked(call: "Call") -> "Call":
+    """``call``, if its JSON body can be sent: NaN and infinity cannot (JSON has no such
+    numbers), which would raise a bare ValueError from deep in httpx; the same
+    :class:`SemservoError` a gateway answers for a number out of range, nothing sent."""
+    body = call.kwargs.get("json")
+    if body is not None:
+        try:
+            json.dumps(body, allow_nan=False)
+        except ValueError:
+            bad = sorted(key for key, value in (body.items() if isinstance(body, dict) else ())
+                         if isinstance(value, float) and not math.isfinite(value))
+            raise SemservoError(422, "not_finite", f"{call.method} {call.path}: not a finite number (NaN or infinity)"
+                                f"{' in ' + ', '.join(bad) if bad else ''}; nothing was sent",
+                                field=bad[0] if len(bad) == 1 else None) from None
+    return call
+
+
 def _unreachable(client, error: Exception) -> SemservoError:
     return SemservoError(0, "unreachable", f"{client.http.base_url}: {error}")
 
@@ -299,6 +324,7 @@ class Client(_Endpoints):
         self.http.close()
 
     def _run(self, call: Call):
+        call = _checked(call)
         try:
             response = self.http.request(call.method, call.path, **call.kwargs)
         except httpx.TransportError as error:
@@ -334,14 +360,16 @@ class Client(_Endpoints):
         if it is the one servoing (never another script's), and the error says so."""
         deadline = time.monotonic() + timeout
         try:
-            while time.monotonic() < deadline:
+            while True:  # asked at least once, whatever the timeout
                 try:
                     run = self.run(run_id)
                     if run.state in FINISHED:
                         return run
                 except SemservoError as error:
-                    if not _worth_asking_again(error):
+                    if not _worth_asking_again(error) or not _not_yet_recorded(error, self._current_run_id(), run_id):
                         raise
+                if time.monotonic() + poll_s >= deadline:
+                    break
                 time.sleep(poll_s)
         except BaseException:
             if stop_on_timeout:
@@ -350,6 +378,13 @@ class Client(_Endpoints):
         said = self._stop_if_active(run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s") \
             if stop_on_timeout else ""
         raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s" + said)
+
+    def _current_run_id(self) -> str | None:
+        """The run the status names (the active or last one); None if it cannot be told."""
+        try:
+            return self.status().run_id
+        except SemservoError:
+            return None
 
     def _stop_if_active(self, run_id: str, reason: str) -> str:
         """Stop the run if it is the one servoing (never another script's), asking for up
@@ -395,6 +430,7 @@ class AsyncClient(_Endpoints):
         await self.http.aclose()
 
     async def _run(self, call: Call):
+        call = _checked(call)
         try:
             response = await self.http.request(call.method, call.path, **call.kwargs)
         except httpx.TransportError as error:
@@ -420,14 +456,17 @@ class AsyncClient(_Endpoints):
         """As :meth:`Client.wait`."""
         deadline = time.monotonic() + timeout
         try:
-            while time.monotonic() < deadline:
+            while True:  # asked at least once, whatever the timeout
                 try:
                     run = await self.run(run_id)
                     if run.state in FINISHED:
                         return run
                 except SemservoError as error:
-                    if not _worth_asking_again(error):
+                    if not _worth_asking_again(error) or not _not_yet_recorded(error, await self._current_run_id(),
+                                                                               run_id):
                         raise
+                if time.monotonic() + poll_s >= deadline:
+                    break
                 await asyncio.sleep(poll_s)
         except BaseException:
             if stop_on_timeout:
@@ -436,6 +475,13 @@ class AsyncClient(_Endpoints):
         said = await self._stop_if_active(run_id, f"the script gave up waiting for run {run_id} after {timeout:g} s") \
             if stop_on_timeout else ""
         raise WaitTimeout(0, "timeout", f"run {run_id} did not end within {timeout:g} s" + said)
+
+    async def _current_run_id(self) -> str | None:
+        """As :meth:`Client._current_run_id`."""
+        try:
+            return (await self.status()).run_id
+        except SemservoError:
+            return None
 
     async def _stop_if_active(self, run_id: str, reason: str) -> str:
         """As :meth:`Client._stop_if_active`."""

@@ -114,3 +114,45 @@ def test_the_asyncio_client_gives_up_the_same_way():
     with pytest.raises(WaitTimeout, match="it was stopped"):
         asyncio.run(wait())
     assert len(gateway.stops) == 1
+
+
+def test_a_run_nobody_started_is_said_at_once_not_waited_out():
+    """A typo in a run id waited out the whole timeout (300 s in the README's example):
+    a 404 is asked again only for the run the status names (started, not recorded yet)."""
+    gateway = Gateway(servoing=RUN)
+    lab = client_on(gateway)
+    with pytest.raises(client_module.SemservoError, match="404"):
+        lab.wait("20261127-000000-000000", timeout=30, poll_s=0.01)
+    unrecorded = Gateway(servoing="20261127-000000-000000")
+    lab = client_on(unrecorded)
+    with pytest.raises(WaitTimeout):  # the status names it: not recorded yet, asked again until the deadline
+        lab.wait("20261127-000000-000000", timeout=0.05, poll_s=0.01)
+
+    async def wait_async():
+        other = AsyncClient("http://gateway")
+        other.http = httpx.AsyncClient(base_url="http://gateway", transport=httpx.MockTransport(Gateway()))
+        try:
+            await other.wait("20261127-000000-000000", timeout=30, poll_s=0.01)
+        finally:
+            await other.http.aclose()
+
+    with pytest.raises(client_module.SemservoError, match="404"):
+        asyncio.run(wait_async())
+
+
+def test_a_finished_run_is_returned_whatever_the_timeout():
+    gateway = Gateway(finished_after=0)
+    assert client_on(gateway).wait(RUN, timeout=-1).state == "converged" and gateway.polls == 1
+
+
+def test_a_number_json_cannot_carry_is_a_semservo_error_and_nothing_is_sent():
+    """NaN or infinity in a body raised httpx's bare ValueError ('Out of range float
+    values are not JSON compliant'); the README promises SemservoError for every failure."""
+    gateway = Gateway()
+    lab = client_on(gateway)
+    with pytest.raises(client_module.SemservoError, match="not a finite number .* in tolerance_px") as raised:
+        lab.start(tolerance_px=float("nan"))
+    assert raised.value.status == 422 and raised.value.field == "tolerance_px"
+    with pytest.raises(client_module.SemservoError, match="x_um"):
+        lab.move(x_um=float("inf"))
+    assert gateway.polls == 0 and not gateway.stops
