@@ -717,7 +717,9 @@ class GatewayCore:
     def resume(self):
         """Let a stopped or held stage move again (a run cannot be active then)."""
         self._refuse_during_run("resuming the stage", controller_required=True)
-        return self.ask("stage", stage_protocol.RESUME)
+        resumed = self.ask("stage", stage_protocol.RESUME)
+        self.forget_health()
+        return resumed
 
     def stage_state(self):
         return self.ask("stage", stage_protocol.STATE)
@@ -748,6 +750,7 @@ class GatewayCore:
                 raise CommandError("run_active", error.message, run_id=status.run_id) from None
             raise
         self._record_start(started.run_id)
+        self.forget_health()
         return {"run_id": started.run_id, "state": started.state}
 
     def stop(self, reason: str) -> dict:
@@ -764,6 +767,7 @@ class GatewayCore:
                 raise CommandError("stop_failed", f"neither the stage nor the controller answered: {stage_error}; "
                                                   f"{error.message}") from None
             status = {"state": "stopped", "reason": reason, "controller": error.message}
+        self.forget_health()
         return {**status, "stage_stopped": stage_error is None, "stage_error": stage_error}
 
     # -- status ---------------------------------------------------------------
@@ -779,6 +783,14 @@ class GatewayCore:
             self._health_cache = (self.clock(), {**(report if self.clock() - cached_at < HEALTH_TTL_S else {}),
                                                  **fresh})
             return fresh
+
+    def forget_health(self) -> None:
+        """Drop the cached health: after a command that changed a service's state (a
+        stop, a start, a resume) the next status asks again, so a script that reads the
+        status right after its stop sees it (a status served from the cache said
+        'servoing' for up to HEALTH_TTL_S after /stop had answered 'stopped')."""
+        with self.health_lock:
+            self._health_cache = (-1e9, {})
 
     def _ask_health(self, names: tuple[str, ...]) -> dict[str, dict]:
         from semservo.protocol import HEALTH

@@ -163,3 +163,27 @@ def test_a_finished_runs_report_is_drawn_once_and_anew_when_its_record_changes(m
     servoing = {**run, "id": "r2", "state": "servoing"}
     assert core.run_report(servoing) == b"png 3" and core.run_report(servoing) == b"png 4"  # still changing: drawn
     assert drawn == ["converged", "converged", "servoing", "servoing"]
+
+
+def test_the_status_right_after_a_stop_says_stopped():
+    """The status is built from the services' health, cached a quarter second for the
+    dashboards: a script reading it right after its /stop saw 'servoing' for 20-65 ms.
+    A stop (a start, a resume) drops the cache."""
+    run = {"state": "servoing", "run_id": "r1"}
+
+    def health(service):
+        return lambda: {"service": service, "state": "running", "pid": 1, "uptime_s": 1.0, "counters": {},
+                        "details": dict(run) if service == "controller" else {}}
+
+    def stopped():
+        run["state"] = "stopped"
+        return {**run, "reason": "operator"}
+
+    clock = [100.0]
+    core = core_with(stage=Port(stop=STAGE_STATE, health=health("stage")),
+                     controller=Port(stop=stopped, health=health("controller"),
+                                     run={"id": "r1", "started_at_ns": 1, "settings": {}}))
+    core.clock = lambda: clock[0]  # no time passes: the cache would still serve
+    assert core.status()["state"] == "servoing"
+    assert core.stop("operator")["state"] == "stopped"
+    assert core.status()["state"] == "stopped"
