@@ -309,6 +309,8 @@ def test_bad_reference_is_a_clear_value_error(frame):
         MotionEstimator(frame, mask=[(0, 0), (10, 10)])
     with pytest.raises(ValueError, match="part of the image"):
         MotionEstimator(frame, mask=np.zeros(frame.shape, bool))
+    with pytest.raises(ValueError, match=r"flat \(every pixel 0\): there is nothing in it"):
+        MotionEstimator(np.zeros((512, 512), np.uint8))  # a blank upload was taught; its run failed 10 s later
 
 
 def test_fft_plans_are_kept_as_wisdom_on_disk(tmp_path, monkeypatch):

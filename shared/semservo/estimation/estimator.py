@@ -224,6 +224,11 @@ class MotionEstimator:
         if precision not in ("full", "fast"):
             raise ValueError(f"precision must be 'full' or 'fast', not {precision!r}")
         reference = as_image(reference, "reference")
+        if mask is None and reference.max() == reference.min():
+            # Every shift and turn matches it alike: a run against it could only end
+            # 'scene lost', seconds later (a blank upload, a beam blanked at the teach).
+            raise ValueError(f"the reference is flat (every pixel {float(reference.min()):g}): there is nothing in it "
+                             "to register against")
         # What a partial frame's estimator (:meth:`_rows_estimator`) is made from: the
         # reference as given, the mask as a boolean array, and the other settings.
         self._settings = dict(window=window, snr_threshold_db=snr_threshold_db, band=band, fft_effort=fft_effort,
