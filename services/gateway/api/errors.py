@@ -64,8 +64,10 @@ def install(app: FastAPI) -> None:
         location = [str(part) for part in first.get("loc", ()) if part not in ("body", "query", "path")]
         message = first.get("msg", "invalid request")
         if first.get("type") in NUMBER_BOUNDS and str(first.get("input", "")).strip().lower().lstrip("+-") in NON_FINITE:
-            # A query's "NaN" parses as a float and then reads as out of range.
-            message = f"not a finite number ({first['input']}): {message}"
+            # A query's "NaN" parses as a float and then reads as out of range: say what
+            # is wrong first, the field's bound after ("not a finite number (NaN): Input
+            # should be less than or equal to 100000" read as if NaN were too large).
+            message = f"{first['input']} is not a finite number; a finite one is expected ({message[:1].lower()}{message[1:]})"
         return error_response(422, "invalid", message, ".".join(location) or None)
 
 
