@@ -653,6 +653,16 @@ def command_demo(args: argparse.Namespace) -> int:
                 print("no frames reach the gateway: is the image server running?", file=sys.stderr)
                 return 1
             time.sleep(0.2)
+        # Before the teach: a demo that cannot move must not replace the taught reference.
+        stage = lab.stage()
+        if stage.state == "stopped":
+            if not args.resume:
+                print(f"demo: the stage is stopped ({stage.reason}); nothing was taught or moved. An operator's stop "
+                      f"holds, across restarts too, until someone resumes it: the dashboard's Resume, POST "
+                      f"{url}/stage/resume, or this demo again with --resume.", file=sys.stderr)
+                return 1
+            lab.resume()
+            print("   the stage was stopped; resumed (--resume)")
         if tilts:
             print("1. teaching: the mean of the live frames, and a focus sweep at the taught pose (the tilts) ...",
                   flush=True)
@@ -677,15 +687,6 @@ def command_demo(args: argparse.Namespace) -> int:
         print(f"1. taught reference {reference.id} (mean of {args.frames} live frames"
               + (f"; focus sweep of {reference.tilt['frames']} frames, {reference.tilt['kernels_used']} kernels "
                  "in focus somewhere)" if tilts else ")"))
-        stage = lab.stage()
-        if stage.state == "stopped":
-            if not args.resume:
-                print(f"demo: the stage is stopped ({stage.reason}). An operator's stop holds, across restarts too, "
-                      f"until someone resumes it: the dashboard's Resume, POST {url}/stage/resume, or "
-                      "`semservo demo --resume`.", file=sys.stderr)
-                return 1
-            lab.resume()
-            print("   the stage was stopped; resumed (--resume)")
         offset = args.offset
         pixel_nm = reference.get("pixel_size_nm") or (reference.get("acquisition") or {}).get("pixel_size_nm")
         if offset is None:

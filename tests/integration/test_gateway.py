@@ -322,6 +322,12 @@ def test_a_demo_that_gives_up_stops_the_run_it_started(system, tmp_path):
     assert run.state == "stopped" and "gave up waiting" in run.reason
     assert lab.stage().state == "stopped", "a stop holds the stage, as every stop does"
     assert "--resume" in done.stderr, "the message says how the next demo gets past the stop"
+    # A demo without --resume refuses before its teach: the taught reference stays.
+    taught = lab.reference().id
+    refused = subprocess.run([sys.executable, "-m", "semservo", "demo", "--url", str(lab.http.base_url).rstrip("/")],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 1 and "nothing was taught or moved" in refused.stderr, refused.stderr
+    assert "this demo again with --resume" in refused.stderr and lab.reference().id == taught
     # The next demo, as the message says: it resumes the stage first (and gives up again).
     again = subprocess.run([sys.executable, "-m", "semservo", "demo", "--url", str(lab.http.base_url).rstrip("/"),
                             "--timeout", "1", "--offset", "-9", "7", "--law", "paper", "--resume"], cwd=tmp_path,
