@@ -20,12 +20,20 @@ with Client() as lab:
     started = time.monotonic()
     worst = 0.0
     ended = None  # the run's own end, if it came first
-    for event in lab.events():  # iterations while servoing; a status at every change of state
+    # First the status as it is ("hello": a stop before the stream opened is seen there),
+    # then the iterations while servoing and a status at every change of state; None after
+    # a quiet second (no events come after a run ends, and a lost one never comes).
+    for event in lab.events(quiet_s=1.0):
+        if event is None:
+            status = lab.status()
+            event = {"kind": "status", "data": {"run_id": status.run_id, "state": status.state,
+                                                "reason": status.reason}}
         data = event["data"]
         if event["kind"] == "iteration" and data.get("error_px") is not None:
             worst = max(worst, data["error_px"])
             print(f"iteration {data['iteration']:4d}: error {data['error_px']:.3f} px")
-        if event["kind"] == "status" and event["run_id"] == run.run_id and data.get("state") in FINISHED:
+        if (event["kind"] in ("hello", "status") and data.get("run_id") == run.run_id
+                and data.get("state") in FINISHED):
             ended = f"{data['state']}: {data.get('reason') or 'no reason given'}"
             break
         if time.monotonic() - started > duration_s:

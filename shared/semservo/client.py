@@ -404,12 +404,23 @@ class Client(_Endpoints):
                     return f"; it could NOT be stopped ({error}): it may still be servoing"
             time.sleep(0.25)
 
-    def events(self) -> Iterator[dict]:
-        """Live events (status, iteration, reference) from ``WS /events``."""
+    def events(self, quiet_s: float | None = None) -> Iterator[dict | None]:
+        """Live events from ``WS /events``: first ``hello`` (the status as it is), then
+        status, iteration and reference events as they happen. With ``quiet_s``, None
+        after that many seconds without one, so a loop can look at its clock or the
+        status (after a run ends no events come; a lost one is never sent again)."""
+        from websockets.exceptions import ConnectionClosedOK
         from websockets.sync.client import connect
 
         with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
-            for message in socket:
+            while True:
+                try:
+                    message = socket.recv(timeout=quiet_s)
+                except TimeoutError:
+                    yield None
+                    continue
+                except ConnectionClosedOK:  # the gateway said goodbye (it is stopping)
+                    return
                 yield json.loads(message)
 
 
@@ -499,9 +510,18 @@ class AsyncClient(_Endpoints):
                     return f"; it could NOT be stopped ({error}): it may still be servoing"
             await asyncio.sleep(0.25)
 
-    async def events(self) -> AsyncIterator[dict]:
+    async def events(self, quiet_s: float | None = None) -> AsyncIterator[dict | None]:
+        """As :meth:`Client.events`."""
         from websockets.asyncio.client import connect
+        from websockets.exceptions import ConnectionClosedOK
 
         async with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
-            async for message in socket:
+            while True:
+                try:
+                    message = await asyncio.wait_for(socket.recv(), quiet_s)
+                except TimeoutError:
+                    yield None
+                    continue
+                except ConnectionClosedOK:  # the gateway said goodbye (it is stopping)
+                    return
                 yield json.loads(message)

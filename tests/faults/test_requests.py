@@ -114,9 +114,11 @@ def test_a_script_that_gives_up_waiting_stops_its_own_run_and_no_other(campaign)
     assert campaign.wait_finished(run_id)["state"] == "stopped"
     client.resume()
     other = running(campaign)
-    # A run id this script got wrong: another script's run goes on.
-    with pytest.raises(WaitTimeout, match="not servoing, so not stopped"):
-        client.wait("20260101-000000-abcdef", timeout=1.0, stop_on_timeout=True)
+    # A run id this script got wrong: said at once, not waited out (nobody started it),
+    # and another script's run goes on.
+    with pytest.raises(SemservoError) as wrong:
+        client.wait("20260101-000000-abcdef", timeout=60.0, stop_on_timeout=True)
+    assert wrong.value.status == 404 and wrong.value.code == "no_such_run"
     assert client.status().state == "servoing" and client.status().run_id == other
     client.stop("test over")
     assert campaign.wait_finished(other)["state"] == "stopped"

@@ -122,6 +122,11 @@ def test_images_metrics_and_events(system):
         if event["kind"] == "status" and event["data"]["state"] in ("converged", "failed", "stopped"):
             break
     stream.close()
+    # With quiet_s, a quiet stream yields None, so a loop can look at its clock.
+    quiet = lab.events(quiet_s=0.3)
+    assert next(quiet)["kind"] == "hello"
+    assert any(next(quiet) is None for _ in range(20)), "after the run, the stream falls quiet"
+    quiet.close()
     iterations = [e for e in received if e["kind"] == "iteration"]
     assert iterations and all(e["run_id"] == run["run_id"] for e in iterations)
     assert any(e["data"].get("action") == "moved" for e in iterations)
