@@ -57,13 +57,6 @@ def _worth_asking_again(error: "SemservoError") -> bool:
     return error.status in (0, 404) or error.status >= 500
 
 
-def _not_yet_recorded(error: "SemservoError", current_run_id: str | None, run_id: str) -> bool:
-    """Whether a wait's 404 is a run started but not recorded yet (the gateway records a
-    run at its first event, a moment after its start): only if it is the run the status
-    names. Any other 404 is a run nobody started (a typo waited out a 300 s timeout)."""
-    return error.status != 404 or current_run_id == run_id
-
-
 class SemservoError(Exception):
     """The gateway said no (4xx/5xx) or could not be reached (status 0)."""
 
@@ -366,7 +359,10 @@ class Client(_Endpoints):
                     if run.state in FINISHED:
                         return run
                 except SemservoError as error:
-                    if not _worth_asking_again(error) or not _not_yet_recorded(error, self._current_run_id(), run_id):
+                    # A 404 is a run started but not recorded yet (the gateway records a run
+                    # at its first event) only if the status names it; else nobody started
+                    # it (a typo waited out a 300 s timeout).
+                    if not _worth_asking_again(error) or (error.status == 404 and self._current_run_id() != run_id):
                         raise
                 if time.monotonic() + poll_s >= deadline:
                     break
@@ -473,8 +469,8 @@ class AsyncClient(_Endpoints):
                     if run.state in FINISHED:
                         return run
                 except SemservoError as error:
-                    if not _worth_asking_again(error) or not _not_yet_recorded(error, await self._current_run_id(),
-                                                                               run_id):
+                    if not _worth_asking_again(error) or (error.status == 404
+                                                          and await self._current_run_id() != run_id):
                         raise
                 if time.monotonic() + poll_s >= deadline:
                     break
