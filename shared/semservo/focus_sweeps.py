@@ -208,12 +208,53 @@ class TiltedTexture:
         return np.stack([self.frame(float(distance), rng, electrons, read_noise) for distance in working_distances_um])
 
 
+def _offset_frames(scene: TiltedTexture, distance_um: float, shift_um: float) -> tuple[np.ndarray, np.ndarray]:
+    """The noiseless frames at ``distance_um`` with the plane moved ``shift_um`` deeper and
+    nearer (the same as the working distance moved the other way)."""
+    deeper = scene.noiseless_frame(distance_um - shift_um).astype(np.float64)
+    nearer = scene.noiseless_frame(distance_um + shift_um).astype(np.float64)
+    return deeper, nearer
+
+
+def _pixel_noise(mean: np.ndarray, electrons: float, read_noise: float) -> np.ndarray:
+    """The variance of a pixel (grey levels^2) of noise-free level ``mean``: shot noise of
+    ``electrons`` per grey level at full scale and ``read_noise`` (:func:`poisson_gaussian`)."""
+    return np.maximum(mean, 0.0) * 255.0 / electrons + read_noise**2
+
+
+def _tilt_errors(scene: TiltedTexture, information: np.ndarray, y: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+    """The standard errors (degrees) of alpha and beta of a plane z = c + gx x + gy y whose
+    points (``x``, ``y``, um, flat arrays) have depth information ``information``
+    (1 / um^2 each): the slopes' covariance is (X^T I X)^-1, X the rows (1, x, y), and
+    the tilts follow as the module's geometry relates them to the slopes
+    (alpha = atan(gy), beta = -atan(cos(alpha) gx)) at the scene's pose."""
+    design = np.column_stack([np.ones(x.size), x, y])
+    covariance = np.linalg.pinv((design * information[:, None]).T @ design)
+    alpha, beta = np.radians(scene.pose[:2])
+    slope_y, slope_x = np.tan(alpha), -np.tan(beta) / np.cos(alpha)
+    cos_alpha = np.cos(alpha)
+    alpha_error = np.sqrt(covariance[2, 2]) / (1 + slope_y**2)
+    beta_error = np.sqrt(covariance[1, 1]) * cos_alpha / (1 + (cos_alpha * slope_x) ** 2)
+    return float(np.degrees(alpha_error)), float(np.degrees(beta_error))
+
+
+def _kernel_grid(scene: TiltedTexture, kernel: int) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """Rows and columns of whole kernels in a frame, and their centres' y, x (um from the
+    frame's centre, flat, row-major)."""
+    rows, cols = scene.shape[0] // kernel, scene.shape[1] // kernel
+    y = ((np.arange(rows) + 0.5) * kernel - rows * kernel / 2) * scene.pixel_um
+    x = ((np.arange(cols) + 0.5) * kernel - cols * kernel / 2) * scene.pixel_um
+    grid_y, grid_x = np.meshgrid(y, x, indexing="ij")
+    return rows, cols, grid_y.ravel(), grid_x.ravel()
+
+
 def tilt_bound(scene: TiltedTexture, working_distances_um, kernel: int = 32, electrons: float = 1000.0,
                read_noise: float = 2.0, shift_um: float = 0.05) -> tuple[float, float]:
-    """The Cramer-Rao bound of the tilts from one focus sweep of ``scene``: the smallest
-    standard errors (alpha, beta; degrees) that any unbiased reading of the kernels'
-    depths from eq. 13's measure (each ``kernel`` x ``kernel`` block's variance over its
-    mean, frame by frame) and a plane through them can have, under this module's noise.
+    """The Cramer-Rao bound of the tilts from one focus sweep of ``scene`` read through
+    eq. 13's measure: the smallest standard errors (alpha, beta; degrees) that any
+    unbiased reading of the kernels' depths from that measure (each ``kernel`` x
+    ``kernel`` block's variance over its mean, frame by frame) and a plane through them
+    can have, under this module's noise.
 
     Each kernel's depth is pinned by the Fisher information of its focus curve,
     sum over the frames of (dS / dz)^2 / var(S): S the noise-free measure, its change with
@@ -225,12 +266,13 @@ def tilt_bound(scene: TiltedTexture, working_distances_um, kernel: int = 32, ele
     kernels' centres (1, x, y in um), and the tilts follow as the module's geometry
     relates them (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx)).
 
-    Why: how well a texture can pin the tilts is a property of the texture, the blur and
-    the dose, not of the estimator; the bound says whether a refusal is the estimator's
-    or the picture's (a few dozen kernels of sparse particles in a corner cannot do
-    better than it, however their curves are read)."""
+    Why: how well a texture can pin the tilts through eq. 13 is a property of the
+    texture, the blur and the dose, not of how the focus curves are read; the bound says
+    whether a refusal is the reading's or the measure's. What no estimator at all can beat,
+    whatever it measures, is :func:`pixel_tilt_bound`; another measure's bound,
+    :func:`measure_tilt_bound`."""
     distances = np.asarray(working_distances_um, dtype=np.float64)
-    rows, cols = scene.shape[0] // kernel, scene.shape[1] // kernel
+    rows, cols, y, x = _kernel_grid(scene, kernel)
 
     def measures(offset_um: float) -> tuple[np.ndarray, np.ndarray]:
         """eq. 13's noise-free measure and the kernels' mean grey, frames x kernels."""
@@ -247,17 +289,61 @@ def tilt_bound(scene: TiltedTexture, working_distances_um, kernel: int = 32, ele
     deeper, _ = measures(shift_um)
     nearer, _ = measures(-shift_um)
     slope = (deeper - nearer) / (2 * shift_um)
-    noise = (np.maximum(mean, 0.0) * 255.0 / electrons + read_noise**2) / np.maximum(mean, 1e-9)
+    noise = _pixel_noise(mean, electrons, read_noise) / np.maximum(mean, 1e-9)
     variance = (2 * noise**2 + 4 * np.maximum(measure, 0.0) * noise) / (kernel * kernel)
     information = np.sum(slope**2 / variance, axis=0)  # per kernel, 1 / um^2
-    y = ((np.arange(rows) + 0.5) * kernel - rows * kernel / 2) * scene.pixel_um
-    x = ((np.arange(cols) + 0.5) * kernel - cols * kernel / 2) * scene.pixel_um
+    return _tilt_errors(scene, information, y, x)
+
+
+def pixel_tilt_bound(scene: TiltedTexture, working_distances_um, electrons: float = 1000.0,
+                     read_noise: float = 2.0, shift_um: float = 0.05) -> tuple[float, float]:
+    """The Cramer-Rao bound of the tilts from the pixels of one focus sweep of ``scene``
+    (alpha, beta; degrees): what no estimator can beat, whatever it measures, even one
+    that knew the sharp texture and the blur (a real one knows neither, so it does worse).
+
+    Each pixel p at depth z_p = c + gx x_p + gy y_p carries the Fisher information
+    sum over the frames of (dI_p / dz)^2 / var(I_p) about its depth: I_p its noise-free
+    grey level, dI_p / dz read off the noiseless frames with the plane moved ``shift_um``
+    deeper and nearer, var(I_p) its shot and read noise (:func:`poisson_gaussian`); the
+    plane's slopes have the covariance (X^T I X)^-1 over the pixels, and the tilts follow
+    as in :func:`tilt_bound`.
+
+    Why: :func:`tilt_bound` is eq. 13's; this one says how much a better measure could
+    gain at all (on sparse particles on a dark ground, eq. 13 loses about half of the
+    pixels' information: ``bench/tilt_bounds.py``)."""
+    information = np.zeros(scene.shape, dtype=np.float64)
+    for distance in np.asarray(working_distances_um, dtype=np.float64):
+        deeper, nearer = _offset_frames(scene, float(distance), shift_um)
+        noise_free = scene.noiseless_frame(float(distance)).astype(np.float64)
+        information += ((deeper - nearer) / (2 * shift_um)) ** 2 / _pixel_noise(noise_free, electrons, read_noise)
+    y = (np.arange(scene.shape[0]) - (scene.shape[0] - 1) / 2) * scene.pixel_um
+    x = (np.arange(scene.shape[1]) - (scene.shape[1] - 1) / 2) * scene.pixel_um
     grid_y, grid_x = np.meshgrid(y, x, indexing="ij")
-    design = np.column_stack([np.ones(rows * cols), grid_x.ravel(), grid_y.ravel()])
-    covariance = np.linalg.pinv((design * information[:, None]).T @ design)
-    alpha, beta = np.radians(scene.pose[:2])
-    slope_y, slope_x = np.tan(alpha), -np.tan(beta) / np.cos(alpha)
-    cos_alpha = np.cos(alpha)
-    alpha_error = np.sqrt(covariance[2, 2]) / (1 + slope_y**2)
-    beta_error = np.sqrt(covariance[1, 1]) * cos_alpha / (1 + (cos_alpha * slope_x) ** 2)
-    return float(np.degrees(alpha_error)), float(np.degrees(beta_error))
+    return _tilt_errors(scene, information.ravel(), grid_y.ravel(), grid_x.ravel())
+
+
+def measure_tilt_bound(scene: TiltedTexture, working_distances_um, measure, kernel: int = 32,
+                       electrons: float = 1000.0, read_noise: float = 2.0, realizations: int = 12,
+                       rng: np.random.Generator | None = None, shift_um: float = 0.05) -> tuple[float, float]:
+    """The Cramer-Rao bound of the tilts from one focus sweep of ``scene`` read through
+    any focus measure (alpha, beta; degrees), as :func:`tilt_bound` is eq. 13's: each
+    kernel's information sum over the frames of (dS / dz)^2 / var(S), the slope from the
+    noiseless frames and var(S) the sample variance over ``realizations`` noisy frames
+    (Monte Carlo: within about 1 / sqrt(realizations / 2) of the truth, kernel by kernel).
+
+    ``measure``: a frame (float32, rows x cols) -> the measure of each whole ``kernel`` x
+    ``kernel`` block (rows // kernel, cols // kernel).
+
+    Why: to weigh a candidate measure against eq. 13 on a texture before building an
+    estimator on it (``bench/tilt_bounds.py``)."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    rows, cols, y, x = _kernel_grid(scene, kernel)
+    information = np.zeros(rows * cols, dtype=np.float64)
+    for distance in np.asarray(working_distances_um, dtype=np.float64):
+        deeper, nearer = _offset_frames(scene, float(distance), shift_um)
+        slope = (np.asarray(measure(deeper.astype(np.float32)), dtype=np.float64)
+                 - np.asarray(measure(nearer.astype(np.float32)), dtype=np.float64)).ravel() / (2 * shift_um)
+        noisy = np.array([np.asarray(measure(scene.frame(float(distance), rng, electrons, read_noise)),
+                                     dtype=np.float64).ravel() for _ in range(realizations)])
+        information += slope**2 / np.maximum(noisy.var(axis=0, ddof=1), 1e-300)
+    return _tilt_errors(scene, information, y, x)

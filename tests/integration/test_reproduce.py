@@ -56,3 +56,20 @@ def test_reproduce_table_one_from_the_library_alone(tmp_path):
         assert all(abs(m - t - e) < 2e-3 for t, m, e in zip(true, measured, error)), row
         assert max(abs(e) for e in error[:2]) < 0.3 and abs(error[2]) < 0.05, row  # the paper's reach 0.82
         assert all(m * t > 0 for t, m in zip(true, measured)), "no sign flip (the paper had one at 3 degrees)"
+
+
+def test_the_tilt_bounds_bench_says_where_the_limit_lies(tmp_path):
+    """``./dev bench tilt_bounds`` on one image and model: a row per view, the pixels'
+    bound under eq. 13's, and semservo's claim no tighter than the bound of its measure."""
+    from pathlib import Path
+
+    bench = Path(__file__).parents[2] / "bench" / "tilt_bounds.py"
+    out = tmp_path / "tilt_bounds.json"
+    done = subprocess.run([sys.executable, str(bench), "--images", "jeol_grid", "--models", "gaussian", "--draws", "2",
+                           "--out", str(out)], capture_output=True, text=True, timeout=110)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert re.search(r"^\| jeol_grid \| gaussian \| [\d.]+, [\d.]+ \|", done.stdout, re.M), done.stdout
+    row = json.loads(out.read_text())["results"]["gaussian"]["jeol_grid"]
+    assert all(pixels < eq13 <= claimed for pixels, eq13, claimed in zip(row["pixels"], row["eq13"],
+                                                                          row["semservo_claimed"])), row
+    assert row["refused"] == 0 and row["draws"] == 2

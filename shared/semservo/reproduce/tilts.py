@@ -124,7 +124,8 @@ class TextureLab:
 
     def tilt_bound(self, pose: tuple[float, float, float], working_distances) -> tuple[float, float]:
         """The Cramer-Rao bound of the tilts from one sweep of ``pose``
-        (:func:`semservo.focus_sweeps.tilt_bound`): what no reading of this texture can beat."""
+        (:func:`semservo.focus_sweeps.tilt_bound`): what no reading of this texture's eq. 13
+        curves can beat."""
         from semservo.focus_sweeps import tilt_bound
 
         return tilt_bound(self._scene_at(pose), working_distances, electrons=self.electrons,
