@@ -26,6 +26,7 @@ pixels'; the reading's where semservo's RMS is far above eq. 13's bound.
 
     ./dev bench tilt_bounds                       # all six images, both models
     ./dev bench tilt_bounds --images drift_pair_after --draws 4
+    ./dev bench tilt_bounds --image-files ~/pictures/wafer.tif     # can focus pin the tilts on your sample?
 """
 
 from __future__ import annotations
@@ -119,7 +120,11 @@ def pair(values) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--images", nargs="+", choices=IMAGES, default=list(IMAGES))
+    parser.add_argument("--images", nargs="+", choices=IMAGES, default=None,
+                        help="of the six in ../shared/data/sem-images (default: all six, or none with --image-files)")
+    parser.add_argument("--image-files", nargs="+", type=Path, default=[], metavar="FILE",
+                        help="SEM pictures of your own (PNG or TIFF, a vendor's file with its data bar), each the "
+                             "texture of the plane as the six are, named by the file's stem")
     parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS))
     parser.add_argument("--draws", type=int, default=8, help="one-sweep estimates of the flat view per image and model")
     parser.add_argument("--seed", type=int, default=15)
@@ -127,11 +132,22 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.draws < 2:
         parser.error("--draws must be at least 2 (an RMS of one draw says little)")
+    images = args.images if args.images is not None else ([] if args.image_files else list(IMAGES))
+    paths = {name: find_sem_images() / f"{name}.tif" for name in images}
+    for path in args.image_files:
+        if path.stem in paths:
+            parser.error(f"two pictures named {path.stem!r}: rename one")
+        paths[path.stem] = path
+    textures = {}
+    for name, path in paths.items():
+        try:
+            textures[name] = grey(read_sem_image(path).pixels)
+        except (OSError, ValueError) as error:
+            parser.error(f"cannot read {path}: {error}")
     started = time.monotonic()
     results: dict[str, dict[str, dict]] = {}
-    bar = Progress("bounds", len(args.images) * len(args.models) * (3 + args.draws))
-    for name in args.images:
-        texture = grey(read_sem_image(find_sem_images() / f"{name}.tif").pixels)
+    bar = Progress("bounds", len(textures) * len(args.models) * (3 + args.draws))
+    for name, texture in textures.items():
         for shape in args.models:
             results.setdefault(shape, {})[name] = one_view(texture, shape, args.draws, args.seed,
                                                            lambda note, name=name, shape=shape: bar.step(
