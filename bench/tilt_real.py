@@ -51,7 +51,7 @@ import numpy as np
 
 from semservo import jsontext
 from semservo.config import find_sem_images
-from semservo.estimation.tilt import MAX_TEACH_SWEEPS
+from semservo.estimation.tilt import FOCUS_MEASURES, MAX_TEACH_SWEEPS
 from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel
 from semservo.imagefiles import read_sem_image
 from semservo.reproduce import Progress
@@ -159,6 +159,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pose-sweeps", type=int, default=MAX_TEACH_SWEEPS,
                         help="the most focus sweeps of a pose whose first sweep cannot pin the tilts, pooled as the "
                              f"estimator service does in a run (default {MAX_TEACH_SWEEPS}; 1: none)")
+    parser.add_argument("--focus-measure", choices=FOCUS_MEASURES, default="normalized_variance",
+                        help="the focus measure the sweeps are read by (default: eq. 13's normalized variance; "
+                             "gradient: each kernel's gradient energy over its mean, see bench/tilt_bounds.py)")
     parser.add_argument("--out", type=Path, default=RESULTS / "tilt_real.json")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
@@ -175,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"cannot read {path}: {error}")
     own = frozenset(path.stem for path in args.image_files)
     output = {"poses": poses, "reference_sweeps": args.reference_sweeps, "pose_sweeps": args.pose_sweeps,
+              "focus_measure": args.focus_measure,
               "field_um": FIELD_UM, "field_px": FIELD_PX,
               "depth_of_field_um": DEPTH_OF_FIELD_UM,
               "electrons": ELECTRONS, "developed_on": [f"{name} ({' or '.join(DEVELOPED_WITH)})" for name in DEVELOPED_ON],
@@ -188,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             bar = Progress(f"{name}, {shape}", len(poses))  # a pose of a sparse texture may take a minute
             table = table_one(poses, args.seed, say=lambda text: bar.step(text.split("): ", 1)[-1].rsplit(" (", 1)[0]),
                               lab=lab(texture, shape, args.seed), reference_sweeps=args.reference_sweeps,
-                              sweeps_when_refused=args.pose_sweeps)
+                              sweeps_when_refused=args.pose_sweeps, measure=args.focus_measure)
             bar.close()
             results[name] = {"table": table, "summary": summarize(table)}
             summary = results[name]["summary"]
@@ -218,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
                                                   say=lambda text: bar.step(text.strip()),
                                                   lab_for=lambda factor, texture=texture: lab(texture, shape, args.seed,
                                                                                               factor),
-                                                  reference_sweeps=args.reference_sweeps)
+                                                  reference_sweeps=args.reference_sweeps,
+                                                  measure=args.focus_measure)
                 bar.close()
             output["depth_of_field"][shape] = scans
             print_scan(shape, scans, own)

@@ -130,6 +130,9 @@ class TiltSettings:
     max_tilt_deg: float = 15.0  # the first sweep is wide enough for this much tilt
     kernel_px: int = 32
     method: str = "plane"  # or "egi": the paper's extended Gaussian image correlation
+    #: The focus measure the kernels' curves are read by (:data:`semservo.estimation.tilt.FOCUS_MEASURES`):
+    #: the taught sweep and every sweep measured against it alike.
+    focus_measure: str = "normalized_variance"
     #: The most focus sweeps a teach takes of the taught pose, pooled, before it refuses
     #: (:func:`semservo.estimation.tilt.wants_another_sweep`).
     teach_sweeps: int = MAX_TEACH_SWEEPS
@@ -282,7 +285,8 @@ class EstimatorCore:
             shifts = None  # not the same view: read as scanned, its kernels' content changed anyway
         self.counters["sweeps_steadied" if shifts is not None else "sweeps_not_steadied"] += 1
         self.last_sweep_moved_px = float(np.hypot(*np.ptp(shifts, axis=0))) if shifts is not None else None
-        return kernel_depths(sweep, working_distances, kernel, pixel_size_nm / 1000, shifts)
+        return kernel_depths(sweep, working_distances, kernel, pixel_size_nm / 1000, shifts,
+                             measure=self.tilt_settings.focus_measure)
 
     def sweep_content_shifts(self, frame_times_ns: list[int]) -> np.ndarray | None:
         """How far each frame of a sweep had its content moved from the sweep's middle

@@ -189,6 +189,10 @@ class EstimatorSettings(BaseModel):
                                                                     "centred on: where the taught view is in focus")
     tilt_max_deg: float = Field(15.0, gt=0, le=45, description="the first sweep is wide enough for this much tilt")
     tilt_kernel_px: int = Field(32, ge=8, le=256, description="kernel size of the focus measure (eq. 13)")
+    tilt_focus_measure: Literal["normalized_variance", "gradient"] = Field(
+        "normalized_variance", description="the focus measure each kernel's focus curve is read by: eq. 13's normalized "
+                                           "variance (the paper's), or gradient: the gradient energy over the mean, "
+                                           "which pins the tilts of sparse textures more tightly (bench/tilt_bounds.py)")
     tilt_teach_sweeps: int = Field(4, ge=1, le=16, description="the most focus sweeps a teach with tilts takes of the "
                                                                "taught pose, pooled, while they pin the tilts loosely")
     sweep_timeout_s: float = Field(120.0, gt=0, le=3600, description="a focus sweep that takes longer has failed")

@@ -433,3 +433,27 @@ def test_a_sweep_measured_against_a_loosely_taught_plane_is_refused_when_both_to
     assert core.sweep_again([loose], distances, pixel_nm)
     measured = core.tilt_from_sweep(sweep_of_depths(plane_depths(2.0, -1.0), seed=8), distances, pixel_nm)
     assert measured["confidence"] > 0 and abs(measured["alpha_deg"]) < 0.3
+
+
+def test_the_estimator_reads_every_sweep_by_the_focus_measure_it_was_set_to(monkeypatch):
+    """SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE: the setting reaches the core, which reads
+    the taught sweep and the run's alike by it (the depths are the library's for that
+    measure); an unknown measure is refused when the settings are read."""
+    from pydantic import ValidationError
+
+    from semservo.config import Settings
+    from semservo.estimation.tilt import kernel_depths
+    from services.estimator.core import TiltSettings
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, sweep_of_plane
+
+    monkeypatch.setenv("SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE", "gradient")
+    assert Settings().estimator.tilt_focus_measure == "gradient"
+    monkeypatch.setenv("SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE", "sobel")
+    with pytest.raises(ValidationError, match="gradient"):
+        Settings()
+    sweep, distances = sweep_of_plane(2.0, -1.0), list(WORKING_DISTANCES_UM)
+    for measure in ("normalized_variance", "gradient"):
+        core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", tilt=TiltSettings(focus_measure=measure))
+        read = core.sweep_depths(sweep, distances, PIXEL_UM * 1000)
+        np.testing.assert_array_equal(read.depths, kernel_depths(sweep, distances, 32, PIXEL_UM, measure=measure).depths)
+    assert not np.array_equal(read.depths, kernel_depths(sweep, distances, 32, PIXEL_UM).depths)

@@ -852,3 +852,51 @@ def test_a_teach_that_would_leave_its_runs_less_than_it_took_is_refused():
     assert "+-0.05" in refused.reason  # what it would have left its runs
     assert wants_another_sweep(reading(0.12, sweeps=1), 4, MAX_TAUGHT_UNCERTAINTY_DEG)  # 0.06 in reach
     assert not wants_another_sweep(reading(0.16, sweeps=1), 4, MAX_TAUGHT_UNCERTAINTY_DEG)  # 0.08: hopeless
+
+
+def test_the_gradient_measures_noise_constants_are_what_white_noise_does_to_it():
+    """gradient_noise_constants: unit white noise's mean gradient energy (the gain) and how
+    much more a kernel's mean of it scatters than independent pixels' would (the
+    correlation), against 60 frames of white noise (seeded)."""
+    from semservo.estimation.tilt import gradient_noise_constants
+
+    gain, correlation = gradient_noise_constants(KERNEL)
+    rng = np.random.default_rng(11)
+    energies = []
+    for _ in range(60):
+        smooth = cv2.GaussianBlur(rng.normal(size=(SIZE, SIZE)).astype(np.float32), (0, 0), 1.0)
+        energy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(smooth, cv2.CV_32F, 0, 1) ** 2
+        energies.append(energy.reshape(SIZE // KERNEL, KERNEL, SIZE // KERNEL, KERNEL).mean(axis=(1, 3)))
+    energies = np.array(energies, dtype=np.float64)
+    assert energies.mean() == pytest.approx(gain, rel=0.02)
+    assert energies.var() * KERNEL * KERNEL / (2 * gain**2) == pytest.approx(correlation, rel=0.1)
+    assert gradient_noise_constants(16)[1] < correlation  # fewer lags fit a smaller kernel
+
+
+def test_the_gradient_measure_takes_the_noise_out_and_finds_each_kernels_depth():
+    """gradient_focus_curves: white noise lands in the noise share (the scene's share is
+    the same with and without it), a flat scene under noise shows no focus peak, and the
+    depths of a tilted plane read by it are eq. 13's within a fraction of a step."""
+    from semservo.estimation.tilt import (clear_focus_peaks, focus_measure_curves, gradient_focus_curves,
+                                          kernel_depths)
+
+    sweep = sweep_of_plane(0.0, 0.0)[:, :128, :128]
+    rng = np.random.default_rng(4)
+    noisy = sweep + rng.normal(0, 6.0, sweep.shape)
+    clean, dirty = gradient_focus_curves(sweep, KERNEL), gradient_focus_curves(noisy, KERNEL)
+    in_focus = np.argmax(clean.signal.mean(axis=(1, 2)))
+    assert np.allclose(dirty.signal[in_focus], clean.signal[in_focus], rtol=0.2)
+    assert dirty.pixels < KERNEL * KERNEL  # the smoothed noise is correlated
+    flat = np.full((len(WORKING_DISTANCES_UM), SIZE, SIZE), 40.0) + rng.normal(0, 8.0, (len(WORKING_DISTANCES_UM),
+                                                                                      SIZE, SIZE))
+    assert np.isfinite(clear_focus_peaks(focus_measure_curves(flat, KERNEL, "gradient"), WORKING_DISTANCES_UM)).sum() <= 1
+    tilted = sweep_of_plane(3.0, -2.0)
+    step = WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0]
+    by_gradient = kernel_depths(tilted, WORKING_DISTANCES_UM, KERNEL, PIXEL_UM, measure="gradient").depths
+    by_variance = kernel_depths(tilted, WORKING_DISTANCES_UM, KERNEL, PIXEL_UM).depths
+    assert np.isfinite(by_gradient).all()
+    assert np.median(np.abs(by_gradient - by_variance)) < 0.1 * step
+    estimate = estimate_tilt(tilted, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL, measure="gradient")
+    assert estimate.alpha_deg == pytest.approx(3.0, abs=0.3) and estimate.beta_deg == pytest.approx(-2.0, abs=0.3)
+    with pytest.raises(ValueError, match="unknown focus measure 'sobel'"):
+        estimate_tilt(tilted, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL, measure="sobel")

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -105,6 +106,15 @@ FIT_MIN_SNR = 5.0
 #: its focus curve's noise (:func:`focus_peak_uncertainties`): what the noise leaves out
 #: (the sampling bias, the content under the kernel) is not weighed away.
 DEPTH_UNCERTAINTY_FLOOR_STEPS = 0.02
+#: The focus measures a sweep's kernels can be read by (:func:`focus_measure_curves`):
+#: ``"normalized_variance"``, the paper's eq. 13 (the default), and ``"gradient"``, each
+#: kernel's gradient energy over its mean, which keeps more of what the pixels say about
+#: focus on sparse textures (``bench/tilt_bounds.py``).
+FOCUS_MEASURES = ("normalized_variance", "gradient")
+#: The gradient measure smooths each frame by a Gaussian of this standard deviation (px)
+#: before its Sobel gradients: the finest detail is where the pixel noise outweighs what
+#: focus changes.
+GRADIENT_SMOOTHING_PX = 1.0
 #: The most focus sweeps a teach takes of the taught pose (:func:`pooled_tilt`,
 #: :func:`wants_another_sweep`): each is 15-25 frames, and pooling n of them narrows the
 #: tilts' uncertainty by about 1 / sqrt(n) only while the kernels' depth noise dominates.
@@ -293,6 +303,88 @@ def noise_free_focus_curves(sweep: np.ndarray, kernel: int) -> FocusCurves:
     floor = np.median(noise, axis=0)
     signal = np.where(positive, zero_lag / safe_mean, 0.0) - floor
     return FocusCurves(signal, np.broadcast_to(floor, noise.shape), kernel * kernel)
+
+
+@lru_cache(maxsize=8)
+def gradient_noise_constants(kernel: int, smoothing_px: float = GRADIENT_SMOOTHING_PX) -> tuple[float, float]:
+    """What pixel noise does to the gradient measure (:func:`gradient_focus_curves`), from
+    the filters' impulse responses h_x, h_y (a Gaussian of ``smoothing_px``, then Sobel):
+    ``gain``, the mean gradient energy of unit white noise, C_xx(0) + C_yy(0) (C the
+    responses' cross-correlations), and ``correlation``, how many times more a kernel's
+    mean energy scatters than if its pixels' energies were independent,
+    sum over lags of (C_xx^2 + C_yy^2 + 2 C_xy^2) / gain^2: the measure then scatters as
+    eq. 13's from pixels / correlation pixels. Each lag (dx, dy) counts as often as a
+    ``kernel`` x ``kernel`` block holds it, (1 - |dx| / k)(1 - |dy| / k)."""
+    import cv2
+
+    side = 2 * int(np.ceil(5 * smoothing_px)) + 9
+    impulse = np.zeros((side, side), np.float64)
+    impulse[side // 2, side // 2] = 1.0
+    smooth = cv2.GaussianBlur(impulse, (0, 0), smoothing_px)
+    responses = [cv2.Sobel(smooth, cv2.CV_64F, 1, 0), cv2.Sobel(smooth, cv2.CV_64F, 0, 1)]
+
+    def correlation(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        shape = (2 * side, 2 * side)
+        return np.fft.irfft2(np.fft.rfft2(first, shape) * np.conj(np.fft.rfft2(second, shape)), shape)
+
+    xx, yy, xy = (correlation(*pair) for pair in ((responses[0], responses[0]), (responses[1], responses[1]),
+                                                  (responses[0], responses[1])))
+    gain = float(xx[0, 0] + yy[0, 0])
+    lags = np.abs(np.fft.fftfreq(2 * side) * 2 * side)
+    pairs = np.clip(1 - lags / kernel, 0.0, None)
+    return gain, float(np.sum(np.outer(pairs, pairs) * (xx**2 + yy**2 + 2 * xy**2)) / gain**2)
+
+
+def gradient_focus_curves(sweep: np.ndarray, kernel: int, normalized_variance: FocusCurves | None = None,
+                          smoothing_px: float = GRADIENT_SMOOTHING_PX) -> FocusCurves:
+    """The gradient measure for every k x k kernel of every frame, with the pixel noise's
+    share taken out: the mean of |grad(G * I)|^2 over the kernel (G a Gaussian of
+    ``smoothing_px``, the gradient by Sobel) over the kernel's mean, as eq. 13 divides its
+    variance. The noise's share is eq. 13's (``normalized_variance``, from
+    :func:`noise_free_focus_curves`: the pixel noise's variance over the mean) times the
+    filters' gain, and the curves say they come from pixels / correlation pixels
+    (:func:`gradient_noise_constants`), so that every reading of a focus curve (the
+    clear-peak test, the mirror, the fitted curve and their standard errors) reads them
+    as it reads eq. 13's.
+
+    Why: eq. 13's variance weighs every spatial frequency alike, the coarse ones that focus
+    barely changes included; on sparse particles on a dark ground (the drift pair) its
+    Cramer-Rao bound is 1.8-2.3 times the pixels' and the gradient energy's 1.1-1.4
+    (``bench/tilt_bounds.py``)."""
+    import cv2
+
+    sweep = np.asarray(sweep)
+    frames, rows, cols = sweep.shape
+    kernel_rows, kernel_cols = rows // kernel, cols // kernel
+    if normalized_variance is None:
+        normalized_variance = noise_free_focus_curves(sweep, kernel)
+    gain, correlation = gradient_noise_constants(kernel, smoothing_px)
+    measure = np.empty((frames, kernel_rows, kernel_cols))
+    for index in range(frames):  # one frame at a time in float32: a sweep can be large
+        frame = np.asarray(sweep[index], dtype=np.float32)
+        smooth = cv2.GaussianBlur(frame, (0, 0), smoothing_px)
+        energy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(smooth, cv2.CV_32F, 0, 1) ** 2
+        window = (slice(0, kernel_rows * kernel), slice(0, kernel_cols * kernel))
+        blocks = (kernel_rows, kernel, kernel_cols, kernel)
+        mean = frame[window].reshape(blocks).mean(axis=(1, 3), dtype=np.float64)
+        measure[index] = np.where(mean > 0, energy[window].reshape(blocks).mean(axis=(1, 3), dtype=np.float64)
+                                  / np.where(mean > 0, mean, 1.0), 0.0)
+    noise = gain * np.asarray(normalized_variance.noise)
+    return FocusCurves(measure - noise, noise, max(1, int(round(kernel * kernel / correlation))))
+
+
+def _check_measure(measure: str) -> None:
+    if measure not in FOCUS_MEASURES:
+        raise ValueError(f"unknown focus measure {measure!r} (one of {', '.join(FOCUS_MEASURES)})")
+
+
+def focus_measure_curves(sweep: np.ndarray, kernel: int, measure: str = "normalized_variance") -> FocusCurves:
+    """The noise-free focus curves of ``measure`` (one of ``FOCUS_MEASURES``):
+    :func:`noise_free_focus_curves` (eq. 13) or :func:`gradient_focus_curves`."""
+    _check_measure(measure)
+    normalized_variance = noise_free_focus_curves(sweep, kernel)
+    return normalized_variance if measure == "normalized_variance" else gradient_focus_curves(
+        sweep, kernel, normalized_variance)
 
 
 def clear_focus_peaks(curves: FocusCurves, working_distances: np.ndarray) -> np.ndarray:
@@ -864,11 +956,12 @@ def check_sweep(sweep, working_distances, pixel_size: float, kernel: int = 32) -
 
 
 def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32,
-                  content_shifts_px=None) -> TiltEstimate:
+                  content_shifts_px=None, measure: str = "normalized_variance") -> TiltEstimate:
     """The two tilts from a focus sweep: frames of the same field at the working
     distances ``working_distances`` (evenly spaced, increasing, same unit as
     ``pixel_size``: e.g. um and um per pixel). ``content_shifts_px``: how far each
-    frame's content had moved while the sweep scanned (:func:`depth_map`).
+    frame's content had moved while the sweep scanned (:func:`depth_map`); ``measure``:
+    the focus measure (``FOCUS_MEASURES``, :func:`kernel_depths`).
 
     ValueError for input that cannot be a sweep (:func:`check_sweep`). A sweep that
     cannot tell the tilts (too few kernels with a clear focus peak: a flat, featureless
@@ -877,7 +970,7 @@ def estimate_tilt(sweep, working_distances, pixel_size: float, kernel: int = 32,
     """
     check_sweep(sweep, working_distances, pixel_size, kernel)
     working_distances = np.asarray(working_distances, dtype=np.float64)
-    depths = kernel_depths(sweep, working_distances, kernel, pixel_size, content_shifts_px)
+    depths = kernel_depths(sweep, working_distances, kernel, pixel_size, content_shifts_px, measure)
     return tilt_from_depths(depths.depths, kernel, pixel_size, float(np.diff(working_distances).mean()),
                             depths.uncertainties)
 
@@ -1187,14 +1280,14 @@ EGI_GRID = 141
 
 
 def depth_map(sweep, working_distances, kernel: int = 32, pixel_size: float | None = None,
-              content_shifts_px=None) -> np.ndarray:
+              content_shifts_px=None, measure: str = "normalized_variance") -> np.ndarray:
     """Each kernel's depth at its centre (NaN where it has no clear focus peak): the
     depths of :func:`kernel_depths`, without their uncertainties."""
-    return kernel_depths(sweep, working_distances, kernel, pixel_size, content_shifts_px).depths
+    return kernel_depths(sweep, working_distances, kernel, pixel_size, content_shifts_px, measure).depths
 
 
 def kernel_depths(sweep, working_distances, kernel: int = 32, pixel_size: float | None = None,
-                  content_shifts_px=None) -> KernelDepths:
+                  content_shifts_px=None, measure: str = "normalized_variance") -> KernelDepths:
     """Each kernel's depth at its centre (NaN where it has no clear focus peak) and its
     standard error: eq. 13 without the noise's share and the peak's centre
     (:func:`noise_free_focus_curves`, :func:`focus_peak_depths`), the first step of both
@@ -1207,18 +1300,26 @@ def kernel_depths(sweep, working_distances, kernel: int = 32, pixel_size: float 
     ``content_shifts_px`` (frames x 2: how far each frame's content had moved, right and
     down, from the sweep's middle frame; :func:`content_shifts`): the frames are first
     moved back (:func:`steady_sweep`), and kernels at the border that would be read
-    partly from mirrored pixels (:data:`MIRRORED_KERNEL_FRACTION`) are left out."""
+    partly from mirrored pixels (:data:`MIRRORED_KERNEL_FRACTION`) are left out.
+
+    ``measure``: the focus measure the curves are read by (``FOCUS_MEASURES``; eq. 13 by
+    default, :func:`focus_measure_curves`); where each kernel's texture lies is read off
+    eq. 13's curves whichever it is."""
+    _check_measure(measure)
     if content_shifts_px is not None:
         sweep = steady_sweep(sweep, content_shifts_px)
     sweep = np.asarray(sweep)
     working_distances = np.asarray(working_distances, dtype=np.float64)
-    curves = noise_free_focus_curves(sweep, kernel)
+    normalized_variance = noise_free_focus_curves(sweep, kernel)
+    curves = normalized_variance if measure == "normalized_variance" else gradient_focus_curves(
+        sweep, kernel, normalized_variance)
     depths, uncertainties = focus_peak_depths(curves, working_distances)
     if content_shifts_px is not None:
         depths = np.where(mirrored_kernels(content_shifts_px, sweep.shape[1:], kernel), np.nan, depths)
     uncertainties = np.where(np.isfinite(depths), uncertainties, np.nan)
     if pixel_size is not None:
-        depths = depths_at_kernel_centres(depths, texture_offsets(sweep, curves, kernel), kernel, pixel_size,
+        offsets = texture_offsets(sweep, normalized_variance, kernel)
+        depths = depths_at_kernel_centres(depths, offsets, kernel, pixel_size,
                                           uncertainties=uncertainties)
         # What the noise does not explain, added here: sweeps pooled then weigh alike
         # what weighs alike (pool_depths).

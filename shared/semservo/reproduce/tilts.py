@@ -133,24 +133,26 @@ class TextureLab:
 
 
 def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
-                    kernel: int = 32) -> tuple[TiltEstimate, np.ndarray]:
+                    kernel: int = 32, measure: str = "normalized_variance") -> tuple[TiltEstimate, np.ndarray]:
     """The taught pose's tilts as the estimator service teaches them: a focus sweep at
     (0, 0, 0), and another of the same view, the kernel depths pooled, while
     :func:`semservo.estimation.tilt.wants_another_sweep` asks for it (at most
-    ``max_sweeps``; 1: a single sweep). Returns the estimate and the pooled depths."""
+    ``max_sweeps``; 1: a single sweep), read by the focus ``measure``
+    (:data:`semservo.estimation.tilt.FOCUS_MEASURES`). Returns the estimate and the pooled depths."""
     working_distances = np.asarray(working_distances, dtype=np.float64)
     step = float(working_distances[1] - working_distances[0])
     maps = []
     while True:
         maps.append(kernel_depths(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel,
-                              lab.pixel_um))
+                                  lab.pixel_um, measure=measure))
         estimate = pooled_tilt(maps, kernel, lab.pixel_um, step)
         if not wants_another_sweep(estimate, max_sweeps, MAX_TAUGHT_UNCERTAINTY_DEG):
             return as_taught(estimate), pool_depths(maps).depths
 
 
 def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print,
-              lab=None, reference_sweeps: int = 1, sweeps_when_refused: int = 1) -> dict:
+              lab=None, reference_sweeps: int = 1, sweeps_when_refused: int = 1,
+              measure: str = "normalized_variance") -> dict:
     """Table I on ``poses`` ((alpha, beta, gamma) in degrees), each against a reference
     taught at (0, 0, 0): per pose, the errors (measured - true) of both methods, signs,
     frames, simulated scan time and compute time (see the module's text). ``lab``: the
@@ -160,12 +162,14 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
     the reference is taught from (:func:`teach_reference`; 1, a single sweep);
     ``sweeps_when_refused``: the most sweeps of a pose whose first sweep is refused for
     its uncertainty, pooled as the estimator service pools them in a run (1: none; the
-    paper's EGI and the tracking sweep are measured on the first sweep only)."""
+    paper's EGI and the tracking sweep are measured on the first sweep only); ``measure``:
+    the focus measure both methods read the sweeps by
+    (:data:`semservo.estimation.tilt.FOCUS_MEASURES`)."""
     lab = Lab(seed) if lab is None else lab
     depth_of_field = lab.depth_of_field_um
     reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
     grid = (reference_sweep[0], reference_sweep[1] - reference_sweep[0])
-    taught, taught_depths = teach_reference(lab, reference_sweep, reference_sweeps)
+    taught, taught_depths = teach_reference(lab, reference_sweep, reference_sweeps, measure=measure)
     # The bound of one sweep of the taught view, where the lab can tell it (a texture's).
     bound = lab.tilt_bound((0.0, 0.0, 0.0), reference_sweep) if hasattr(lab, "tilt_bound") else (math.nan, math.nan)
     reference_frame = lab.frame((0.0, 0.0, 0.0))
@@ -181,24 +185,25 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
                                  max_tilt_deg=15.0 + max(map(abs, taught_tilts)))
         frames = lab.sweep(pose, first_sweep)
         clock = time.perf_counter()
-        plane = estimate_tilt(frames, first_sweep, lab.pixel_um)
+        plane = estimate_tilt(frames, first_sweep, lab.pixel_um, measure=measure)
         plane_ms = (time.perf_counter() - clock) * 1e3
         # As the estimator service measures a pose: against the taught reading, the two
         # readings' standard errors together within the line, else refused.
         line = line_against(taught)
         plane = measured_against(plane, taught)
         clock = time.perf_counter()
-        egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep, 32, lab.pixel_um), 32,
-                                                    lab.pixel_um)
+        egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep, 32, lab.pixel_um,
+                                                                           measure=measure), 32, lab.pixel_um)
         egi_ms = (time.perf_counter() - clock) * 1e3
         pose_sweeps = 1
         if plane.confidence <= 0 and wants_another_sweep(plane, sweeps_when_refused, line):
             # As the estimator service does in a run: a sweep that cannot pin the tilts
             # is followed by more of the same plan, their depths pooled.
             step = float(first_sweep[1] - first_sweep[0])
-            maps = [kernel_depths(frames, first_sweep, 32, lab.pixel_um)]
+            maps = [kernel_depths(frames, first_sweep, 32, lab.pixel_um, measure=measure)]
             while True:
-                maps.append(kernel_depths(lab.sweep(pose, first_sweep), first_sweep, 32, lab.pixel_um))
+                maps.append(kernel_depths(lab.sweep(pose, first_sweep), first_sweep, 32, lab.pixel_um,
+                                          measure=measure))
                 plane = measured_against(pooled_tilt(maps, 32, lab.pixel_um, step), taught)
                 if not wants_another_sweep(plane, sweeps_when_refused, line):
                     break
@@ -210,7 +215,8 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         else:
             tracking_sweep = plan_sweep(plane.centre_depth, depth_of_field, lab.field_um,
                                         tilt_deg=(plane.alpha_deg, plane.beta_deg), grid=grid)
-            tracked = measured_against(estimate_tilt(lab.sweep(pose, tracking_sweep), tracking_sweep, lab.pixel_um), taught)
+            tracked = measured_against(estimate_tilt(lab.sweep(pose, tracking_sweep), tracking_sweep, lab.pixel_um,
+                                                     measure=measure), taught)
         nominal = lab.frame(pose)
         raw = rotation.estimate(nominal).rotation_deg
         compensated = (rotation.estimate(undo_foreshortening(nominal, measured_alpha, measured_beta)).rotation_deg
@@ -246,22 +252,22 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
 
 def depth_of_field_scan(poses: list[tuple[float, float, float]], seed: int, factors=(1.0, 2.0, 4.0, 8.0),
                         say: Callable[[str], None] = print, lab_for: Callable[[float], object] | None = None,
-                        reference_sweeps: int = 1) -> list[dict]:
+                        reference_sweeps: int = 1, measure: str = "normalized_variance") -> list[dict]:
     """The plane fit's error as the depth of field grows (a smaller aperture or a longer
     working distance): ``lab_for(factor)`` is the lab with its depth of field that many
     times larger (the simulated SEM's beam half-angle divided by it, unless given); the
-    sweeps are scaled to the depth of field; ``reference_sweeps`` as :func:`table_one`."""
+    sweeps are scaled to the depth of field; ``reference_sweeps`` and ``measure`` as :func:`table_one`."""
     lab_for = (lambda factor: Lab(seed, depth_of_field_factor=factor)) if lab_for is None else lab_for
     rows = []
     for factor in factors:
         lab = lab_for(factor)
         depth_of_field = lab.depth_of_field_um
         reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
-        taught, _ = teach_reference(lab, reference_sweep, reference_sweeps)
+        taught, _ = teach_reference(lab, reference_sweep, reference_sweeps, measure=measure)
         errors, signs, refused = [], [], 0
         for alpha, beta, gamma in poses:
             measured = measured_against(estimate_tilt(lab.sweep((alpha, beta, gamma), reference_sweep), reference_sweep,
-                                                      lab.pixel_um), taught)
+                                                      lab.pixel_um, measure=measure), taught)
             if measured.confidence <= 0 or taught.confidence <= 0:
                 refused += 1
                 continue
