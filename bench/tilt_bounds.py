@@ -10,15 +10,15 @@ beta from one sweep, degrees:
 * **pixels**: the Cramer-Rao bound from the sweep's pixels themselves
   (``pixel_tilt_bound``): what no estimator can beat, whatever it measures, even one that
   knew the sharp texture and the blur;
-* **gradient**: the bound of a kernel-wise gradient energy (Sobel on the frame smoothed by
-  a 1 px Gaussian, over the kernel's mean; ``measure_tilt_bound``, Monte Carlo): a
-  candidate measure, not the estimator's;
+* **gradient**: the bound of the estimator's other focus measure, each kernel's gradient
+  energy (Sobel on the frame smoothed by 1 px, over the kernel's mean; ``gradient_energy``,
+  ``SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE=gradient``), by ``measure_tilt_bound`` (Monte Carlo);
 * **eq. 13**: the bound of the paper's measure, the estimator's (``tilt_bound``;
   analytic), and its Monte Carlo check;
-* **semservo, one sweep**: what the estimator claims (the median of its standard errors)
-  and what it does (the RMS of its plane's angles over ``--draws`` sweeps, true 0; the
-  plane is read even where the estimate is refused, to see how far off it would be), and
-  how many of the draws it refuses.
+* **semservo, one sweep**, by each focus measure on the same sweeps: what the estimator
+  claims (the median of its standard errors) and what it does (the RMS of its plane's
+  angles over ``--draws`` sweeps, true 0; the plane is read even where the estimate is
+  refused, to see how far off it would be), and how many of the draws it refuses.
 
 A refusal is the picture's where even the pixels' bound is near the line a teach may keep
 (``MAX_TAUGHT_UNCERTAINTY_DEG``); the measure's where eq. 13's bound is far above the
@@ -37,7 +37,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -47,8 +46,9 @@ from tilt_real import (DEFAULT_MODELS, DEPTH_OF_FIELD_UM, ELECTRONS, FIELD_PX, F
 
 from semservo import jsontext  # noqa: E402
 from semservo.config import find_sem_images  # noqa: E402
-from semservo.estimation.tilt import (MAX_TAUGHT_UNCERTAINTY_DEG, kernel_depths, plan_sweep,  # noqa: E402
-                                      robust_plane, tilt_from_depths, with_excess_scatter)
+from semservo.estimation.tilt import (FOCUS_MEASURES, MAX_TAUGHT_UNCERTAINTY_DEG, focus_curves,  # noqa: E402
+                                      gradient_energy, kernel_depths, plan_sweep, robust_plane, tilt_from_depths,
+                                      with_excess_scatter)
 from semservo.focus_sweeps import DEFOCUS_SHAPES, measure_tilt_bound, pixel_tilt_bound, tilt_bound  # noqa: E402
 from semservo.imagefiles import read_sem_image  # noqa: E402
 from semservo.reproduce import Progress  # noqa: E402
@@ -58,23 +58,14 @@ KERNEL = 32
 FLAT = (0.0, 0.0, 0.0)
 
 
-def blocks(frame: np.ndarray) -> np.ndarray:
-    rows, cols = frame.shape[0] // KERNEL, frame.shape[1] // KERNEL
-    return frame[:rows * KERNEL, :cols * KERNEL].reshape(rows, KERNEL, cols, KERNEL)
-
-
 def normalized_variance(frame: np.ndarray) -> np.ndarray:
-    """eq. 13 per kernel: the variance over the mean."""
-    kernels = blocks(frame.astype(np.float64))
-    return kernels.var(axis=(1, 3)) / np.maximum(kernels.mean(axis=(1, 3)), 1e-9)
+    """eq. 13 per kernel, as the estimator reads it (``focus_curves``)."""
+    return focus_curves(frame[np.newaxis], KERNEL)[0]
 
 
-def gradient_energy(frame: np.ndarray) -> np.ndarray:
-    """The mean squared Sobel gradient of the frame smoothed by a 1 px Gaussian, per
-    kernel, over the kernel's mean (Tenengrad, normalised as eq. 13 is)."""
-    smooth = cv2.GaussianBlur(frame.astype(np.float32), (0, 0), 1.0)
-    energy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(smooth, cv2.CV_32F, 0, 1) ** 2
-    return blocks(energy.astype(np.float64)).mean(axis=(1, 3)) / np.maximum(blocks(frame.astype(np.float64)).mean(axis=(1, 3)), 1e-9)
+def gradient(frame: np.ndarray) -> np.ndarray:
+    """The estimator's gradient measure per kernel (``gradient_energy``)."""
+    return gradient_energy(frame, KERNEL)
 
 
 def plane_angles(depths, uncertainties, pixel_um: float) -> tuple[float, float]:
@@ -92,24 +83,29 @@ def one_view(texture: np.ndarray, shape: str, draws: int, seed: int, step) -> di
     rng = np.random.default_rng(seed)
     row = {"pixels": pixel_tilt_bound(scene, distances, ELECTRONS, READ_NOISE)}
     step("pixels")
-    row["gradient"] = measure_tilt_bound(scene, distances, gradient_energy, KERNEL, ELECTRONS, READ_NOISE, rng=rng)
+    row["gradient"] = measure_tilt_bound(scene, distances, gradient, KERNEL, ELECTRONS, READ_NOISE, rng=rng)
     step("gradient")
     row["eq13"] = tilt_bound(scene, distances, KERNEL, ELECTRONS, READ_NOISE)
     row["eq13_monte_carlo"] = measure_tilt_bound(scene, distances, normalized_variance, KERNEL, ELECTRONS, READ_NOISE,
                                                  rng=rng)
     step("eq. 13")
     sweep_step = float(distances[1] - distances[0])
-    angles, claimed, refused = [], [], 0
+    readings = {measure: {"angles": [], "claimed": [], "refused": 0} for measure in FOCUS_MEASURES}
     for _ in range(draws):
-        depths = kernel_depths(view.sweep(FLAT, distances), distances, KERNEL, view.pixel_um)
-        estimate = tilt_from_depths(depths.depths, KERNEL, view.pixel_um, sweep_step, depths.uncertainties)
-        refused += estimate.confidence <= 0
-        claimed.append((estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg))
-        angles.append(plane_angles(depths.depths, depths.uncertainties, view.pixel_um))
+        sweep = view.sweep(FLAT, distances)
+        for measure, reading in readings.items():  # both measures on the same sweeps
+            depths = kernel_depths(sweep, distances, KERNEL, view.pixel_um, measure=measure)
+            estimate = tilt_from_depths(depths.depths, KERNEL, view.pixel_um, sweep_step, depths.uncertainties)
+            reading["refused"] += int(estimate.confidence <= 0)
+            reading["claimed"].append((estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg))
+            reading["angles"].append(plane_angles(depths.depths, depths.uncertainties, view.pixel_um))
         step("semservo")
-    row["semservo_claimed"] = tuple(float(value) for value in np.nanmedian(np.array(claimed), axis=0))
-    row["semservo_rms"] = tuple(float(value) for value in np.sqrt(np.nanmean(np.array(angles) ** 2, axis=0)))
-    row["refused"], row["draws"] = refused, draws
+    row["semservo"] = {measure: {"claimed": tuple(float(v) for v in np.nanmedian(np.array(reading["claimed"]), axis=0)),
+                                 "rms": tuple(float(v) for v in np.sqrt(np.nanmean(np.array(reading["angles"]) ** 2,
+                                                                                   axis=0))),
+                                 "refused": reading["refused"]}
+                       for measure, reading in readings.items()}
+    row["draws"] = draws
     return row
 
 
@@ -157,13 +153,14 @@ def main(argv: list[str] | None = None) -> int:
           f"um, {ELECTRONS:g} electrons per grey level, read noise {READ_NOISE:g}): standard errors of alpha, beta "
           f"(degrees); a teach may keep +-{MAX_TAUGHT_UNCERTAINTY_DEG:.3f}. {time.monotonic() - started:.0f} s.\n")
     print("| image | defocus | pixels (no estimator beats) | gradient measure | eq. 13 (Monte Carlo) "
-          "| semservo claims | semservo's RMS | refused |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+          "| semservo, eq. 13: claims; RMS; refused | semservo, gradient: claims; RMS; refused |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for shape, rows in results.items():
         for name, row in rows.items():
+            read = [f"{pair(reading['claimed'])}; {pair(reading['rms'])}; {reading['refused']} of {row['draws']}"
+                    for reading in (row["semservo"][measure] for measure in FOCUS_MEASURES)]
             print(f"| {name} | {shape} | {pair(row['pixels'])} | {pair(row['gradient'])} | {pair(row['eq13'])} "
-                  f"({pair(row['eq13_monte_carlo'])}) | {pair(row['semservo_claimed'])} | {pair(row['semservo_rms'])} "
-                  f"| {row['refused']} of {row['draws']} |")
+                  f"({pair(row['eq13_monte_carlo'])}) | {' | '.join(read)} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(jsontext.dumps({"field_px": FIELD_PX, "field_um": FIELD_UM, "depth_of_field_um": DEPTH_OF_FIELD_UM,
                                         "electrons": ELECTRONS, "read_noise": READ_NOISE, "kernel": KERNEL,

@@ -335,12 +335,28 @@ def gradient_noise_constants(kernel: int, smoothing_px: float = GRADIENT_SMOOTHI
     return gain, float(np.sum(np.outer(pairs, pairs) * (xx**2 + yy**2 + 2 * xy**2)) / gain**2)
 
 
+def gradient_energy(frame: np.ndarray, kernel: int, smoothing_px: float = GRADIENT_SMOOTHING_PX) -> np.ndarray:
+    """The gradient measure of one frame, per whole ``kernel`` x ``kernel`` block (kernel
+    rows x cols): the mean of |grad(G * I)|^2 over the block (G a Gaussian of
+    ``smoothing_px``, the gradient by Sobel) over the block's mean, as eq. 13 divides its
+    variance (0 for a block of mean 0 or less)."""
+    import cv2
+
+    frame = np.asarray(frame, dtype=np.float32)
+    kernel_rows, kernel_cols = frame.shape[0] // kernel, frame.shape[1] // kernel
+    smooth = cv2.GaussianBlur(frame, (0, 0), smoothing_px)
+    energy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(smooth, cv2.CV_32F, 0, 1) ** 2
+    window = (slice(0, kernel_rows * kernel), slice(0, kernel_cols * kernel))
+    blocks = (kernel_rows, kernel, kernel_cols, kernel)
+    mean = frame[window].reshape(blocks).mean(axis=(1, 3), dtype=np.float64)
+    return np.where(mean > 0, energy[window].reshape(blocks).mean(axis=(1, 3), dtype=np.float64)
+                    / np.where(mean > 0, mean, 1.0), 0.0)
+
+
 def gradient_focus_curves(sweep: np.ndarray, kernel: int, normalized_variance: FocusCurves | None = None,
                           smoothing_px: float = GRADIENT_SMOOTHING_PX) -> FocusCurves:
-    """The gradient measure for every k x k kernel of every frame, with the pixel noise's
-    share taken out: the mean of |grad(G * I)|^2 over the kernel (G a Gaussian of
-    ``smoothing_px``, the gradient by Sobel) over the kernel's mean, as eq. 13 divides its
-    variance. The noise's share is eq. 13's (``normalized_variance``, from
+    """The gradient measure (:func:`gradient_energy`) for every k x k kernel of every
+    frame, with the pixel noise's share taken out. The noise's share is eq. 13's (``normalized_variance``, from
     :func:`noise_free_focus_curves`: the pixel noise's variance over the mean) times the
     filters' gain, and the curves say they come from pixels / correlation pixels
     (:func:`gradient_noise_constants`), so that every reading of a focus curve (the
@@ -351,24 +367,12 @@ def gradient_focus_curves(sweep: np.ndarray, kernel: int, normalized_variance: F
     barely changes included; on sparse particles on a dark ground (the drift pair) its
     Cramer-Rao bound is 1.8-2.3 times the pixels' and the gradient energy's 1.1-1.4
     (``bench/tilt_bounds.py``)."""
-    import cv2
-
     sweep = np.asarray(sweep)
-    frames, rows, cols = sweep.shape
-    kernel_rows, kernel_cols = rows // kernel, cols // kernel
     if normalized_variance is None:
         normalized_variance = noise_free_focus_curves(sweep, kernel)
     gain, correlation = gradient_noise_constants(kernel, smoothing_px)
-    measure = np.empty((frames, kernel_rows, kernel_cols))
-    for index in range(frames):  # one frame at a time in float32: a sweep can be large
-        frame = np.asarray(sweep[index], dtype=np.float32)
-        smooth = cv2.GaussianBlur(frame, (0, 0), smoothing_px)
-        energy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(smooth, cv2.CV_32F, 0, 1) ** 2
-        window = (slice(0, kernel_rows * kernel), slice(0, kernel_cols * kernel))
-        blocks = (kernel_rows, kernel, kernel_cols, kernel)
-        mean = frame[window].reshape(blocks).mean(axis=(1, 3), dtype=np.float64)
-        measure[index] = np.where(mean > 0, energy[window].reshape(blocks).mean(axis=(1, 3), dtype=np.float64)
-                                  / np.where(mean > 0, mean, 1.0), 0.0)
+    # One frame at a time in float32: a sweep can be large.
+    measure = np.stack([gradient_energy(frame, kernel, smoothing_px) for frame in sweep])
     noise = gain * np.asarray(normalized_variance.noise)
     return FocusCurves(measure - noise, noise, max(1, int(round(kernel * kernel / correlation))))
 
