@@ -356,9 +356,10 @@ def gradient_energy(frame: np.ndarray, kernel: int, smoothing_px: float = GRADIE
 def gradient_focus_curves(sweep: np.ndarray, kernel: int, normalized_variance: FocusCurves | None = None,
                           smoothing_px: float = GRADIENT_SMOOTHING_PX) -> FocusCurves:
     """The gradient measure (:func:`gradient_energy`) for every k x k kernel of every
-    frame, with the pixel noise's share taken out. The noise's share is eq. 13's (``normalized_variance``, from
-    :func:`noise_free_focus_curves`: the pixel noise's variance over the mean) times the
-    filters' gain, and the curves say they come from pixels / correlation pixels
+    frame, with the pixel noise's share taken out. The noise's share is eq. 13's
+    (``normalized_variance``, from :func:`noise_free_focus_curves`: the pixel noise's
+    variance over the mean) times the filters' gain, and the curves say they come from
+    pixels / correlation pixels
     (:func:`gradient_noise_constants`), so that every reading of a focus curve (the
     clear-peak test, the mirror, the fitted curve and their standard errors) reads them
     as it reads eq. 13's.
@@ -377,18 +378,20 @@ def gradient_focus_curves(sweep: np.ndarray, kernel: int, normalized_variance: F
     return FocusCurves(measure - noise, noise, max(1, int(round(kernel * kernel / correlation))))
 
 
-def _check_measure(measure: str) -> None:
+def _curves_and_eq13(sweep: np.ndarray, kernel: int, measure: str) -> tuple[FocusCurves, FocusCurves]:
+    """The noise-free focus curves of ``measure`` and eq. 13's (the same, for eq. 13)."""
     if measure not in FOCUS_MEASURES:
         raise ValueError(f"unknown focus measure {measure!r} (one of {', '.join(FOCUS_MEASURES)})")
+    normalized_variance = noise_free_focus_curves(sweep, kernel)
+    if measure == "normalized_variance":
+        return normalized_variance, normalized_variance
+    return gradient_focus_curves(sweep, kernel, normalized_variance), normalized_variance
 
 
 def focus_measure_curves(sweep: np.ndarray, kernel: int, measure: str = "normalized_variance") -> FocusCurves:
     """The noise-free focus curves of ``measure`` (one of ``FOCUS_MEASURES``):
     :func:`noise_free_focus_curves` (eq. 13) or :func:`gradient_focus_curves`."""
-    _check_measure(measure)
-    normalized_variance = noise_free_focus_curves(sweep, kernel)
-    return normalized_variance if measure == "normalized_variance" else gradient_focus_curves(
-        sweep, kernel, normalized_variance)
+    return _curves_and_eq13(sweep, kernel, measure)[0]
 
 
 def clear_focus_peaks(curves: FocusCurves, working_distances: np.ndarray) -> np.ndarray:
@@ -1309,14 +1312,11 @@ def kernel_depths(sweep, working_distances, kernel: int = 32, pixel_size: float 
     ``measure``: the focus measure the curves are read by (``FOCUS_MEASURES``; eq. 13 by
     default, :func:`focus_measure_curves`); where each kernel's texture lies is read off
     eq. 13's curves whichever it is."""
-    _check_measure(measure)
     if content_shifts_px is not None:
         sweep = steady_sweep(sweep, content_shifts_px)
     sweep = np.asarray(sweep)
     working_distances = np.asarray(working_distances, dtype=np.float64)
-    normalized_variance = noise_free_focus_curves(sweep, kernel)
-    curves = normalized_variance if measure == "normalized_variance" else gradient_focus_curves(
-        sweep, kernel, normalized_variance)
+    curves, normalized_variance = _curves_and_eq13(sweep, kernel, measure)
     depths, uncertainties = focus_peak_depths(curves, working_distances)
     if content_shifts_px is not None:
         depths = np.where(mirrored_kernels(content_shifts_px, sweep.shape[1:], kernel), np.nan, depths)
