@@ -145,7 +145,8 @@ class TiltTracker:
         state (``core.tilt_teach``) says how far it is."""
         self.core.tilt_teach = {"state": "sweeping", "reference_id": reference_id, "scanned": 0, "frames": frames,
                                 "error": None, "code": None, "sweep": 1,
-                                "max_sweeps": self.core.tilt_settings.teach_sweeps, "pinned_deg": None}
+                                "max_sweeps": self.core.tilt_settings.teach_sweeps, "pinned_deg": None,
+                                "focus_measure": self.core.tilt_settings.focus_measure}
         self._teach_for = reference_id
         self.wake()
         return dict(self.core.tilt_teach)

@@ -360,8 +360,9 @@ def _wait_for_tilt_teach(estimator, reference_id: str, timeout_s: float = 180.0)
         if teach.state == "failed":
             print(f"semservo teach: the image is taught, not its tilts: {teach.error}", file=sys.stderr)
             return 1
-        progress = (f"focus sweep {teach.sweep} (of at most {teach.max_sweeps}): {teach.scanned} of {teach.frames} "
-                    "frames")
+        measure = "" if teach.focus_measure == "normalized_variance" else f", read by the {teach.focus_measure} measure"
+        progress = (f"focus sweep {teach.sweep} (of at most {teach.max_sweeps}{measure}): {teach.scanned} of "
+                    f"{teach.frames} frames")
         if teach.pinned_deg:
             progress += (f"; the sweeps so far pin the tilts to +-{teach.pinned_deg[0]:.3f} and "
                          f"+-{teach.pinned_deg[1]:.3f} deg")

@@ -64,6 +64,7 @@ def test_a_teach_with_tilts_answers_at_once_and_reports_its_sweeps_progress(syst
     reference = lab.teach(frames=2, tilts=True, wait=False)
     assert time.monotonic() - asked < 5.0
     assert reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping"
+    assert reference.tilt_teach.focus_measure == "normalized_variance"  # the default: eq. 13
     with pytest.raises(SemservoError) as refused:
         lab.start(dofs=["alpha", "beta"])
     assert refused.value.status == 409 and "still scanning" in refused.value.message
