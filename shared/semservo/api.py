@@ -10,12 +10,13 @@ Error body, always: ``{"error": {"code": ..., "message": ..., "field": ...}}``.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from semservo.protocol import CommandReply
 from semservo.protocol.controller import ControllerStatus, RunSettings
+from semservo.protocol.estimator import FocusMeasure
 from semservo.protocol.stage import MoveReply, RotateReply, StageState
 
 __all__ = ["CenterRequest", "ControllerStatus", "ErrorBody", "ErrorResponse", "MoveReply", "MoveRequest",
@@ -67,7 +68,7 @@ class TiltTeach(Response):
     frames: int = 0
     sweep: int = Field(1, description="which sweep is scanning (or the last one), from 1")
     max_sweeps: int = Field(1, description="the most sweeps the teach takes before it refuses")
-    focus_measure: Literal["normalized_variance", "gradient"] = Field(
+    focus_measure: FocusMeasure = Field(
         "normalized_variance", description="the focus measure the sweeps are read by "
                                            "(SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE): eq. 13 or the gradient energy")
     pinned_deg: list[float] | None = Field(None, description="the standard errors of alpha and beta (degrees) from "

@@ -17,6 +17,8 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, Field, PositiveFloat, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from semservo.protocol.estimator import FocusMeasure
+
 #: Screen size constant of the paper's SEM: P = D / G (eq. 43) with D = 212.3 um for a
 #: 512-pixel-wide image, G the magnification.
 SCREEN_WIDTH_UM = 212.3
@@ -189,7 +191,7 @@ class EstimatorSettings(BaseModel):
                                                                     "centred on: where the taught view is in focus")
     tilt_max_deg: float = Field(15.0, gt=0, le=45, description="the first sweep is wide enough for this much tilt")
     tilt_kernel_px: int = Field(32, ge=8, le=256, description="kernel size of the focus measure (eq. 13)")
-    tilt_focus_measure: Literal["normalized_variance", "gradient"] = Field(
+    tilt_focus_measure: FocusMeasure = Field(
         "normalized_variance", description="the focus measure each kernel's focus curve is read by: eq. 13's normalized "
                                            "variance (the paper's), or gradient: the gradient energy over the mean, "
                                            "which pins the tilts of sparse textures more tightly (bench/tilt_bounds.py)")

@@ -309,8 +309,8 @@ def pixel_tilt_bound(scene: TiltedTexture, working_distances_um, electrons: floa
     as in :func:`tilt_bound`.
 
     Why: :func:`tilt_bound` is eq. 13's; this one says how much a better measure could
-    gain at all (on sparse particles on a dark ground, eq. 13 loses about half of the
-    pixels' information: ``bench/tilt_bounds.py``)."""
+    gain at all (on the six pictures of ``bench/tilt_bounds.py`` eq. 13's bound is 1.6-2.5
+    times this one: it keeps 16-41 % of the pixels' information)."""
     information = np.zeros(scene.shape, dtype=np.float64)
     for distance in np.asarray(working_distances_um, dtype=np.float64):
         deeper, nearer = _offset_frames(scene, float(distance), shift_um)

@@ -457,3 +457,14 @@ def test_the_estimator_reads_every_sweep_by_the_focus_measure_it_was_set_to(monk
         read = core.sweep_depths(sweep, distances, PIXEL_UM * 1000)
         np.testing.assert_array_equal(read.depths, kernel_depths(sweep, distances, 32, PIXEL_UM, measure=measure).depths)
     assert not np.array_equal(read.depths, kernel_depths(sweep, distances, 32, PIXEL_UM).depths)
+
+
+def test_the_wire_knows_the_same_focus_measures_as_the_science():
+    """The settings, the wire's and the API's TiltTeach take FocusMeasure; the science
+    keeps its own list (it imports no wire types): the two stay the same."""
+    from typing import get_args
+
+    from semservo.estimation.tilt import FOCUS_MEASURES
+    from semservo.protocol.estimator import FocusMeasure
+
+    assert get_args(FocusMeasure) == FOCUS_MEASURES

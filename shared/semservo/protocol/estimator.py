@@ -40,6 +40,11 @@ class TeachRequest(CommandRequest):
                                                               "clock (a one-off slow scan)")
 
 
+#: The focus measures a teach's sweeps can be read by (``SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE``;
+#: :data:`semservo.estimation.tilt.FOCUS_MEASURES`, the science's own list, is the same).
+FocusMeasure = Literal["normalized_variance", "gradient"]
+
+
 class TiltTeach(CommandReply):
     """The taught pose's focus sweeps, which run after a teach with tilts: one, or more of
     the same view pooled while they pin the tilts loosely."""
@@ -50,7 +55,7 @@ class TiltTeach(CommandReply):
     frames: int = 0
     sweep: int = Field(1, description="which sweep is scanning (or the last one), from 1")
     max_sweeps: int = Field(1, description="the most sweeps the teach takes before it refuses")
-    focus_measure: Literal["normalized_variance", "gradient"] = Field(
+    focus_measure: FocusMeasure = Field(
         "normalized_variance", description="the focus measure the sweeps are read by: eq. 13 or the gradient energy")
     pinned_deg: list[float] | None = Field(None, description="the standard errors of alpha and beta (degrees) from "
                                                              "the sweeps so far, pooled")

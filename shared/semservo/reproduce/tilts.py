@@ -122,14 +122,20 @@ class TextureLab:
     def sweep(self, pose: tuple[float, float, float], working_distances) -> np.ndarray:
         return self._scene_at(pose).sweep(working_distances, self.rng, self.electrons, self.read_noise)
 
-    def tilt_bound(self, pose: tuple[float, float, float], working_distances) -> tuple[float, float]:
-        """The Cramer-Rao bound of the tilts from one sweep of ``pose``
-        (:func:`semservo.focus_sweeps.tilt_bound`): what no reading of this texture's eq. 13
-        curves can beat."""
-        from semservo.focus_sweeps import tilt_bound
+    def tilt_bound(self, pose: tuple[float, float, float], working_distances,
+                   measure: str = "normalized_variance") -> tuple[float, float]:
+        """The Cramer-Rao bound of the tilts from one sweep of ``pose`` read by the focus
+        ``measure``: what no reading of this texture's focus curves can beat (eq. 13's,
+        :func:`semservo.focus_sweeps.tilt_bound`; the gradient's by Monte Carlo,
+        :func:`semservo.focus_sweeps.measure_tilt_bound`)."""
+        from semservo.estimation.tilt import gradient_energy
+        from semservo.focus_sweeps import measure_tilt_bound, tilt_bound
 
-        return tilt_bound(self._scene_at(pose), working_distances, electrons=self.electrons,
-                          read_noise=self.read_noise)
+        scene = self._scene_at(pose)
+        if measure == "gradient":
+            return measure_tilt_bound(scene, working_distances, lambda frame: gradient_energy(frame, 32),
+                                      electrons=self.electrons, read_noise=self.read_noise)
+        return tilt_bound(scene, working_distances, electrons=self.electrons, read_noise=self.read_noise)
 
 
 def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
@@ -171,7 +177,8 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
     grid = (reference_sweep[0], reference_sweep[1] - reference_sweep[0])
     taught, taught_depths = teach_reference(lab, reference_sweep, reference_sweeps, measure=measure)
     # The bound of one sweep of the taught view, where the lab can tell it (a texture's).
-    bound = lab.tilt_bound((0.0, 0.0, 0.0), reference_sweep) if hasattr(lab, "tilt_bound") else (math.nan, math.nan)
+    bound = (lab.tilt_bound((0.0, 0.0, 0.0), reference_sweep, measure) if hasattr(lab, "tilt_bound")
+             else (math.nan, math.nan))
     reference_frame = lab.frame((0.0, 0.0, 0.0))
     rotation = MotionEstimator(reference_frame, rotation=True)
     frame_time = lab.frame_time_s
