@@ -58,6 +58,28 @@ def test_reproduce_table_one_from_the_library_alone(tmp_path):
         assert all(m * t > 0 for t, m in zip(true, measured)), "no sign flip (the paper had one at 3 degrees)"
 
 
+def test_the_tilt_sampling_bench_measures_the_pull_between_samples(tmp_path):
+    """``./dev bench tilt_sampling`` on one image and model, the taught view's focus on a
+    sample and midway between two: a row per focus measure, and there (the samples lie
+    symmetric about every kernel's focus) the flat view reads 0 without noise, whatever
+    the reading; the poses against it are measured, and the floor claimed is positive."""
+    from pathlib import Path
+
+    bench = Path(__file__).parents[2] / "bench" / "tilt_sampling.py"
+    out = tmp_path / "tilt_sampling.json"
+    done = subprocess.run([sys.executable, str(bench), "--images", "jeol_grid", "--models", "gaussian", "--phases", "2",
+                           "--out", str(out)], capture_output=True, text=True, timeout=110)
+    assert done.returncode == 0, done.stdout + done.stderr
+    for measure in ("eq. 13", "gradient"):
+        assert re.search(rf"^\| jeol_grid \| gaussian \| {re.escape(measure)} \| [\d.]+ \|", done.stdout, re.M), done.stdout
+    saved = json.loads(out.read_text())
+    assert saved["phases"] == 2 and len(saved["poses"]) == 4
+    for reading in saved["results"]["gaussian"]["jeol_grid"].values():
+        assert reading["taught"] < 2e-3, reading
+        assert len(reading["against"]) == 4 and all(0 <= value < 1.0 for value in reading["against"]), reading
+        assert all(floor > 0 for floor in reading["floor"]), reading
+
+
 def test_the_tilt_bounds_bench_says_where_the_limit_lies(tmp_path):
     """``./dev bench tilt_bounds`` on one image and model: a row per view, the pixels'
     bound under each measure's, and semservo's claim by either measure no tighter than

@@ -73,7 +73,11 @@ MAX_TAUGHT_UNCERTAINTY_DEG = MAX_TILT_UNCERTAINTY_DEG / math.sqrt(2.0)
 #: taken below this fraction of a step over the span of the kernels used (at a depth of
 #: field of 14 um the simulator's sweeps, 7 um apart, read tilts 0.4-0.6 degree off with
 #: standard errors from the residuals under 0.1; at 3.5 um, 1.75 um apart, this floor is
-#: 0.03 degree over a 36 um field).
+#: 0.03 degree over a 36 um field). Measured on real textures (``bench/tilt_sampling.py``,
+#: noise-free, the focus anywhere between samples) it holds where the plane spans several
+#: steps across the field, but 0.5-2 degrees from the taught pose the pull reaches 2-6
+#: times it (0.05-0.19 degree); a run, swept on the taught grid, sheds it as it nears the
+#: taught pose.
 SAMPLING_BIAS_STEPS = 0.01
 #: The largest robust scatter of the kernel depths about the plane, in sweep steps: a
 #: scene that is not one plane in focus (or a sweep that blurs it other than by focus).

@@ -1,0 +1,153 @@
+"""Where the focus falls between a sweep's samples: the tilts' bias that no noise causes,
+per real texture, defocus model and focus measure.
+
+Each kernel's depth is read between the samples of its focus curve, and the reading is
+pulled by a fraction of a step that depends on where the curve's peak falls between
+them (its phase) and on the curve's shape (the kernel's content). The estimator keeps a
+floor for it in every tilt's standard error (``SAMPLING_BIAS_STEPS`` of a step over the
+span of the kernels used) and sweeps a run's poses on the taught sweep's working
+distances (``plan_sweep(..., grid=...)``), so that at the taught pose the bias is the
+teach's own and cancels. This bench measures both assumptions on noise-free sweeps (the
+same scenes as ``bench/tilt_real.py``: 512 px over 25 um, 21 working distances planned
+for a depth of field of 2.5 um, both defocus models), with the taught (flat) view's
+working distances moved by ``--phases`` fractions of a step:
+
+* **taught view**: the largest |alpha|, |beta| the flat view reads over the phases (its
+  truth is 0): what an absolute tilt carries;
+* **against the teach**: for poses 0.5-14 degrees from it, swept on the taught view's
+  working distances, the largest |error| over the phases of the pose's reading less the
+  taught one's: what a measurement in a run or in Table I carries;
+* **floor**: the standard error the estimator claims for a pose, noise-free (its
+  ``SAMPLING_BIAS_STEPS`` floor, the jackknife's share near 0).
+
+A bias above the floor is an error the estimate does not own up to.
+
+    ./dev bench tilt_sampling                           # all six images, both models, 8 phases
+    ./dev bench tilt_sampling --images jeol_grid --models disc --phases 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from tilt_real import DEFAULT_MODELS, DEPTH_OF_FIELD_UM, FIELD_PX, FIELD_UM, IMAGES, grey  # noqa: E402
+
+from semservo import jsontext  # noqa: E402
+from semservo.config import find_sem_images  # noqa: E402
+from semservo.estimation.tilt import (FOCUS_MEASURES, SAMPLING_BIAS_STEPS, kernel_depths, plan_sweep,  # noqa: E402
+                                      tilt_from_depths)
+from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel, TiltedTexture  # noqa: E402
+from semservo.imagefiles import read_sem_image  # noqa: E402
+from semservo.reproduce import Progress  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results"
+KERNEL = 32
+FLAT = (0.0, 0.0, 0.0)
+#: Poses (alpha, beta, gamma; degrees) 0.5, 1.8, 5.8 and 14 degrees of tilt from the taught view.
+POSES = ((0.4, -0.3, 0.0), (1.5, 1.0, 10.0), (5.0, -3.0, 20.0), (12.0, 8.0, -40.0))
+
+
+def tilts(sweep: np.ndarray, distances: np.ndarray, measure: str):
+    """The estimate of one noise-free sweep (refused or not, its angles are read)."""
+    pixel_um = FIELD_UM / FIELD_PX
+    depths = kernel_depths(sweep, distances, KERNEL, pixel_um, measure=measure)
+    return tilt_from_depths(depths.depths, KERNEL, pixel_um, float(distances[1] - distances[0]), depths.uncertainties)
+
+
+def one_texture(texture: np.ndarray, shape: str, phases: int, step) -> dict:
+    """Per focus measure: the taught view's largest |alpha|, |beta| over the phases, and
+    per pose the largest |error| against the teach and the median floor claimed."""
+    model = DefocusModel(shape, depth_of_field_um=DEPTH_OF_FIELD_UM)
+    scenes = {pose: TiltedTexture(texture, model, FIELD_UM / FIELD_PX, shape=(FIELD_PX, FIELD_PX), pose=pose)
+              for pose in (FLAT, *POSES)}
+    planned = plan_sweep(0.0, DEPTH_OF_FIELD_UM, FIELD_UM)
+    sweep_step = float(planned[1] - planned[0])
+    taught = {measure: [] for measure in FOCUS_MEASURES}
+    against = {measure: {pose: [] for pose in POSES} for measure in FOCUS_MEASURES}
+    floors = {measure: {pose: [] for pose in POSES} for measure in FOCUS_MEASURES}
+    for phase in np.arange(phases) / phases:
+        distances = planned + phase * sweep_step  # the taught sweep, and every pose's on its grid
+        sweeps = {pose: np.stack([scene.noiseless_frame(float(distance)) for distance in distances])
+                  for pose, scene in scenes.items()}
+        for measure in FOCUS_MEASURES:
+            reference = tilts(sweeps[FLAT], distances, measure)
+            taught[measure].append((reference.alpha_deg, reference.beta_deg))
+            for pose in POSES:
+                estimate = tilts(sweeps[pose], distances, measure)
+                against[measure][pose].append((estimate.alpha_deg - reference.alpha_deg - pose[0],
+                                               estimate.beta_deg - reference.beta_deg - pose[1]))
+                floors[measure][pose].append(max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg))
+        step(f"phase {phase:.3f}")
+    return {measure: {"taught": float(np.nanmax(np.abs(taught[measure]))),
+                      "against": [float(np.nanmax(np.abs(against[measure][pose]))) for pose in POSES],
+                      "floor": [float(np.nanmedian(floors[measure][pose])) for pose in POSES]}
+            for measure in FOCUS_MEASURES}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--images", nargs="+", choices=IMAGES, default=None,
+                        help="of the six in ../shared/data/sem-images (default: all six, or none with --image-files)")
+    parser.add_argument("--image-files", nargs="+", type=Path, default=[], metavar="FILE",
+                        help="SEM pictures of your own (PNG or TIFF, a vendor's file with its data bar), each the "
+                             "texture of the plane as the six are, named by the file's stem")
+    parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS))
+    parser.add_argument("--phases", type=int, default=8,
+                        help="where the taught view's focus falls between samples: this many evenly over a step "
+                             "(default 8; 1: on a sample, where the bias vanishes by symmetry)")
+    parser.add_argument("--out", type=Path, default=RESULTS / "tilt_sampling.json")
+    args = parser.parse_args(argv)
+    if args.phases < 1:
+        parser.error("--phases must be at least 1")
+    images = args.images if args.images is not None else ([] if args.image_files else list(IMAGES))
+    paths = {name: find_sem_images() / f"{name}.tif" for name in images}
+    for path in args.image_files:
+        if path.stem in paths:
+            parser.error(f"two pictures named {path.stem!r}: rename one")
+        paths[path.stem] = path
+    textures = {}
+    for name, path in paths.items():
+        try:
+            textures[name] = grey(read_sem_image(path).pixels)
+        except (OSError, ValueError) as error:
+            parser.error(f"cannot read {path}: {error}")
+    started = time.monotonic()
+    results: dict[str, dict[str, dict]] = {}
+    bar = Progress("sampling", len(textures) * len(args.models) * args.phases)
+    for name, texture in textures.items():
+        for shape in args.models:
+            results.setdefault(shape, {})[name] = one_texture(
+                texture, shape, args.phases, lambda note, name=name, shape=shape: bar.step(f"{name}, {shape}: {note}"))
+    bar.close()
+    magnitudes = [float(np.hypot(alpha, beta)) for alpha, beta, _ in POSES]
+    print(f"\nNoise-free sweeps, the taught view's focus at {args.phases} phase(s) of a step; the largest |error| "
+          f"(degrees, alpha or beta) over them. {time.monotonic() - started:.0f} s.\n")
+    print("| image | defocus | measure | taught view | " + " | ".join(f"{value:.1f} deg from it" for value in magnitudes)
+          + " | floor claimed |")
+    print("| --- | --- | --- | --- | " + " | ".join("---" for _ in POSES) + " | --- |")
+    for shape, rows in results.items():
+        for name, row in rows.items():
+            for measure, reading in row.items():
+                print(f"| {name} | {shape} | {'eq. 13' if measure == 'normalized_variance' else measure} | "
+                      f"{reading['taught']:.3f} | " + " | ".join(f"{value:.3f}" for value in reading["against"])
+                      + f" | {min(reading['floor']):.3f}-{max(reading['floor']):.3f} |")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(jsontext.dumps({"field_px": FIELD_PX, "field_um": FIELD_UM, "depth_of_field_um": DEPTH_OF_FIELD_UM,
+                                        "kernel": KERNEL, "phases": args.phases, "poses": [list(p) for p in POSES],
+                                        "sampling_bias_steps": SAMPLING_BIAS_STEPS, "results": results}, indent=1))
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    raise SystemExit(main())
