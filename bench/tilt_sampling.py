@@ -10,7 +10,13 @@ distances (``plan_sweep(..., grid=...)``), so that at the taught pose the bias i
 teach's own and cancels. This bench measures both assumptions on noise-free sweeps (the
 same scenes as ``bench/tilt_real.py``: 512 px over 25 um, 21 working distances planned
 for a depth of field of 2.5 um, both defocus models), with the taught (flat) view's
-working distances moved by ``--phases`` fractions of a step:
+working distances moved by ``--phases`` fractions of a step. Each noise-free sweep is
+read as its noisy twin at the benchmark's dose would be (``--electrons``, 1000 per grey
+level at full scale; ``depths_from_curves``): the noise-free curves with the twin's noise
+share, so that the same kernels pass the clear-peak test, the same of the two readings
+(the mirror, the fitted curve) reads each, and they weigh alike; what is left is the
+pull, not the noise. ``--electrons 0``: noise-free throughout (every kernel, read by the
+mirror where the two readings tie).
 
 * **taught view**: the largest |alpha|, |beta| the flat view reads over the phases (its
   truth is 0): what an absolute tilt carries;
@@ -38,14 +44,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from tilt_real import DEFAULT_MODELS, DEPTH_OF_FIELD_UM, FIELD_PX, FIELD_UM, IMAGES, grey  # noqa: E402
+from tilt_real import (DEFAULT_MODELS, DEPTH_OF_FIELD_UM, ELECTRONS, FIELD_PX, FIELD_UM, IMAGES,  # noqa: E402
+                       READ_NOISE, grey)
 
 from semservo import jsontext  # noqa: E402
 from semservo.config import find_sem_images  # noqa: E402
-from semservo.estimation.tilt import (FOCUS_MEASURES, SAMPLING_BIAS_STEPS, kernel_depths, plan_sweep,  # noqa: E402
+from semservo.estimation.tilt import (FOCUS_MEASURES, SAMPLING_BIAS_STEPS, FocusCurves,  # noqa: E402
+                                      depths_from_curves, focus_measure_curves, noise_free_focus_curves, plan_sweep,
                                       tilt_from_depths)
 from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel, TiltedTexture  # noqa: E402
 from semservo.imagefiles import read_sem_image  # noqa: E402
+from semservo.pairs import poisson_gaussian  # noqa: E402
 from semservo.reproduce import Progress  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
@@ -55,19 +64,30 @@ FLAT = (0.0, 0.0, 0.0)
 POSES = ((0.4, -0.3, 0.0), (1.5, 1.0, 10.0), (5.0, -3.0, 20.0), (12.0, 8.0, -40.0))
 
 
-def tilts(sweep: np.ndarray, distances: np.ndarray, measure: str):
-    """The estimate of one noise-free sweep (refused or not, its angles are read)."""
+def with_noise_of(clean: FocusCurves, noisy: FocusCurves | None) -> FocusCurves:
+    """``clean``'s curves with ``noisy``'s noise share (``clean`` alone without one)."""
+    return clean if noisy is None else FocusCurves(clean.signal, noisy.noise, noisy.pixels)
+
+
+def tilts(sweep: np.ndarray, twin: np.ndarray | None, distances: np.ndarray, measure: str):
+    """The estimate of one noise-free ``sweep`` read as its noisy ``twin`` would be (refused
+    or not, its angles are read)."""
     pixel_um = FIELD_UM / FIELD_PX
-    depths = kernel_depths(sweep, distances, KERNEL, pixel_um, measure=measure)
+    curves = with_noise_of(focus_measure_curves(sweep, KERNEL, measure),
+                           None if twin is None else focus_measure_curves(twin, KERNEL, measure))
+    eq13 = with_noise_of(noise_free_focus_curves(sweep, KERNEL),
+                         None if twin is None else noise_free_focus_curves(twin, KERNEL))
+    depths = depths_from_curves(sweep, curves, eq13, distances, KERNEL, pixel_um)
     return tilt_from_depths(depths.depths, KERNEL, pixel_um, float(distances[1] - distances[0]), depths.uncertainties)
 
 
-def one_texture(texture: np.ndarray, shape: str, phases: int, step) -> dict:
+def one_texture(texture: np.ndarray, shape: str, phases: int, electrons: float, seed: int, step) -> dict:
     """Per focus measure: the taught view's largest |alpha|, |beta| over the phases, and
     per pose the largest |error| against the teach and the median floor claimed."""
     model = DefocusModel(shape, depth_of_field_um=DEPTH_OF_FIELD_UM)
     scenes = {pose: TiltedTexture(texture, model, FIELD_UM / FIELD_PX, shape=(FIELD_PX, FIELD_PX), pose=pose)
               for pose in (FLAT, *POSES)}
+    rng = np.random.default_rng(seed)
     planned = plan_sweep(0.0, DEPTH_OF_FIELD_UM, FIELD_UM)
     sweep_step = float(planned[1] - planned[0])
     taught = {measure: [] for measure in FOCUS_MEASURES}
@@ -77,11 +97,13 @@ def one_texture(texture: np.ndarray, shape: str, phases: int, step) -> dict:
         distances = planned + phase * sweep_step  # the taught sweep, and every pose's on its grid
         sweeps = {pose: np.stack([scene.noiseless_frame(float(distance)) for distance in distances])
                   for pose, scene in scenes.items()}
+        twins = {pose: (np.stack([poisson_gaussian(frame, electrons, READ_NOISE, rng) for frame in sweep])
+                        if electrons > 0 else None) for pose, sweep in sweeps.items()}
         for measure in FOCUS_MEASURES:
-            reference = tilts(sweeps[FLAT], distances, measure)
+            reference = tilts(sweeps[FLAT], twins[FLAT], distances, measure)
             taught[measure].append((reference.alpha_deg, reference.beta_deg))
             for pose in POSES:
-                estimate = tilts(sweeps[pose], distances, measure)
+                estimate = tilts(sweeps[pose], twins[pose], distances, measure)
                 against[measure][pose].append((estimate.alpha_deg - reference.alpha_deg - pose[0],
                                                estimate.beta_deg - reference.beta_deg - pose[1]))
                 floors[measure][pose].append(max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg))
@@ -104,10 +126,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--phases", type=int, default=8,
                         help="where the taught view's focus falls between samples: this many evenly over a step "
                              "(default 8; 1: on a sample, where the bias vanishes by symmetry)")
+    parser.add_argument("--electrons", type=float, default=ELECTRONS,
+                        help=f"the dose whose noisy twin each noise-free sweep is read as (per grey level at full "
+                             f"scale; default {ELECTRONS:g}, the tables'; 0: noise-free throughout)")
+    parser.add_argument("--seed", type=int, default=15, help="the noisy twins' draw")
     parser.add_argument("--out", type=Path, default=RESULTS / "tilt_sampling.json")
     args = parser.parse_args(argv)
     if args.phases < 1:
         parser.error("--phases must be at least 1")
+    if not args.electrons >= 0:
+        parser.error("--electrons must be 0 (noise-free) or more")
     images = args.images if args.images is not None else ([] if args.image_files else list(IMAGES))
     paths = {name: find_sem_images() / f"{name}.tif" for name in images}
     for path in args.image_files:
@@ -126,11 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     for name, texture in textures.items():
         for shape in args.models:
             results.setdefault(shape, {})[name] = one_texture(
-                texture, shape, args.phases, lambda note, name=name, shape=shape: bar.step(f"{name}, {shape}: {note}"))
+                texture, shape, args.phases, args.electrons, args.seed, lambda note, name=name, shape=shape: bar.step(f"{name}, {shape}: {note}"))
     bar.close()
     magnitudes = [float(np.hypot(alpha, beta)) for alpha, beta, _ in POSES]
-    print(f"\nNoise-free sweeps, the taught view's focus at {args.phases} phase(s) of a step; the largest |error| "
-          f"(degrees, alpha or beta) over them. {time.monotonic() - started:.0f} s.\n")
+    read_as = (f"read as at {args.electrons:g} electrons per grey level" if args.electrons > 0
+               else "read without noise")
+    print(f"\nNoise-free sweeps ({read_as}), the taught view's focus at {args.phases} phase(s) of a step; the "
+          f"largest |error| (degrees, alpha or beta) over them. {time.monotonic() - started:.0f} s.\n")
     print("| image | defocus | measure | taught view | " + " | ".join(f"{value:.1f} deg from it" for value in magnitudes)
           + " | floor claimed |")
     print("| --- | --- | --- | --- | " + " | ".join("---" for _ in POSES) + " | --- |")
@@ -142,7 +172,9 @@ def main(argv: list[str] | None = None) -> int:
                       + f" | {min(reading['floor']):.3f}-{max(reading['floor']):.3f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(jsontext.dumps({"field_px": FIELD_PX, "field_um": FIELD_UM, "depth_of_field_um": DEPTH_OF_FIELD_UM,
-                                        "kernel": KERNEL, "phases": args.phases, "poses": [list(p) for p in POSES],
+                                        "kernel": KERNEL, "phases": args.phases, "electrons": args.electrons,
+                                        "read_noise": READ_NOISE if args.electrons > 0 else 0.0, "seed": args.seed,
+                                        "poses": [list(p) for p in POSES],
                                         "sampling_bias_steps": SAMPLING_BIAS_STEPS, "results": results}, indent=1))
     print(f"\nwrote {args.out}")
     return 0

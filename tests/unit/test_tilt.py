@@ -900,3 +900,35 @@ def test_the_gradient_measure_takes_the_noise_out_and_finds_each_kernels_depth()
     assert estimate.alpha_deg == pytest.approx(3.0, abs=0.3) and estimate.beta_deg == pytest.approx(-2.0, abs=0.3)
     with pytest.raises(ValueError, match="unknown focus measure 'sobel'"):
         estimate_tilt(tilted, WORKING_DISTANCES_UM, PIXEL_UM, kernel=KERNEL, measure="sobel")
+
+
+def test_curves_made_otherwise_are_read_as_kernel_depths_reads_a_sweeps():
+    """depths_from_curves is kernel_depths' reading: the same depths and standard errors
+    from the sweep's own curves, kernels left out are NaN, and a noise-free sweep read
+    with a noisy twin's noise share is read as the twin's kernels are, from its own curves."""
+    from semservo.estimation.tilt import (FocusCurves, depths_from_curves, focus_measure_curves, kernel_depths,
+                                          noise_free_focus_curves)
+
+    sweep = sweep_of_plane(2.0, -1.0)
+    for measure in ("normalized_variance", "gradient"):
+        direct = kernel_depths(sweep, WORKING_DISTANCES_UM, KERNEL, PIXEL_UM, measure=measure)
+        read = depths_from_curves(sweep, focus_measure_curves(sweep, KERNEL, measure),
+                                  noise_free_focus_curves(sweep, KERNEL), WORKING_DISTANCES_UM, KERNEL, PIXEL_UM)
+        assert np.allclose(read.depths, direct.depths, equal_nan=True)
+        assert np.allclose(read.uncertainties, direct.uncertainties, equal_nan=True)
+    left_out = np.zeros(direct.depths.shape, dtype=bool)
+    left_out[0, :] = True
+    curves = noise_free_focus_curves(sweep, KERNEL)
+    fewer = depths_from_curves(sweep, curves, curves, WORKING_DISTANCES_UM, KERNEL, left_out=left_out)
+    assert np.isnan(fewer.depths[0]).all() and np.isfinite(fewer.depths[1:]).all()
+
+    clean = sweep  # its noise (sd 1) next to the twin's (sd 12)
+    twin = clean + np.random.default_rng(8).normal(0, 12.0, clean.shape)
+    noisy = noise_free_focus_curves(twin, KERNEL)
+    as_twin = depths_from_curves(clean, FocusCurves(noise_free_focus_curves(clean, KERNEL).signal, noisy.noise,
+                                                    noisy.pixels), noisy, WORKING_DISTANCES_UM, KERNEL)
+    twins_own = depths_from_curves(twin, noisy, noisy, WORKING_DISTANCES_UM, KERNEL)
+    truth = plane_depths(2.0, -1.0)
+    seen = np.isfinite(as_twin.depths)
+    assert seen.sum() >= 0.5 * seen.size
+    assert np.nanmedian(np.abs(as_twin.depths - truth)) < np.nanmedian(np.abs(twins_own.depths - truth))

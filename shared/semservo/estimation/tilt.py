@@ -73,11 +73,12 @@ MAX_TAUGHT_UNCERTAINTY_DEG = MAX_TILT_UNCERTAINTY_DEG / math.sqrt(2.0)
 #: taken below this fraction of a step over the span of the kernels used (at a depth of
 #: field of 14 um the simulator's sweeps, 7 um apart, read tilts 0.4-0.6 degree off with
 #: standard errors from the residuals under 0.1; at 3.5 um, 1.75 um apart, this floor is
-#: 0.03 degree over a 36 um field). Measured on real textures (``bench/tilt_sampling.py``,
-#: noise-free, the focus anywhere between samples) it holds where the plane spans several
-#: steps across the field, but 0.5-2 degrees from the taught pose the pull reaches 2-6
-#: times it (0.05-0.19 degree); a run, swept on the taught grid, sheds it as it nears the
-#: taught pose.
+#: 0.03 degree over a 36 um field). Measured on real textures (``bench/tilt_sampling.py``:
+#: noise-free sweeps read as at the tables' dose, the focus anywhere between samples) the
+#: pull stays within about twice it under a Gaussian probe, but under a disc blur 0.5-2
+#: degrees from the taught pose it reaches 2-4.5 times it (0.06-0.14 degree), and on a
+#: few bunched kernels (sparse particles) up to 0.3 degree at any tilt; a run, swept on
+#: the taught grid, sheds it as it nears the taught pose.
 SAMPLING_BIAS_STEPS = 0.01
 #: The largest robust scatter of the kernel depths about the plane, in sweep steps: a
 #: scene that is not one plane in focus (or a sweep that blurs it other than by focus).
@@ -1319,11 +1320,24 @@ def kernel_depths(sweep, working_distances, kernel: int = 32, pixel_size: float 
     if content_shifts_px is not None:
         sweep = steady_sweep(sweep, content_shifts_px)
     sweep = np.asarray(sweep)
-    working_distances = np.asarray(working_distances, dtype=np.float64)
     curves, normalized_variance = _curves_and_eq13(sweep, kernel, measure)
+    left_out = None if content_shifts_px is None else mirrored_kernels(content_shifts_px, sweep.shape[1:], kernel)
+    return depths_from_curves(sweep, curves, normalized_variance, working_distances, kernel, pixel_size, left_out)
+
+
+def depths_from_curves(sweep, curves: FocusCurves, normalized_variance: FocusCurves, working_distances,
+                       kernel: int = 32, pixel_size: float | None = None,
+                       left_out: np.ndarray | None = None) -> KernelDepths:
+    """:func:`kernel_depths`' reading of a sweep's noise-free focus curves: ``curves``, by
+    the measure read (:func:`focus_measure_curves`), and ``normalized_variance``, eq. 13's,
+    where each kernel's texture lies is read off; ``left_out`` (kernel rows x cols, True
+    to leave a kernel out). Apart so that curves made otherwise can be read alike (a
+    noise-free sweep read as its noisy twin would be, ``bench/tilt_sampling.py``)."""
+    sweep = np.asarray(sweep)
+    working_distances = np.asarray(working_distances, dtype=np.float64)
     depths, uncertainties = focus_peak_depths(curves, working_distances)
-    if content_shifts_px is not None:
-        depths = np.where(mirrored_kernels(content_shifts_px, sweep.shape[1:], kernel), np.nan, depths)
+    if left_out is not None:
+        depths = np.where(left_out, np.nan, depths)
     uncertainties = np.where(np.isfinite(depths), uncertainties, np.nan)
     if pixel_size is not None:
         offsets = texture_offsets(sweep, normalized_variance, kernel)
@@ -1344,6 +1358,8 @@ MIRRORED_KERNEL_FRACTION = 0.125
 #: The mirrored margin around a frame moved back (:func:`steady_sweep`), beyond its
 #: largest move: it fades to the frame's mean over this width.
 STEADY_MARGIN_PX = 24
+
+
 def content_shifts(frame_times, track_times, track_dx_px, track_dy_px) -> np.ndarray | None:
     """How far each frame of a sweep had its content moved (frames x 2: right and down,
     px) from the sweep's middle frame, read off a track of the same view's content
