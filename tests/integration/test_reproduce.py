@@ -62,7 +62,8 @@ def test_the_tilt_sampling_bench_measures_the_pull_between_samples(tmp_path):
     """``./dev bench tilt_sampling`` on one image and model, the taught view's focus on a
     sample and midway between two: a row per focus measure, and there (the samples lie
     symmetric about every kernel's focus) the flat view reads 0 without noise, whatever
-    the reading; the poses against it are measured, and the floor claimed is positive."""
+    the reading; the poses against it are measured, the floor claimed is positive, and
+    the plot is written."""
     from pathlib import Path
 
     bench = Path(__file__).parents[2] / "bench" / "tilt_sampling.py"
@@ -73,11 +74,12 @@ def test_the_tilt_sampling_bench_measures_the_pull_between_samples(tmp_path):
     for measure in ("eq. 13", "gradient"):
         assert re.search(rf"^\| jeol_grid \| gaussian \| {re.escape(measure)} \| [\d.]+ \|", done.stdout, re.M), done.stdout
     saved = json.loads(out.read_text())
-    assert saved["phases"] == 2 and len(saved["poses"]) == 4
+    assert saved["phases"] == 2 and len(saved["poses"]) == 7
     for reading in saved["results"]["gaussian"]["jeol_grid"].values():
         assert reading["taught"] < 2e-3, reading
-        assert len(reading["against"]) == 4 and all(0 <= value < 1.0 for value in reading["against"]), reading
+        assert len(reading["against"]) == 7 and all(0 <= value < 1.0 for value in reading["against"]), reading
         assert all(floor > 0 for floor in reading["floor"]), reading
+    assert out.with_suffix(".png").stat().st_size > 10_000  # the plot
 
 
 def test_the_tilt_bounds_bench_says_where_the_limit_lies(tmp_path):

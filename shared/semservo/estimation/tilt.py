@@ -75,7 +75,7 @@ MAX_TAUGHT_UNCERTAINTY_DEG = MAX_TILT_UNCERTAINTY_DEG / math.sqrt(2.0)
 #: standard errors from the residuals under 0.1; at 3.5 um, 1.75 um apart, this floor is
 #: 0.03 degree over a 36 um field). Measured on real textures (``bench/tilt_sampling.py``:
 #: noise-free sweeps read as at the tables' dose, the focus anywhere between samples) the
-#: pull stays within about twice it under a Gaussian probe, but under a disc blur 0.5-2
+#: pull stays within about twice it under a Gaussian probe, but under a disc blur 0.5-3
 #: degrees from the taught pose it reaches 2-4.5 times it (0.06-0.14 degree), and on a
 #: few bunched kernels (sparse particles) up to 0.3 degree at any tilt; a run, swept on
 #: the taught grid, sheds it as it nears the taught pose.
