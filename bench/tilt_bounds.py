@@ -42,15 +42,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 
 from tilt_real import (DEFAULT_MODELS, DEPTH_OF_FIELD_UM, ELECTRONS, FIELD_PX, FIELD_UM, IMAGES, READ_NOISE,  # noqa: E402
-                       grey, lab)
+                       lab, read_textures)
 
 from semservo import jsontext  # noqa: E402
-from semservo.config import find_sem_images  # noqa: E402
 from semservo.estimation.tilt import (FOCUS_MEASURES, MAX_TAUGHT_UNCERTAINTY_DEG, focus_curves,  # noqa: E402
                                       gradient_energy, kernel_depths, plan_sweep, robust_plane, tilt_from_depths,
                                       with_excess_scatter)
 from semservo.focus_sweeps import DEFOCUS_SHAPES, measure_tilt_bound, pixel_tilt_bound, tilt_bound  # noqa: E402
-from semservo.imagefiles import read_sem_image  # noqa: E402
 from semservo.reproduce import Progress  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
@@ -128,18 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.draws < 2:
         parser.error("--draws must be at least 2 (an RMS of one draw says little)")
-    images = args.images if args.images is not None else ([] if args.image_files else list(IMAGES))
-    paths = {name: find_sem_images() / f"{name}.tif" for name in images}
-    for path in args.image_files:
-        if path.stem in paths:
-            parser.error(f"two pictures named {path.stem!r}: rename one")
-        paths[path.stem] = path
-    textures = {}
-    for name, path in paths.items():
-        try:
-            textures[name] = grey(read_sem_image(path).pixels)
-        except (OSError, ValueError) as error:
-            parser.error(f"cannot read {path}: {error}")
+    textures = read_textures(parser, args.images, args.image_files)
     started = time.monotonic()
     results: dict[str, dict[str, dict]] = {}
     bar = Progress("bounds", len(textures) * len(args.models) * (3 + args.draws))

@@ -86,6 +86,26 @@ def grey(pixels: np.ndarray) -> np.ndarray:
     return pixels / 257.0 if pixels.max() > 255 else pixels
 
 
+def read_textures(parser: argparse.ArgumentParser, images: list[str] | None,
+                  image_files: list[Path]) -> dict[str, np.ndarray]:
+    """The textures the tilt benches run on, 0..255 grey by name: the six's ``images``
+    (all six when None, none when pictures of your own are given) and ``image_files`` by
+    their stems; a usage error (``parser``) where two share a name or one cannot be read."""
+    names = images if images is not None else ([] if image_files else list(IMAGES))
+    paths = {name: find_sem_images() / f"{name}.tif" for name in names}
+    for path in image_files:
+        if path.stem in paths:
+            parser.error(f"two pictures named {path.stem!r}: rename one")
+        paths[path.stem] = path
+    textures = {}
+    for name, path in paths.items():
+        try:
+            textures[name] = grey(read_sem_image(path).pixels)
+        except (OSError, ValueError) as error:
+            parser.error(f"cannot read {path}: {error}")
+    return textures
+
+
 def which_set(name: str, shape: str, own: frozenset[str] = frozenset()) -> str:
     if name in own:
         return "yours"
@@ -167,15 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     poses = PAPER_POSES + [(float(rng.uniform(-15, 15)), float(rng.uniform(-15, 15)), float(rng.uniform(-90, 90)))
                            for _ in range(args.poses)]
-    images = args.images if args.images is not None else ([] if args.image_files else list(IMAGES))
-    textures = {name: grey(read_sem_image(find_sem_images() / f"{name}.tif").pixels) for name in images}
-    for path in args.image_files:
-        if path.stem in textures:
-            parser.error(f"two pictures named {path.stem!r}: rename one")
-        try:
-            textures[path.stem] = grey(read_sem_image(path).pixels)
-        except (OSError, ValueError) as error:
-            parser.error(f"cannot read {path}: {error}")
+    textures = read_textures(parser, args.images, args.image_files)
     own = frozenset(path.stem for path in args.image_files)
     output = {"poses": poses, "reference_sweeps": args.reference_sweeps, "pose_sweeps": args.pose_sweeps,
               "focus_measure": args.focus_measure,

@@ -47,15 +47,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 
 from tilt_real import (DEFAULT_MODELS, DEPTH_OF_FIELD_UM, ELECTRONS, FIELD_PX, FIELD_UM, IMAGES,  # noqa: E402
-                       READ_NOISE, grey)
+                       READ_NOISE, read_textures)
 
 from semservo import jsontext  # noqa: E402
-from semservo.config import find_sem_images  # noqa: E402
 from semservo.estimation.tilt import (FOCUS_MEASURES, SAMPLING_BIAS_STEPS, FocusCurves,  # noqa: E402
                                       depths_from_curves, focus_measure_curves, noise_free_focus_curves, plan_sweep,
                                       tilt_from_depths)
 from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel, TiltedTexture  # noqa: E402
-from semservo.imagefiles import read_sem_image  # noqa: E402
 from semservo.pairs import poisson_gaussian  # noqa: E402
 from semservo.reproduce import Progress  # noqa: E402
 
@@ -173,18 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--phases must be at least 1")
     if not args.electrons >= 0:
         parser.error("--electrons must be 0 (noise-free) or more")
-    images = args.images if args.images is not None else ([] if args.image_files else list(IMAGES))
-    paths = {name: find_sem_images() / f"{name}.tif" for name in images}
-    for path in args.image_files:
-        if path.stem in paths:
-            parser.error(f"two pictures named {path.stem!r}: rename one")
-        paths[path.stem] = path
-    textures = {}
-    for name, path in paths.items():
-        try:
-            textures[name] = grey(read_sem_image(path).pixels)
-        except (OSError, ValueError) as error:
-            parser.error(f"cannot read {path}: {error}")
+    textures = read_textures(parser, args.images, args.image_files)
     started = time.monotonic()
     results: dict[str, dict[str, dict]] = {}
     bar = Progress("sampling", len(textures) * len(args.models) * args.phases)
