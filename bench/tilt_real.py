@@ -86,6 +86,18 @@ def grey(pixels: np.ndarray) -> np.ndarray:
     return pixels / 257.0 if pixels.max() > 255 else pixels
 
 
+def add_texture_arguments(parser: argparse.ArgumentParser, marked: bool = False) -> None:
+    """``--images`` and ``--image-files``, what :func:`read_textures` reads (``marked``:
+    the bench marks the pictures' rows "yours")."""
+    parser.add_argument("--images", nargs="+", choices=IMAGES, default=None,
+                        help="of the six in ../shared/data/sem-images (default: all six, or none with --image-files)")
+    parser.add_argument("--image-files", nargs="+", type=Path, default=[], metavar="FILE",
+                        help="SEM pictures of your own (PNG or TIFF, 8 or 16 bit, a vendor's file with its data "
+                             "bar), each the texture of the plane as the six are (one of its pixels a frame pixel; "
+                             "mirrored beyond its edges), named by the file's stem"
+                             + ("; their rows say 'yours'" if marked else ""))
+
+
 def read_textures(parser: argparse.ArgumentParser, images: list[str] | None,
                   image_files: list[Path]) -> dict[str, np.ndarray]:
     """The textures the tilt benches run on, 0..255 grey by name: the six's ``images``
@@ -162,12 +174,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--poses", type=int, default=30, help="random poses besides the paper's three")
     parser.add_argument("--dof-poses", type=int, default=10, help="poses for the depth-of-field scan (0: none)")
-    parser.add_argument("--images", nargs="+", choices=IMAGES, default=None,
-                        help="of the six in ../shared/data/sem-images (default: all six, or none with --image-files)")
-    parser.add_argument("--image-files", nargs="+", type=Path, default=[], metavar="FILE",
-                        help="SEM pictures of your own (PNG or TIFF, 8 or 16 bit, a vendor's file with its data "
-                             "bar), each the texture of the plane as the six are (one of its pixels a frame pixel; "
-                             "mirrored beyond its edges), named by the file's stem; their rows say 'yours'")
+    add_texture_arguments(parser, marked=True)
     parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS),
                         help="defocus models (default: gaussian disc; quadrature: the round-peaked model the "
                              "fitted reading was developed with)")

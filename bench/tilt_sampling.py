@@ -46,8 +46,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from tilt_real import (DEFAULT_MODELS, DEPTH_OF_FIELD_UM, ELECTRONS, FIELD_PX, FIELD_UM, IMAGES,  # noqa: E402
-                       READ_NOISE, read_textures)
+from tilt_real import (DEFAULT_MODELS, DEPTH_OF_FIELD_UM, ELECTRONS, FIELD_PX, FIELD_UM, READ_NOISE,  # noqa: E402
+                       add_texture_arguments, read_textures)
 
 from semservo import jsontext  # noqa: E402
 from semservo.estimation.tilt import (FOCUS_MEASURES, SAMPLING_BIAS_STEPS, FocusCurves,  # noqa: E402
@@ -152,11 +152,7 @@ def plot(results: dict[str, dict[str, dict]], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--images", nargs="+", choices=IMAGES, default=None,
-                        help="of the six in ../shared/data/sem-images (default: all six, or none with --image-files)")
-    parser.add_argument("--image-files", nargs="+", type=Path, default=[], metavar="FILE",
-                        help="SEM pictures of your own (PNG or TIFF, a vendor's file with its data bar), each the "
-                             "texture of the plane as the six are, named by the file's stem")
+    add_texture_arguments(parser)
     parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS))
     parser.add_argument("--phases", type=int, default=8,
                         help="where the taught view's focus falls between samples: this many evenly over a step "
