@@ -58,6 +58,38 @@ def test_reproduce_table_one_from_the_library_alone(tmp_path):
         assert all(m * t > 0 for t, m in zip(true, measured)), "no sign flip (the paper had one at 3 degrees)"
 
 
+def test_the_real_texture_tilt_bench_runs_on_a_picture_of_your_own(tmp_path):
+    """``./dev bench tilt_real --image-files FILE`` (the README's line): the picture is
+    the sample, its row says "yours", the paper's three poses are measured on a dense
+    texture, and the results are written; a picture that cannot be read is a usage error that
+    names it."""
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(3)
+    picture = tmp_path / "wafer.png"
+    grains = cv2.GaussianBlur(rng.normal(size=(512, 512)), (0, 0), 1.5)
+    cv2.imwrite(str(picture), np.clip(128 + 400 * grains, 0, 255).astype(np.uint8))
+    bench = Path(__file__).parents[2] / "bench" / "tilt_real.py"
+    out = tmp_path / "tilt_real.json"
+    done = subprocess.run([sys.executable, str(bench), "--image-files", str(picture), "--models", "gaussian",
+                           "--poses", "0", "--dof-poses", "0", "--out", str(out)],
+                          capture_output=True, text=True, timeout=110)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert re.search(r"^\| wafer \| yours \| \d+ of 3 \|", done.stdout, re.M), done.stdout
+    saved = json.loads(out.read_text())
+    assert saved["yours"] == {"wafer": str(picture)}
+    rows = saved["table_one"]["gaussian"]["wafer"]["table"]["rows"]
+    # A fine, dense texture: every pose measured, within the issue's worst-pose bound.
+    assert len(rows) == 3 and not any(row["refused"] for row in rows), rows
+    assert all(abs(error) < 0.3 for row in rows for error in row["plane"]), rows
+    missing = subprocess.run([sys.executable, str(bench), "--image-files", str(tmp_path / "none.tif")],
+                             capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 2 and "cannot read" in missing.stderr and "none.tif" in missing.stderr
+
+
 def test_the_tilt_sampling_bench_measures_the_pull_between_samples(tmp_path):
     """``./dev bench tilt_sampling`` on one image and model, the taught view's focus on a
     sample and midway between two: a row per focus measure, and there (the samples lie
