@@ -23,8 +23,12 @@ mirror where the two readings tie).
 * **against the teach**: for poses 0.18-14 degrees from it, swept on the taught view's
   working distances, the largest |error| over the phases of the pose's reading less the
   taught one's: what a measurement in a run or in Table I carries;
-* **floor**: the standard error the estimator claims for a pose, noise-free (its
-  ``SAMPLING_BIAS_STEPS`` floor, the jackknife's share near 0).
+* **floor**: the standard error the estimator claims for a pose read so (the
+  ``SAMPLING_BIAS_STEPS`` floor, and what the jackknife over the kernels adds where they
+  are few), the median over the phases.
+
+Only the readings the estimator accepts count (a refused one has no angles); how many
+were refused is kept in the results (``refused``, per pose, of ``--phases``).
 
 A bias above the floor is an error the estimate does not own up to. Writes
 bench/results/tilt_sampling.json and .png (the errors against the tilt from the teach,
@@ -72,8 +76,8 @@ def with_noise_of(clean: FocusCurves, noisy: FocusCurves | None) -> FocusCurves:
 
 
 def tilts(sweep: np.ndarray, twin: np.ndarray | None, distances: np.ndarray, measure: str):
-    """The estimate of one noise-free ``sweep`` read as its noisy ``twin`` would be (refused
-    or not, its angles are read)."""
+    """The estimate of one noise-free ``sweep`` read as its noisy ``twin`` would be (NaN
+    angles where it is refused)."""
     pixel_um = FIELD_UM / FIELD_PX
     curves = with_noise_of(focus_measure_curves(sweep, KERNEL, measure),
                            None if twin is None else focus_measure_curves(twin, KERNEL, measure))
@@ -85,7 +89,8 @@ def tilts(sweep: np.ndarray, twin: np.ndarray | None, distances: np.ndarray, mea
 
 def one_texture(texture: np.ndarray, shape: str, phases: int, electrons: float, seed: int, step) -> dict:
     """Per focus measure: the taught view's largest |alpha|, |beta| over the phases, and
-    per pose the largest |error| against the teach and the median floor claimed."""
+    per pose the largest |error| against the teach, the median floor claimed and how
+    many of the phases were refused (the taught view's or the pose's reading)."""
     model = DefocusModel(shape, depth_of_field_um=DEPTH_OF_FIELD_UM)
     scenes = {pose: TiltedTexture(texture, model, FIELD_UM / FIELD_PX, shape=(FIELD_PX, FIELD_PX), pose=pose)
               for pose in (FLAT, *POSES)}
@@ -112,7 +117,8 @@ def one_texture(texture: np.ndarray, shape: str, phases: int, electrons: float, 
         step(f"phase {phase:.3f}")
     return {measure: {"taught": float(np.nanmax(np.abs(taught[measure]))),
                       "against": [float(np.nanmax(np.abs(against[measure][pose]))) for pose in POSES],
-                      "floor": [float(np.nanmedian(floors[measure][pose])) for pose in POSES]}
+                      "floor": [float(np.nanmedian(floors[measure][pose])) for pose in POSES],
+                      "refused": [int(np.isnan(against[measure][pose]).any(axis=1).sum()) for pose in POSES]}
             for measure in FOCUS_MEASURES}
 
 
@@ -182,14 +188,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nNoise-free sweeps ({read_as}), the taught view's focus at {args.phases} phase(s) of a step; the "
           f"largest |error| (degrees, alpha or beta) over them. {time.monotonic() - started:.0f} s.\n")
     print("| image | defocus | measure | taught view | " + " | ".join(f"{value:.1f} deg from it" for value in magnitudes)
-          + " | floor claimed |")
-    print("| --- | --- | --- | --- | " + " | ".join("---" for _ in POSES) + " | --- |")
+          + " | floor claimed | refused |")
+    print("| --- | --- | --- | --- | " + " | ".join("---" for _ in POSES) + " | --- | --- |")
     for shape, rows in results.items():
         for name, row in rows.items():
             for measure, reading in row.items():
                 print(f"| {name} | {shape} | {'eq. 13' if measure == 'normalized_variance' else measure} | "
                       f"{reading['taught']:.3f} | " + " | ".join(f"{value:.3f}" for value in reading["against"])
-                      + f" | {min(reading['floor']):.3f}-{max(reading['floor']):.3f} |")
+                      + f" | {min(reading['floor']):.3f}-{max(reading['floor']):.3f} | "
+                      f"{sum(reading['refused'])} of {args.phases * len(POSES)} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(jsontext.dumps({"field_px": FIELD_PX, "field_um": FIELD_UM, "depth_of_field_um": DEPTH_OF_FIELD_UM,
                                         "kernel": KERNEL, "phases": args.phases, "electrons": args.electrons,

@@ -111,6 +111,7 @@ def test_the_tilt_sampling_bench_measures_the_pull_between_samples(tmp_path):
         assert reading["taught"] < 2e-3, reading
         assert len(reading["against"]) == 7 and all(0 <= value < 1.0 for value in reading["against"]), reading
         assert all(floor > 0 for floor in reading["floor"]), reading
+        assert reading["refused"] == [0] * 7, reading  # a dense texture: every reading accepted
     assert out.with_suffix(".png").stat().st_size > 10_000  # the plot
 
 
