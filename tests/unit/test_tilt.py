@@ -904,8 +904,9 @@ def test_the_gradient_measure_takes_the_noise_out_and_finds_each_kernels_depth()
 
 def test_curves_made_otherwise_are_read_as_kernel_depths_reads_a_sweeps():
     """depths_from_curves is kernel_depths' reading: the same depths and standard errors
-    from the sweep's own curves, kernels left out are NaN, and a noise-free sweep read
-    with a noisy twin's noise share is read as the twin's kernels are, from its own curves."""
+    from the sweep's own curves, kernels left out are NaN, and a quiet sweep's curves
+    with a noisy twin's noise share keep most kernels and read closer to the truth than
+    the twin's own (the pull without the twin's noise, as bench/tilt_sampling.py reads)."""
     from semservo.estimation.tilt import (FocusCurves, depths_from_curves, focus_measure_curves, kernel_depths,
                                           noise_free_focus_curves)
 
