@@ -75,14 +75,22 @@ def with_noise_of(clean: FocusCurves, noisy: FocusCurves | None) -> FocusCurves:
     return clean if noisy is None else FocusCurves(clean.signal, noisy.noise, noisy.pixels)
 
 
-def tilts(sweep: np.ndarray, twin: np.ndarray | None, distances: np.ndarray, measure: str):
-    """The estimate of one noise-free ``sweep`` read as its noisy ``twin`` would be (NaN
-    angles where it is refused)."""
+def readings(sweep: np.ndarray, twin: np.ndarray | None) -> dict[str, tuple[FocusCurves, FocusCurves]]:
+    """Per focus measure, the curves of the noise-free ``sweep`` as its noisy ``twin``
+    would have them read (its noise share), and eq. 13's likewise (where each kernel's
+    texture lies): each sweep's eq. 13 curves made once for both measures."""
+    clean = noise_free_focus_curves(sweep, KERNEL)
+    loud = None if twin is None else noise_free_focus_curves(twin, KERNEL)
+    eq13 = with_noise_of(clean, loud)
+    return {measure: (with_noise_of(focus_measure_curves(sweep, KERNEL, measure, clean),
+                                    None if twin is None else focus_measure_curves(twin, KERNEL, measure, loud)), eq13)
+            for measure in FOCUS_MEASURES}
+
+
+def tilts(sweep: np.ndarray, curves: FocusCurves, eq13: FocusCurves, distances: np.ndarray):
+    """The estimate of one noise-free ``sweep`` read from these ``curves`` (:func:`readings`;
+    NaN angles where it is refused)."""
     pixel_um = FIELD_UM / FIELD_PX
-    curves = with_noise_of(focus_measure_curves(sweep, KERNEL, measure),
-                           None if twin is None else focus_measure_curves(twin, KERNEL, measure))
-    eq13 = with_noise_of(noise_free_focus_curves(sweep, KERNEL),
-                         None if twin is None else noise_free_focus_curves(twin, KERNEL))
     depths = depths_from_curves(sweep, curves, eq13, distances, KERNEL, pixel_um)
     return tilt_from_depths(depths.depths, KERNEL, pixel_um, float(distances[1] - distances[0]), depths.uncertainties)
 
@@ -106,11 +114,12 @@ def one_texture(texture: np.ndarray, shape: str, phases: int, electrons: float, 
                   for pose, scene in scenes.items()}
         twins = {pose: (np.stack([poisson_gaussian(frame, electrons, READ_NOISE, rng) for frame in sweep])
                         if electrons > 0 else None) for pose, sweep in sweeps.items()}
+        read = {pose: readings(sweep, twins[pose]) for pose, sweep in sweeps.items()}
         for measure in FOCUS_MEASURES:
-            reference = tilts(sweeps[FLAT], twins[FLAT], distances, measure)
+            reference = tilts(sweeps[FLAT], *read[FLAT][measure], distances)
             taught[measure].append((reference.alpha_deg, reference.beta_deg))
             for pose in POSES:
-                estimate = tilts(sweeps[pose], twins[pose], distances, measure)
+                estimate = tilts(sweeps[pose], *read[pose][measure], distances)
                 against[measure][pose].append((estimate.alpha_deg - reference.alpha_deg - pose[0],
                                                estimate.beta_deg - reference.beta_deg - pose[1]))
                 floors[measure][pose].append(max(estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg))

@@ -383,20 +383,25 @@ def gradient_focus_curves(sweep: np.ndarray, kernel: int, normalized_variance: F
     return FocusCurves(measure - noise, noise, max(1, int(round(kernel * kernel / correlation))))
 
 
-def _curves_and_eq13(sweep: np.ndarray, kernel: int, measure: str) -> tuple[FocusCurves, FocusCurves]:
-    """The noise-free focus curves of ``measure`` and eq. 13's (the same, for eq. 13)."""
+def _curves_and_eq13(sweep: np.ndarray, kernel: int, measure: str,
+                     normalized_variance: FocusCurves | None = None) -> tuple[FocusCurves, FocusCurves]:
+    """The noise-free focus curves of ``measure`` and eq. 13's (the same, for eq. 13;
+    ``normalized_variance``: eq. 13's of the same sweep, when already made)."""
     if measure not in FOCUS_MEASURES:
         raise ValueError(f"unknown focus measure {measure!r} (one of {', '.join(FOCUS_MEASURES)})")
-    normalized_variance = noise_free_focus_curves(sweep, kernel)
+    if normalized_variance is None:
+        normalized_variance = noise_free_focus_curves(sweep, kernel)
     if measure == "normalized_variance":
         return normalized_variance, normalized_variance
     return gradient_focus_curves(sweep, kernel, normalized_variance), normalized_variance
 
 
-def focus_measure_curves(sweep: np.ndarray, kernel: int, measure: str = "normalized_variance") -> FocusCurves:
+def focus_measure_curves(sweep: np.ndarray, kernel: int, measure: str = "normalized_variance",
+                         normalized_variance: FocusCurves | None = None) -> FocusCurves:
     """The noise-free focus curves of ``measure`` (one of ``FOCUS_MEASURES``):
-    :func:`noise_free_focus_curves` (eq. 13) or :func:`gradient_focus_curves`."""
-    return _curves_and_eq13(sweep, kernel, measure)[0]
+    :func:`noise_free_focus_curves` (eq. 13) or :func:`gradient_focus_curves`
+    (``normalized_variance``: eq. 13's of the same sweep, when already made)."""
+    return _curves_and_eq13(sweep, kernel, measure, normalized_variance)[0]
 
 
 def clear_focus_peaks(curves: FocusCurves, working_distances: np.ndarray) -> np.ndarray:
