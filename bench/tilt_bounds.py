@@ -115,10 +115,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_texture_arguments(parser)
-    parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS))
-    parser.add_argument("--draws", type=int, default=8, help="one-sweep estimates of the flat view per image and model")
-    parser.add_argument("--seed", type=int, default=15)
-    parser.add_argument("--out", type=Path, default=RESULTS / "tilt_bounds.json")
+    parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS),
+                        help="defocus models (default: gaussian disc)")
+    parser.add_argument("--draws", type=int, default=8,
+                        help="one-sweep estimates of the flat view per image and model (default 8, at least 2)")
+    parser.add_argument("--seed", type=int, default=15, help="the noise's draw (default 15)")
+    parser.add_argument("--out", type=Path, default=RESULTS / "tilt_bounds.json",
+                        help="the results (JSON; default %(default)s)")
     args = parser.parse_args(argv)
     if args.draws < 2:
         parser.error("--draws must be at least 2 (an RMS of one draw says little)")

@@ -114,7 +114,8 @@ def read_textures(parser: argparse.ArgumentParser, images: list[str] | None,
         try:
             textures[name] = grey(read_sem_image(path).pixels)
         except (OSError, ValueError) as error:
-            parser.error(f"cannot read {path}: {error}")
+            # The reader's message names the file already, as a rule.
+            parser.error(f"cannot read {error}" if str(path) in str(error) else f"cannot read {path}: {error}")
     return textures
 
 

@@ -131,6 +131,12 @@ def one_texture(texture: np.ndarray, shape: str, phases: int, electrons: float, 
             for measure in FOCUS_MEASURES}
 
 
+def span(values) -> str:
+    """'lowest-highest' to three decimals, one number where they agree."""
+    low, high = f"{min(values):.3f}", f"{max(values):.3f}"
+    return low if low == high else f"{low}-{high}"
+
+
 def plot(results: dict[str, dict[str, dict]], path: Path) -> None:
     """The largest error against the teach over the phases, against the tilt from it: a
     panel per defocus model and focus measure, a line per image, its floor dashed."""
@@ -168,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_texture_arguments(parser)
-    parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS))
+    parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS),
+                        help="defocus models (default: gaussian disc)")
     parser.add_argument("--phases", type=int, default=8,
                         help="where the taught view's focus falls between samples: this many evenly over a step "
                              "(default 8; 1: on a sample, where the bias vanishes by symmetry)")
@@ -176,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"the dose whose noisy twin each noise-free sweep is read as (per grey level at full "
                              f"scale; default {ELECTRONS:g}, the tables'; 0: noise-free throughout)")
     parser.add_argument("--seed", type=int, default=15, help="the noisy twins' draw")
-    parser.add_argument("--out", type=Path, default=RESULTS / "tilt_sampling.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "tilt_sampling.json",
+                        help="the results (JSON; the plot beside it as .png; default %(default)s)")
     args = parser.parse_args(argv)
     if args.phases < 1:
         parser.error("--phases must be at least 1")
@@ -204,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             for measure, reading in row.items():
                 print(f"| {name} | {shape} | {'eq. 13' if measure == 'normalized_variance' else measure} | "
                       f"{reading['taught']:.3f} | " + " | ".join(f"{value:.3f}" for value in reading["against"])
-                      + f" | {min(reading['floor']):.3f}-{max(reading['floor']):.3f} | "
+                      + f" | {span(reading['floor'])} | "
                       f"{sum(reading['refused'])} of {args.phases * len(POSES)} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(jsontext.dumps({"field_px": FIELD_PX, "field_um": FIELD_UM, "depth_of_field_um": DEPTH_OF_FIELD_UM,
