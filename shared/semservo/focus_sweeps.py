@@ -248,13 +248,39 @@ def _kernel_grid(scene: TiltedTexture, kernel: int) -> tuple[int, int, np.ndarra
     return rows, cols, grid_y.ravel(), grid_x.ravel()
 
 
+def information_tilt_bound(scene: TiltedTexture, information: np.ndarray, kernel: int = 32) -> tuple[float, float]:
+    """The standard errors (alpha, beta; degrees) no unbiased plane through the kernels'
+    depths can beat when each kernel's depth carries the Fisher ``information`` (kernel
+    rows x cols, 1 / um^2: :func:`normalized_variance_information`,
+    :func:`measure_information`): the slopes' covariance (X^T I X)^-1, X the kernels'
+    centres (1, x, y in um), carried into the tilts."""
+    _, _, y, x = _kernel_grid(scene, kernel)
+    return _tilt_errors(scene, np.asarray(information, dtype=np.float64).ravel(), y, x)
+
+
 def tilt_bound(scene: TiltedTexture, working_distances_um, kernel: int = 32, electrons: float = 1000.0,
                read_noise: float = 2.0, shift_um: float = 0.05) -> tuple[float, float]:
     """The Cramer-Rao bound of the tilts from one focus sweep of ``scene`` read through
-    eq. 13's measure: the smallest standard errors (alpha, beta; degrees) that any
-    unbiased reading of the kernels' depths from that measure (each ``kernel`` x
-    ``kernel`` block's variance over its mean, frame by frame) and a plane through them
-    can have, under this module's noise.
+    eq. 13's measure (alpha, beta; degrees): :func:`information_tilt_bound` of
+    :func:`normalized_variance_information`.
+
+    Why: how well a texture can pin the tilts through eq. 13 is a property of the
+    texture, the blur and the dose, not of how the focus curves are read; the bound says
+    whether a refusal is the reading's or the measure's. What no estimator at all can beat,
+    whatever it measures, is :func:`pixel_tilt_bound`; another measure's bound,
+    :func:`measure_tilt_bound`."""
+    information = normalized_variance_information(scene, working_distances_um, kernel, electrons, read_noise, shift_um)
+    return information_tilt_bound(scene, information, kernel)
+
+
+def normalized_variance_information(scene: TiltedTexture, working_distances_um, kernel: int = 32,
+                                    electrons: float = 1000.0, read_noise: float = 2.0,
+                                    shift_um: float = 0.05) -> np.ndarray:
+    """The Fisher information (1 / um^2, kernel rows x cols) each kernel's eq. 13 focus
+    curve carries about its depth in one focus sweep of ``scene``: what
+    :func:`tilt_bound` is built on, and what one kernel's depth read through eq. 13 can
+    at best be pinned to (1 / sqrt of it). The measure is each ``kernel`` x ``kernel``
+    block's variance over its mean, frame by frame, under this module's noise.
 
     Each kernel's depth is pinned by the Fisher information of its focus curve,
     sum over the frames of (dS / dz)^2 / var(S): S the noise-free measure, its change with
@@ -264,15 +290,9 @@ def tilt_bound(scene: TiltedTexture, working_distances_um, kernel: int = 32, ele
     noise of ``electrons`` per grey level at full scale and ``read_noise``, over the
     kernel's mean). The plane's slopes then have the covariance (X^T I X)^-1, X the
     kernels' centres (1, x, y in um), and the tilts follow as the module's geometry
-    relates them (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx)).
-
-    Why: how well a texture can pin the tilts through eq. 13 is a property of the
-    texture, the blur and the dose, not of how the focus curves are read; the bound says
-    whether a refusal is the reading's or the measure's. What no estimator at all can beat,
-    whatever it measures, is :func:`pixel_tilt_bound`; another measure's bound,
-    :func:`measure_tilt_bound`."""
+    relates them (alpha = atan(dz/dy), beta = -atan(cos(alpha) dz/dx))."""
     distances = np.asarray(working_distances_um, dtype=np.float64)
-    rows, cols, y, x = _kernel_grid(scene, kernel)
+    rows, cols, _, _ = _kernel_grid(scene, kernel)
 
     def measures(offset_um: float) -> tuple[np.ndarray, np.ndarray]:
         """eq. 13's noise-free measure and the kernels' mean grey, frames x kernels."""
@@ -291,8 +311,7 @@ def tilt_bound(scene: TiltedTexture, working_distances_um, kernel: int = 32, ele
     slope = (deeper - nearer) / (2 * shift_um)
     noise = _pixel_noise(mean, electrons, read_noise) / np.maximum(mean, 1e-9)
     variance = (2 * noise**2 + 4 * np.maximum(measure, 0.0) * noise) / (kernel * kernel)
-    information = np.sum(slope**2 / variance, axis=0)  # per kernel, 1 / um^2
-    return _tilt_errors(scene, information, y, x)
+    return np.sum(slope**2 / variance, axis=0).reshape(rows, cols)
 
 
 def pixel_tilt_bound(scene: TiltedTexture, working_distances_um, electrons: float = 1000.0,
@@ -328,16 +347,36 @@ def measure_tilt_bound(scene: TiltedTexture, working_distances_um, measure, kern
     """The Cramer-Rao bound of the tilts from one focus sweep of ``scene`` read through
     any focus measure (alpha, beta; degrees), as :func:`tilt_bound` is eq. 13's: each
     kernel's information sum over the frames of (dS / dz)^2 / var(S), the slope from the
-    noiseless frames and var(S) the sample variance over ``realizations`` noisy frames
-    (Monte Carlo: within about 1 / sqrt(realizations / 2) of the truth, kernel by kernel).
+    noiseless frames and var(S) from ``realizations`` noisy frames (Monte Carlo,
+    :func:`measure_information`: within about 1 / sqrt(realizations / 2) of the truth,
+    kernel by kernel).
 
     ``measure``: a frame (float32, rows x cols) -> the measure of each whole ``kernel`` x
     ``kernel`` block (rows // kernel, cols // kernel).
 
     Why: to weigh a candidate measure against eq. 13 on a texture before building an
     estimator on it (``bench/tilt_bounds.py``)."""
+    information = measure_information(scene, working_distances_um, measure, kernel, electrons, read_noise,
+                                      realizations, rng, shift_um)
+    return information_tilt_bound(scene, information, kernel)
+
+
+def measure_information(scene: TiltedTexture, working_distances_um, measure, kernel: int = 32,
+                        electrons: float = 1000.0, read_noise: float = 2.0, realizations: int = 12,
+                        rng: np.random.Generator | None = None, shift_um: float = 0.05) -> np.ndarray:
+    """The Fisher information (1 / um^2, kernel rows x cols) each kernel's focus curve by
+    ``measure`` carries about its depth in one focus sweep of ``scene``, by Monte Carlo as
+    :func:`measure_tilt_bound` (built on it) describes: sum over the frames of
+    (dS / dz)^2 / var(S), 1 / var(S) taken as (n - 3) / (n - 1) over the sample variance
+    of the n = ``realizations`` noisy frames (at least 4): 1 / a sample variance
+    over-states 1 / the variance by (n - 1) / (n - 3) on average (the inverse
+    chi-square's mean; 22 % at 12 frames, which made the bound 10 % too tight). Why
+    apart: a kernel's depth read from that curve scatters at least 1 / sqrt of it, so it
+    says how much each kernel's reading loses (``bench/tilt_bounds.py``'s budget)."""
+    if realizations < 4:
+        raise ValueError(f"measure_information needs at least 4 noisy frames per working distance, not {realizations}")
     rng = np.random.default_rng(0) if rng is None else rng
-    rows, cols, y, x = _kernel_grid(scene, kernel)
+    rows, cols, _, _ = _kernel_grid(scene, kernel)
     information = np.zeros(rows * cols, dtype=np.float64)
     for distance in np.asarray(working_distances_um, dtype=np.float64):
         deeper, nearer = _offset_frames(scene, float(distance), shift_um)
@@ -346,4 +385,4 @@ def measure_tilt_bound(scene: TiltedTexture, working_distances_um, measure, kern
         noisy = np.array([np.asarray(measure(scene.frame(float(distance), rng, electrons, read_noise)),
                                      dtype=np.float64).ravel() for _ in range(realizations)])
         information += slope**2 / np.maximum(noisy.var(axis=0, ddof=1), 1e-300)
-    return _tilt_errors(scene, information, y, x)
+    return information.reshape(rows, cols) * (realizations - 3) / (realizations - 1)
