@@ -18,7 +18,11 @@ beta from one sweep, degrees:
 * **semservo, one sweep**, by each focus measure on the same sweeps: what the estimator
   claims (the median of its standard errors) and what it does (the RMS of its plane's
   angles over ``--draws`` sweeps, true 0; the plane is read even where the estimate is
-  refused, to see how far off it would be), and how many of the draws it refuses.
+  refused, to see how far off it would be), and how many of the draws it refuses;
+* **where the reading loses**, by each measure: the share of its information in the
+  kernels the estimator reads, how much more their depths scatter than each kernel's
+  bound allows, and the plane through them weighed by the information itself
+  (``measure_information``, ``normalized_variance_information``) beside semservo's.
 
 A refusal is the picture's where even the pixels' bound is near the line a teach may keep
 (``MAX_TAUGHT_UNCERTAINTY_DEG``); the measure's where eq. 13's bound is far above the
@@ -48,7 +52,8 @@ from semservo import jsontext  # noqa: E402
 from semservo.estimation.tilt import (FOCUS_MEASURES, MAX_TAUGHT_UNCERTAINTY_DEG, focus_curves,  # noqa: E402
                                       gradient_energy, kernel_depths, plan_sweep, robust_plane, tilt_from_depths,
                                       with_excess_scatter)
-from semservo.focus_sweeps import DEFOCUS_SHAPES, measure_tilt_bound, pixel_tilt_bound, tilt_bound  # noqa: E402
+from semservo.focus_sweeps import (DEFOCUS_SHAPES, information_tilt_bound, measure_information,  # noqa: E402
+                                   measure_tilt_bound, normalized_variance_information, pixel_tilt_bound)
 from semservo.reproduce import Progress  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
@@ -70,8 +75,50 @@ def plane_angles(depths, uncertainties, pixel_um: float) -> tuple[float, float]:
     """The robust plane's alpha, beta (degrees) through the kernel depths, refused or not
     (as :func:`tilt_from_depths` fits it)."""
     weights = with_excess_scatter(depths, uncertainties, KERNEL, pixel_um)
-    _, slope_x, slope_y = robust_plane(depths, KERNEL, pixel_um, uncertainties=weights).coefficients
+    return angles_of(robust_plane(depths, KERNEL, pixel_um, uncertainties=weights))
+
+
+def angles_of(plane) -> tuple[float, float]:
+    """A plane's alpha, beta (degrees), as :func:`tilt_from_depths` reads its slopes."""
+    _, slope_x, slope_y = plane.coefficients
     return float(np.degrees(np.arctan(slope_y))), float(np.degrees(np.arctan(-slope_x * np.cos(np.arctan(slope_y)))))
+
+
+def rms(angles) -> tuple[float, float]:
+    """The RMS of alpha and of beta over the draws (true 0)."""
+    return tuple(float(v) for v in np.sqrt(np.nanmean(np.array(angles) ** 2, axis=0)))
+
+
+def reading_losses(depth_maps, information: np.ndarray, pixel_um: float) -> dict:
+    """Where a measure's reading of one view loses against the measure's bound, over
+    ``depth_maps`` (``kernel_depths`` of each draw) and ``information`` (each kernel's
+    Fisher information about its depth through the measure, 1 / um^2):
+
+    * ``exact_weights``: the RMS of the robust plane's angles (true 0) through each
+      draw's depths weighed by the information itself instead of the estimator's
+      standard errors: the plane's own loss, apart from the weights';
+    * ``information_read``: the share of the information in the kernels that plane keeps
+      in at least half of the draws (what the clear-peak test leaves out, and the
+      depths so far off that the plane gives them no weight, cost the rest);
+    * ``kernels``: how much more those kernels' depths (where kept) scatter over the
+      draws than their bounds allow, sqrt of the information-weighted mean of
+      (scatter / bound)^2 (the plane weighs them so; 1: each kernel read as well as its
+      curve allows)."""
+    informed = information > 1e-12 * information.max()
+    exact = np.where(informed, 1.0 / np.sqrt(np.where(informed, information, 1.0)), np.nan)
+    angles, kept = [], []
+    for each in depth_maps:
+        plane = robust_plane(np.where(informed, each.depths, np.nan), KERNEL, pixel_um, uncertainties=exact)
+        angles.append(angles_of(plane))
+        kept.append(np.where(plane.weights > 0, each.depths, np.nan))
+    kept = np.stack(kept)
+    read = np.isfinite(kept).sum(axis=0) >= max(2, int(np.ceil(len(depth_maps) / 2)))
+    total = float(information.sum())
+    scatter = np.array([np.nanstd(column, ddof=1) for column in kept[:, read].T])
+    weights = information[read]
+    return {"exact_weights": rms(angles),
+            "information_read": float(weights.sum() / total) if total > 0 else float("nan"),
+            "kernels": float(np.sqrt(np.sum(weights**2 * scatter**2) / np.sum(weights))) if read.any() else float("nan")}
 
 
 def one_view(texture: np.ndarray, shape: str, draws: int, seed: int, step) -> dict:
@@ -81,14 +128,18 @@ def one_view(texture: np.ndarray, shape: str, draws: int, seed: int, step) -> di
     rng = np.random.default_rng(seed)
     row = {"pixels": pixel_tilt_bound(scene, distances, ELECTRONS, READ_NOISE)}
     step("pixels")
-    row["gradient"] = measure_tilt_bound(scene, distances, gradient, KERNEL, ELECTRONS, READ_NOISE, rng=rng)
+    information = {"gradient": measure_information(scene, distances, gradient, KERNEL, ELECTRONS, READ_NOISE,
+                                                   rng=rng)}
+    row["gradient"] = information_tilt_bound(scene, information["gradient"], KERNEL)
     step("gradient")
-    row["eq13"] = tilt_bound(scene, distances, KERNEL, ELECTRONS, READ_NOISE)
+    information["normalized_variance"] = normalized_variance_information(scene, distances, KERNEL, ELECTRONS,
+                                                                         READ_NOISE)
+    row["eq13"] = information_tilt_bound(scene, information["normalized_variance"], KERNEL)
     row["eq13_monte_carlo"] = measure_tilt_bound(scene, distances, normalized_variance, KERNEL, ELECTRONS, READ_NOISE,
                                                  rng=rng)
     step("eq. 13")
     sweep_step = float(distances[1] - distances[0])
-    readings = {measure: {"angles": [], "claimed": [], "refused": 0} for measure in FOCUS_MEASURES}
+    readings = {measure: {"angles": [], "claimed": [], "refused": 0, "depths": []} for measure in FOCUS_MEASURES}
     for _ in range(draws):
         sweep = view.sweep(FLAT, distances)
         for measure, reading in readings.items():  # both measures on the same sweeps
@@ -97,11 +148,11 @@ def one_view(texture: np.ndarray, shape: str, draws: int, seed: int, step) -> di
             reading["refused"] += int(estimate.confidence <= 0)
             reading["claimed"].append((estimate.alpha_uncertainty_deg, estimate.beta_uncertainty_deg))
             reading["angles"].append(plane_angles(depths.depths, depths.uncertainties, view.pixel_um))
+            reading["depths"].append(depths)
         step("semservo")
     row["semservo"] = {measure: {"claimed": tuple(float(v) for v in np.nanmedian(np.array(reading["claimed"]), axis=0)),
-                                 "rms": tuple(float(v) for v in np.sqrt(np.nanmean(np.array(reading["angles"]) ** 2,
-                                                                                   axis=0))),
-                                 "refused": reading["refused"]}
+                                 "rms": rms(reading["angles"]), "refused": reading["refused"],
+                                 **reading_losses(reading["depths"], information[measure], view.pixel_um)}
                        for measure, reading in readings.items()}
     row["draws"] = draws
     return row
@@ -117,8 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     add_texture_arguments(parser)
     parser.add_argument("--models", nargs="+", choices=DEFOCUS_SHAPES, default=list(DEFAULT_MODELS),
                         help="defocus models (default: gaussian disc)")
-    parser.add_argument("--draws", type=int, default=8,
-                        help="one-sweep estimates of the flat view per image and model (default 8, at least 2)")
+    parser.add_argument("--draws", type=int, default=16,
+                        help="one-sweep estimates of the flat view per image and model (default 16, at least 2)")
     parser.add_argument("--seed", type=int, default=15, help="the noise's draw (default 15)")
     parser.add_argument("--out", type=Path, default=RESULTS / "tilt_bounds.json",
                         help="the results (JSON; default %(default)s)")
@@ -147,6 +198,21 @@ def main(argv: list[str] | None = None) -> int:
                     for reading in (row["semservo"][measure] for measure in FOCUS_MEASURES)]
             print(f"| {name} | {shape} | {pair(row['pixels'])} | {pair(row['gradient'])} | {pair(row['eq13'])} "
                   f"({pair(row['eq13_monte_carlo'])}) | {' | '.join(read)} |")
+    print("\nWhere each measure's reading loses against its bound (the same sweeps): the share of the measure's "
+          "information in the kernels read (a depth the plane keeps in at least half of the draws); how much more "
+          "those kernels' "
+          "depths scatter than their bounds allow (information-weighted); the RMS of the robust plane (alpha, beta, "
+          "degrees, true 0) weighed by the information itself, and by semservo's own standard errors.\n")
+    print("| image | defocus | measure | bound | information in the kernels read | kernels' depths: scatter / bound "
+          "| plane, exact weights: RMS | semservo: RMS |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for shape, rows in results.items():
+        for name, row in rows.items():
+            for measure, bound in (("normalized_variance", row["eq13"]), ("gradient", row["gradient"])):
+                reading = row["semservo"][measure]
+                print(f"| {name} | {shape} | {'eq. 13' if measure == 'normalized_variance' else measure} "
+                      f"| {pair(bound)} | {reading['information_read']:.1%} | {reading['kernels']:.2f} "
+                      f"| {pair(reading['exact_weights'])} | {pair(reading['rms'])} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(jsontext.dumps({"field_px": FIELD_PX, "field_um": FIELD_UM, "depth_of_field_um": DEPTH_OF_FIELD_UM,
                                         "electrons": ELECTRONS, "read_noise": READ_NOISE, "kernel": KERNEL,

@@ -118,7 +118,9 @@ def test_the_tilt_sampling_bench_measures_the_pull_between_samples(tmp_path):
 def test_the_tilt_bounds_bench_says_where_the_limit_lies(tmp_path):
     """``./dev bench tilt_bounds`` on one image and model: a row per view, the pixels'
     bound under each measure's, and semservo's claim by either measure no tighter than
-    that measure's bound."""
+    that measure's bound; and where each reading loses: nearly all the information in the
+    kernels read (the grid is textured everywhere), and planes from them, by the
+    information's own weights and by semservo's."""
     from pathlib import Path
 
     bench = Path(__file__).parents[2] / "bench" / "tilt_bounds.py"
@@ -132,4 +134,8 @@ def test_the_tilt_bounds_bench_says_where_the_limit_lies(tmp_path):
         reading = row["semservo"][measure]
         assert all(pixels < each <= claimed for pixels, each, claimed in zip(row["pixels"], bound, reading["claimed"]))
         assert reading["refused"] == 0, row
+        assert reading["information_read"] > 0.9 and 0.5 < reading["kernels"] < 5, reading
+        assert all(0 < rms < 5 * each for rms, each in zip(reading["exact_weights"], bound)), reading
     assert row["draws"] == 2
+    assert re.search(r"^\| jeol_grid \| gaussian \| gradient \| [\d.]+, [\d.]+ \| [\d.]+% \| [\d.]+ \|", done.stdout,
+                     re.M), done.stdout
