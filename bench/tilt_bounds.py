@@ -22,7 +22,8 @@ beta from one sweep, degrees:
 * **where the reading loses**, by each measure: the share of its information in the
   kernels the estimator reads, how much more their depths scatter than each kernel's
   bound allows, and the plane through them weighed by the information itself
-  (``measure_information``, ``normalized_variance_information``) beside semservo's.
+  (``measure_information``, ``normalized_variance_information``) beside semservo's;
+  and the chain plotted per view (bench/results/tilt_bounds.png).
 
 A refusal is the picture's where even the pixels' bound is near the line a teach may keep
 (``MAX_TAUGHT_UNCERTAINTY_DEG``); the measure's where eq. 13's bound is far above the
@@ -158,6 +159,51 @@ def one_view(texture: np.ndarray, shape: str, draws: int, seed: int, step) -> di
     return row
 
 
+def plot(results: dict[str, dict[str, dict]], path: Path) -> None:
+    """The chain of losses per view: a panel per defocus model, and for each image and
+    measure the pixels' bound, the measure's bound, semservo's RMS and its claim (the
+    worse of alpha and beta), beside the line a teach may keep and where pooling the
+    teach's sweeps at 1 / sqrt(n) could bring a sweep down to it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    shapes = list(results)
+    names = list(next(iter(results.values())))
+    figure, axes = plt.subplots(1, len(shapes), figsize=(1.3 * len(names) * len(shapes) + 1, 4.2), squeeze=False,
+                                sharey=True)
+    measures = {"normalized_variance": ("eq. 13", "C0", -0.15), "gradient": ("gradient", "C1", 0.15)}
+    for axis, shape in zip(axes[0], shapes):
+        for index, name in enumerate(names):
+            row = results[shape][name]
+            axis.plot(index, max(row["pixels"]), "k_", markersize=14, label="pixels' bound" if index == 0 else None)
+            for measure, (label, colour, offset) in measures.items():
+                bound = max(row["eq13" if measure == "normalized_variance" else "gradient"])
+                reading = row["semservo"][measure]
+                x = index + offset
+                axis.plot([index, x, x], [max(row["pixels"]), bound, max(reading["rms"])], "-", color=colour,
+                          linewidth=0.8)
+                axis.plot(x, bound, "s", color=colour, markersize=4, label=f"{label}: bound" if index == 0 else None)
+                axis.plot(x, max(reading["rms"]), "o", color=colour, markersize=5,
+                          label=f"{label}: semservo's RMS" if index == 0 else None)
+                axis.plot(x, max(reading["claimed"]), "x", color=colour, markersize=5,
+                          label=f"{label}: its claim" if index == 0 else None)
+        axis.axhline(MAX_TAUGHT_UNCERTAINTY_DEG, color="k", linewidth=0.8)
+        axis.axhline(2 * MAX_TAUGHT_UNCERTAINTY_DEG, color="k", linewidth=0.8, linestyle=":")
+        axis.set_yscale("log")
+        axis.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=7)
+        axis.set_title(f"{shape} defocus", fontsize=9)
+        axis.grid(True, which="both", axis="y", alpha=0.3)
+    axes[0, 0].set_ylabel("one sweep's standard error, worse tilt (degrees)")
+    axes[0, 0].legend(fontsize=6, loc="upper left")
+    figure.suptitle(f"Where the tilts' limit lies (solid: a teach may keep ±{MAX_TAUGHT_UNCERTAINTY_DEG:.3f}°; dotted: "
+                    "4 sweeps at 1/sqrt(n) reach it from there)", fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path, dpi=90)
+    plt.close(figure)
+
+
 def pair(values) -> str:
     return f"{values[0]:.3f}, {values[1]:.3f}"
 
@@ -172,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="one-sweep estimates of the flat view per image and model (default 16, at least 2)")
     parser.add_argument("--seed", type=int, default=15, help="the noise's draw (default 15)")
     parser.add_argument("--out", type=Path, default=RESULTS / "tilt_bounds.json",
-                        help="the results (JSON; default %(default)s)")
+                        help="the results (JSON; the plot beside it as .png; default %(default)s)")
     args = parser.parse_args(argv)
     if args.draws < 2:
         parser.error("--draws must be at least 2 (an RMS of one draw says little)")
@@ -217,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text(jsontext.dumps({"field_px": FIELD_PX, "field_um": FIELD_UM, "depth_of_field_um": DEPTH_OF_FIELD_UM,
                                         "electrons": ELECTRONS, "read_noise": READ_NOISE, "kernel": KERNEL,
                                         "draws": args.draws, "seed": args.seed, "results": results}, indent=1))
-    print(f"\nwrote {args.out}")
+    plot(results, args.out.with_suffix(".png"))
+    print(f"\nwrote {args.out} and {args.out.with_suffix('.png')}")
     return 0
 
 

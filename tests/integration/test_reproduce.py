@@ -139,3 +139,4 @@ def test_the_tilt_bounds_bench_says_where_the_limit_lies(tmp_path):
     assert row["draws"] == 2
     assert re.search(r"^\| jeol_grid \| gaussian \| gradient \| [\d.]+, [\d.]+ \| [\d.]+% \| [\d.]+ \|", done.stdout,
                      re.M), done.stdout
+    assert out.with_suffix(".png").stat().st_size > 10_000  # the chain of losses, plotted
