@@ -117,9 +117,9 @@ def reading_losses(depth_maps, information: np.ndarray, pixel_um: float) -> dict
     total = float(information.sum())
     scatter = np.array([np.nanstd(column, ddof=1) for column in kept[:, read].T])
     weights = information[read]
+    kernels = float(np.sqrt(np.sum(weights**2 * scatter**2) / np.sum(weights))) if read.any() else float("nan")
     return {"exact_weights": rms(angles),
-            "information_read": float(weights.sum() / total) if total > 0 else float("nan"),
-            "kernels": float(np.sqrt(np.sum(weights**2 * scatter**2) / np.sum(weights))) if read.any() else float("nan")}
+            "information_read": float(weights.sum() / total) if total > 0 else float("nan"), "kernels": kernels}
 
 
 def one_view(texture: np.ndarray, shape: str, draws: int, seed: int, step) -> dict:
@@ -197,8 +197,8 @@ def plot(results: dict[str, dict[str, dict]], path: Path) -> None:
         axis.grid(True, which="both", axis="y", alpha=0.3)
     axes[0, 0].set_ylabel("one sweep's standard error, worse tilt (degrees)")
     axes[0, 0].legend(fontsize=6, loc="upper left")
-    figure.suptitle(f"Where the tilts' limit lies (solid: a teach may keep ±{MAX_TAUGHT_UNCERTAINTY_DEG:.3f}°; dotted: "
-                    "4 sweeps at 1/sqrt(n) reach it from there)", fontsize=9)
+    figure.suptitle(f"Where the tilts' limit lies (solid: a teach may keep ±{MAX_TAUGHT_UNCERTAINTY_DEG:.3f}°; "
+                    "dotted: 4 sweeps at 1/sqrt(n) reach it from there)", fontsize=9)
     figure.tight_layout()
     figure.savefig(path, dpi=90)
     plt.close(figure)

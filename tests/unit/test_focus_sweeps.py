@@ -150,6 +150,17 @@ def test_the_tilts_bound_follows_the_dose_and_no_estimate_beats_it(fibsem):
     assert np.all(np.sqrt(np.mean(tilts**2, axis=0)) > 0.5 * dosed)  # 8 draws: their RMS within chance of it
 
 
+def normalized_variance(kernel: int):
+    """eq. 13 of each whole kernel x kernel block of a frame, as the bounds' measure."""
+
+    def measure(frame):
+        rows, cols = frame.shape[0] // kernel, frame.shape[1] // kernel
+        blocks = frame[:rows * kernel, :cols * kernel].astype(np.float64).reshape(rows, kernel, cols, kernel)
+        return blocks.var(axis=(1, 3)) / blocks.mean(axis=(1, 3))
+
+    return measure
+
+
 def test_no_measure_beats_the_pixels_bound_and_eq13_s_bound_is_its_monte_carlo(fibsem):
     """pixel_tilt_bound is what no estimator can beat: under eq. 13's bound, and (shot
     noise only) exactly halved by four times the electrons, the information being
@@ -167,12 +178,7 @@ def test_no_measure_beats_the_pixels_bound_and_eq13_s_bound_is_its_monte_carlo(f
     analytic = np.array(tilt_bound(scene, distances, kernel=kernel, electrons=250.0, read_noise=0.0))
     assert np.all(pixels < analytic)
 
-    def normalized_variance(frame):
-        blocks = frame[:side // kernel * kernel, :side // kernel * kernel].astype(np.float64).reshape(
-            side // kernel, kernel, side // kernel, kernel)
-        return blocks.var(axis=(1, 3)) / blocks.mean(axis=(1, 3))
-
-    sampled = np.array(measure_tilt_bound(scene, distances, normalized_variance, kernel=kernel, electrons=250.0,
+    sampled = np.array(measure_tilt_bound(scene, distances, normalized_variance(kernel), kernel=kernel, electrons=250.0,
                                           read_noise=0.0, rng=np.random.default_rng(4)))
     np.testing.assert_allclose(sampled, analytic, rtol=0.25)
 
@@ -196,17 +202,12 @@ def test_each_kernel_s_information_is_what_the_bounds_are_built_on(fibsem):
     assert analytic[:, : analytic.shape[1] // 2 - 1].sum() < 0.01 * analytic.sum()
     assert information_tilt_bound(scene, analytic, kernel) == tilt_bound(scene, distances, kernel, 250.0, 0.0)
 
-    def normalized_variance(frame):
-        blocks = frame[:side // kernel * kernel, :side // kernel * kernel].astype(np.float64).reshape(
-            side // kernel, kernel, side // kernel, kernel)
-        return blocks.var(axis=(1, 3)) / blocks.mean(axis=(1, 3))
-
-    sampled = measure_information(scene, distances, normalized_variance, kernel, 250.0, 0.0,
+    sampled = measure_information(scene, distances, normalized_variance(kernel), kernel, 250.0, 0.0,
                                   rng=np.random.default_rng(4))
     rich = analytic >= np.quantile(analytic, 0.75)
     np.testing.assert_allclose(np.median(sampled[rich] / analytic[rich]), 1.0, rtol=0.2)
     assert information_tilt_bound(scene, sampled, kernel) == measure_tilt_bound(
-        scene, distances, normalized_variance, kernel, 250.0, 0.0, rng=np.random.default_rng(4))
+        scene, distances, normalized_variance(kernel), kernel, 250.0, 0.0, rng=np.random.default_rng(4))
 
 
 
