@@ -227,14 +227,22 @@ def _tilt_errors(scene: TiltedTexture, information: np.ndarray, y: np.ndarray, x
     points (``x``, ``y``, um, flat arrays) have depth information ``information``
     (1 / um^2 each): the slopes' covariance is (X^T I X)^-1, X the rows (1, x, y), and
     the tilts follow as the module's geometry relates them to the slopes
-    (alpha = atan(gy), beta = -atan(cos(alpha) gx)) at the scene's pose."""
+    (alpha = atan(gy), beta = -atan(cos(alpha) gx)) at the scene's pose. Infinite for a
+    slope the points cannot pin at all (no information, or all of it on one row or one
+    column of points)."""
     design = np.column_stack([np.ones(x.size), x, y])
-    covariance = np.linalg.pinv((design * information[:, None]).T @ design)
+    normal = (design * information[:, None]).T @ design
+    covariance = np.linalg.pinv(normal)
+    # A slope along which X^T I X has no extent is not pinned: the pseudo-inverse would
+    # give it a variance of 0 instead of infinity.
+    extents, directions = np.linalg.eigh(normal)
+    unpinned = directions[:, extents <= 1e-12 * max(float(extents.max()), 1e-300)]
+    variances = np.where(np.any(np.abs(unpinned) > 1e-9, axis=1), np.inf, np.diag(covariance))
     alpha, beta = np.radians(scene.pose[:2])
     slope_y, slope_x = np.tan(alpha), -np.tan(beta) / np.cos(alpha)
     cos_alpha = np.cos(alpha)
-    alpha_error = np.sqrt(covariance[2, 2]) / (1 + slope_y**2)
-    beta_error = np.sqrt(covariance[1, 1]) * cos_alpha / (1 + (cos_alpha * slope_x) ** 2)
+    alpha_error = np.sqrt(variances[2]) / (1 + slope_y**2)
+    beta_error = np.sqrt(variances[1]) * cos_alpha / (1 + (cos_alpha * slope_x) ** 2)
     return float(np.degrees(alpha_error)), float(np.degrees(beta_error))
 
 
@@ -348,8 +356,8 @@ def measure_tilt_bound(scene: TiltedTexture, working_distances_um, measure, kern
     any focus measure (alpha, beta; degrees), as :func:`tilt_bound` is eq. 13's: each
     kernel's information sum over the frames of (dS / dz)^2 / var(S), the slope from the
     noiseless frames and var(S) from ``realizations`` noisy frames (Monte Carlo,
-    :func:`measure_information`: within about 1 / sqrt(realizations / 2) of the truth,
-    kernel by kernel).
+    :func:`measure_information`: each frame's term within about 1 / sqrt(realizations /
+    2) of the truth, a kernel's sum over the sweep closer).
 
     ``measure``: a frame (float32, rows x cols) -> the measure of each whole ``kernel`` x
     ``kernel`` block (rows // kernel, cols // kernel).
@@ -370,7 +378,7 @@ def measure_information(scene: TiltedTexture, working_distances_um, measure, ker
     (dS / dz)^2 / var(S), 1 / var(S) taken as (n - 3) / (n - 1) over the sample variance
     of the n = ``realizations`` noisy frames (at least 4): 1 / a sample variance
     over-states 1 / the variance by (n - 1) / (n - 3) on average (the inverse
-    chi-square's mean; 22 % at 12 frames, which made the bound 10 % too tight). Why
+    chi-square's mean; 22 % at 12 frames, which made the bounds 10 % too tight). Why
     apart: a kernel's depth read from that curve scatters at least 1 / sqrt of it, so it
     says how much each kernel's reading loses (``bench/tilt_bounds.py``'s budget)."""
     if realizations < 4:

@@ -185,9 +185,11 @@ def test_no_measure_beats_the_pixels_bound_and_eq13_s_bound_is_its_monte_carlo(f
 
 def test_each_kernel_s_information_is_what_the_bounds_are_built_on(fibsem):
     """The per-kernel Fisher information (normalized_variance_information, analytic;
-    measure_information, Monte Carlo) is a kernel rows x cols map, larger where the
-    texture is; the bounds are information_tilt_bound of it, and the Monte Carlo agrees
-    with the analytic kernel by kernel where most of the information lies."""
+    measure_information, Monte Carlo) is a kernel rows x cols map, near 0 where the
+    texture is flat; the bounds are information_tilt_bound of it; and the Monte Carlo,
+    its 1 / sample variance unbiased, agrees with the analytic over the richer half of
+    the kernels (8 noisy frames a distance: uncorrected it would read 1.4 times; over 10
+    seeds the corrected ratio stays within 0.91-1.19)."""
     from semservo.focus_sweeps import (information_tilt_bound, measure_information, measure_tilt_bound,
                                        normalized_variance_information, tilt_bound)
 
@@ -202,13 +204,27 @@ def test_each_kernel_s_information_is_what_the_bounds_are_built_on(fibsem):
     assert analytic[:, : analytic.shape[1] // 2 - 1].sum() < 0.01 * analytic.sum()
     assert information_tilt_bound(scene, analytic, kernel) == tilt_bound(scene, distances, kernel, 250.0, 0.0)
 
-    sampled = measure_information(scene, distances, normalized_variance(kernel), kernel, 250.0, 0.0,
+    sampled = measure_information(scene, distances, normalized_variance(kernel), kernel, 250.0, 0.0, realizations=8,
                                   rng=np.random.default_rng(4))
-    rich = analytic >= np.quantile(analytic, 0.75)
-    np.testing.assert_allclose(np.median(sampled[rich] / analytic[rich]), 1.0, rtol=0.2)
+    richer = analytic >= np.median(analytic)
+    assert 0.75 < sampled[richer].sum() / analytic[richer].sum() < 1.25
     assert information_tilt_bound(scene, sampled, kernel) == measure_tilt_bound(
-        scene, distances, normalized_variance(kernel), kernel, 250.0, 0.0, rng=np.random.default_rng(4))
+        scene, distances, normalized_variance(kernel), kernel, 250.0, 0.0, realizations=8, rng=np.random.default_rng(4))
 
+
+def test_a_bound_is_infinite_where_the_information_cannot_pin_a_slope(fibsem):
+    """information_tilt_bound: no information pins neither tilt; information on one row
+    of kernels pins beta (along the row) and not alpha; on a row and a column, both."""
+    from semservo.focus_sweeps import information_tilt_bound
+
+    scene = TiltedTexture(fibsem, DefocusModel("gaussian", depth_of_field_um=2.5), 0.1, shape=(128, 128))
+    information = np.zeros((8, 8))
+    assert information_tilt_bound(scene, information, 16) == (np.inf, np.inf)
+    information[3] = 1.0
+    alpha, beta = information_tilt_bound(scene, information, 16)
+    assert alpha == np.inf and np.isfinite(beta)
+    information[:, 5] = 1.0
+    assert np.all(np.isfinite(information_tilt_bound(scene, information, 16)))
 
 
 def test_the_gradient_measure_pins_sparse_particles_more_tightly_than_eq13(sem_images):
