@@ -468,8 +468,14 @@ class ControllerCore:
             if refusal.code == "stopped":
                 # An operator's stop reaches the stage first (it must hold at once) and this
                 # controller a moment later: a move in between is refused, and the run was
-                # stopped, not failed.
-                self._finish("stopped", f"the stage was stopped: {refusal.message}")
+                # stopped, not failed. With the stop's own reason, as when the stop reaches
+                # this controller first: the record must not depend on which came first.
+                # A stop of the stage's own (outputs it did not command) fails the run, as
+                # the heartbeat below finds it.
+                if refusal.extra.get("stopped_by") == "stage":
+                    self._finish("failed", f"the stage stopped itself: {refusal.extra.get('reason')}")
+                else:
+                    self._finish("stopped", refusal.extra.get("reason") or f"the stage was stopped: {refusal.message}")
             else:
                 self._finish("failed", f"the stage refused the move ({refusal.code}): {refusal.message}")
             return False

@@ -343,7 +343,8 @@ class StageCore:
 
     def _check_state(self) -> None:
         if self.state == "stopped":
-            raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first")
+            raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first",
+                          reason=self.state_reason, stopped_by=self.stopped_by)
         if self.state == "held":
             raise Refused("held", f"the stage is held: {self.state_reason}")
 
@@ -513,7 +514,8 @@ class StageCore:
         if not 0.05 <= timeout_s <= 600:
             raise Refused("bad_request", f"watchdog timeout must be 0.05..600 s, got {timeout_s}")
         if self.state == "stopped":
-            raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first")
+            raise Refused("stopped", f"the stage is stopped ({self.state_reason}); resume first",
+                          reason=self.state_reason, stopped_by=self.stopped_by)
         if self.watchdog.armed and owner != self.watchdog.owner:
             raise Refused("owned", f"run owner {self.watchdog.owner} has the stage armed; it must stop first")
         self.watchdog = Watchdog(timeout_s, owner, self.clock())

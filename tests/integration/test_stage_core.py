@@ -498,7 +498,7 @@ def test_an_operators_stop_between_a_chained_moves_commands_holds_the_stage_and_
                 if command.name == "move":
                     self.moves += 1
                     if self.moves == 2:  # the chained move's first command: the operator stops
-                        real.stop("operator pressed stop")
+                        real.stop("operator pressed stop", by="request")
                 return reply
 
         core = ControllerCore(StoppedMidChain(stage_handlers, real), runs_dir=tmp_path)
@@ -510,7 +510,7 @@ def test_an_operators_stop_between_a_chained_moves_commands_holds_the_stage_and_
         chained = core.on_estimate(estimate(2, *as_commanded(content, first), scan_started_at_ns=time.time_ns()))
         assert chained["action"] == "refused by the stage: stopped"
         assert chained["pieces"] == 1 and chained["voltages"] == dict(real.voltages), "the record keeps what was made"
-        assert core.state == "stopped" and "stopped" in core.reason
+        assert core.state == "stopped" and core.reason == "operator pressed stop", core.reason
         assert real.state == "stopped" and real.counters["moves"] == 2, "one command of the chain, then none"
         assert real.voltages != voltages  # the first command was written before the stop
 
@@ -631,15 +631,32 @@ def test_a_run_on_frames_without_a_pixel_size_fails_saying_which_setting_and_mov
 
 def test_a_move_refused_because_an_operator_stopped_the_stage_ends_the_run_stopped(stage, tmp_path):
     """The gateway's stop reaches the stage before the controller: a move in between is
-    refused ("stopped"), and the run is recorded as stopped by the operator, not failed."""
+    refused ("stopped"), and the run is recorded as stopped by the operator, not failed,
+    with the operator's reason as it stands when the stop reaches the controller first
+    (examples/hold_against_drift.py prints it; which came first once changed it)."""
     import time
 
     core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
     core.start(RunSettings(), "ref")
-    stage.stop("operator pressed stop")
+    stage.stop("operator pressed stop", by="request")  # as the stop command stops it
     record = core.on_estimate(estimate(1, 20.0, 5.0, scan_started_at_ns=time.time_ns()))
     assert record["action"] == "refused by the stage: stopped"
-    assert core.state == "stopped" and "operator pressed stop" in core.reason
+    assert core.state == "stopped" and core.reason == "operator pressed stop", core.reason
+
+
+def test_a_move_refused_because_the_stage_stopped_itself_fails_the_run_saying_so(stage, tmp_path):
+    """A stop of the stage's own (outputs it did not command, a link lost) that a move
+    meets before the heartbeat does fails the run, as the heartbeat would: no operator
+    stopped it."""
+    import time
+
+    core = ControllerCore(LocalStage(stage), runs_dir=tmp_path)
+    core.start(RunSettings(), "ref")
+    stage.stop("outputs moved without a command")
+    record = core.on_estimate(estimate(1, 20.0, 5.0, scan_started_at_ns=time.time_ns()))
+    assert record["action"] == "refused by the stage: stopped"
+    assert core.state == "failed" and core.reason == "the stage stopped itself: outputs moved without a command", \
+        core.reason
 
 
 @pytest.fixture
