@@ -88,12 +88,11 @@ def estimator_plane(depths, uncertainties, pixel_um: float):
 
 
 def angles_of(plane) -> tuple[float, float]:
-    """A plane's alpha, beta (degrees), as :func:`tilt_from_depths` reads its slopes; NaN
-    where fewer than 3 kernels hold it."""
+    """A plane's alpha, beta (degrees, ``PlaneFit.tilts_deg``); NaN where fewer than 3
+    kernels hold it."""
     if np.count_nonzero(plane.weights > 0) < 3:
         return float("nan"), float("nan")
-    _, slope_x, slope_y = plane.coefficients
-    return float(np.degrees(np.arctan(slope_y))), float(np.degrees(np.arctan(-slope_x * np.cos(np.arctan(slope_y)))))
+    return plane.tilts_deg
 
 
 def mean_over_draws(values) -> tuple[float, ...]:

@@ -531,8 +531,7 @@ def test_tilts_of_a_patch_of_particles_are_not_read_small():
             scene += 150 * np.exp(-((rows - y) ** 2 + (cols - x) ** 2) / (2 * 1.2**2))
 
     def tilts(depths):
-        _, slope_x, slope_y = robust_plane(depths, kernel, pixel_um).coefficients
-        return np.degrees(np.arctan(slope_y)), np.degrees(np.arctan(-slope_x * np.cos(np.arctan(slope_y))))
+        return robust_plane(depths, kernel, pixel_um).tilts_deg
 
     for pose in ((6.0, 0.0, 0.0), (0.0, -8.0, 0.0)):
         working_distances = plan_sweep(0.0, 0.5, size * pixel_um)

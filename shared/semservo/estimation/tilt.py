@@ -716,6 +716,14 @@ class PlaneFit(NamedTuple):
     scale: float
     covariance: np.ndarray
 
+    @property
+    def tilts_deg(self) -> tuple[float, float]:
+        """The plane's alpha, beta (degrees) in the module's convention: alpha =
+        atan(gy), beta = -atan(cos(alpha) gx)."""
+        _, slope_x, slope_y = self.coefficients
+        return (float(np.degrees(np.arctan(slope_y))),
+                float(np.degrees(np.arctan(-slope_x * np.cos(np.arctan(slope_y))))))
+
 
 def robust_plane(depths: np.ndarray, kernel: int, pixel_size: float, iterations: int = 30,
                  uncertainties: np.ndarray | None = None) -> PlaneFit:
@@ -1093,8 +1101,7 @@ def tilt_from_depths(depths: np.ndarray, kernel: int, pixel_size: float, step: f
     plane = robust_plane(depths, kernel, pixel_size, uncertainties=uncertainties)
     centre, slope_x, slope_y = plane.coefficients
     used = plane.weights > 0
-    alpha = float(np.degrees(np.arctan(slope_y)))
-    beta = float(np.degrees(np.arctan(-slope_x * np.cos(np.arctan(slope_y)))))
+    alpha, beta = plane.tilts_deg
     # Standard errors: d alpha = d gy / (1 + gy^2); d beta ~ cos(alpha) d gx / (1 + cos^2 gx^2).
     cos_alpha = np.cos(np.arctan(slope_y))
     rows, cols = np.nonzero(used)
