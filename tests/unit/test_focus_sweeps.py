@@ -151,14 +151,11 @@ def test_the_tilts_bound_follows_the_dose_and_no_estimate_beats_it(fibsem):
 
 
 def normalized_variance(kernel: int):
-    """eq. 13 of each whole kernel x kernel block of a frame, as the bounds' measure."""
+    """eq. 13 of each whole kernel x kernel block of a frame, as the estimator reads it
+    (``focus_curves``), as the bounds' measure."""
+    from semservo.estimation.tilt import focus_curves
 
-    def measure(frame):
-        rows, cols = frame.shape[0] // kernel, frame.shape[1] // kernel
-        blocks = frame[:rows * kernel, :cols * kernel].astype(np.float64).reshape(rows, kernel, cols, kernel)
-        return blocks.var(axis=(1, 3)) / blocks.mean(axis=(1, 3))
-
-    return measure
+    return lambda frame: focus_curves(frame[np.newaxis], kernel)[0]
 
 
 def test_no_measure_beats_the_pixels_bound_and_eq13_s_bound_is_its_monte_carlo(fibsem):
