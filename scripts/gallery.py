@@ -122,7 +122,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.sample_image:
-        print(f"wrote {sample_image_frames(args)}")
+        from semservo.simulation.sample_image import SampleImageError
+
+        try:
+            print(f"wrote {sample_image_frames(args)}")
+        except SampleImageError as error:
+            print(f"gallery: sample image refused: {error}", file=sys.stderr)
+            return 2
         return 0
     for name in PRESETS:
         still, moving = preset_frames(name)

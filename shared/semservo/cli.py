@@ -68,11 +68,31 @@ def _source_environment(args: argparse.Namespace) -> None:
         os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(speedup))
 
 
+def _warn_unused_sample_options(command: str, settings: Settings) -> None:
+    """Say so when sample options will not be seen: without a sample image, a height
+    without a height map, or a picture while the frames come from elsewhere."""
+    fakelab, source = settings.fakelab, settings.imageserver.source
+    if fakelab.sample_image is None:
+        unused = [f"--{option.replace('_', '-')}" for option, setting in sample_image.OPTION_SETTINGS.items()
+                  if option != "sample_image" and f"SEMSERVO_FAKELAB__{setting}" in os.environ]
+        if unused:
+            print(f"semservo {command}: {', '.join(unused)} has no effect without --sample-image", file=sys.stderr)
+        return
+    if fakelab.sample_height_um is not None and fakelab.sample_height_image is None:
+        print(f"semservo {command}: --sample-height-um has no effect without --sample-height-image (the sample is "
+              "flat)", file=sys.stderr)
+    if source != "sim" and not (source == "watch" and fakelab.save_frames_dir is not None):
+        print(f"semservo {command}: the sample image is the simulated SEM's sample, but the frames come from the "
+              f"{source} source: they will not show it (it shows with --source sim, or the simulated SEM saving into "
+              "the watched folder: --sim-saves-frames)", file=sys.stderr)
+
+
 def _sample_image_environment(command: str) -> bool:
     """With a sample image set (options or settings): check it before anything starts,
     and set what follows from it (the estimator's depth of field for the tilts) where
     not set already. False, with the reason on stderr, when the picture is refused."""
     try:
+        _warn_unused_sample_options(command, Settings())
         derived = sample_image.system_environment(Settings())
     except (sample_image.SampleImageError, pydantic.ValidationError) as error:
         print(f"semservo {command}: sample image refused: {error}", file=sys.stderr)

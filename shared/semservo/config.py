@@ -23,6 +23,10 @@ from semservo.protocol.estimator import FocusMeasure
 #: 512-pixel-wide image, G the magnification.
 SCREEN_WIDTH_UM = 212.3
 SCREEN_WIDTH_PX = 512
+#: The pixel sizes a picture as the fake lab's sample may have (nm): the finest SEMs
+#: resolve about 0.1 nm, and at far finer pixels the simulated probe spans so many pixels
+#: that frames stall; the coarsest is a 1024 px field of 1 m.
+SAMPLE_PIXEL_NM_RANGE = (0.01, 1e6)
 
 RECORDED_RUN_NAME = "sem-run-2013"
 SEM_IMAGES_NAME = "sem-images"
@@ -146,7 +150,8 @@ class FakelabSettings(BaseModel):
     # A real SEM image as the sample (semservo.simulation.sample_image), under the preset's optics.
     sample_image: Path | None = Field(None, description="a real SEM image (PNG/TIFF, 8/16 bit) as the sample instead "
                                                         "of the preset's scene; its data bar is cropped")
-    sample_pixel_size_nm: PositiveFloat | None = Field(None, le=1e6, description="the sample image's pixel size "
+    sample_pixel_size_nm: float | None = Field(None, ge=SAMPLE_PIXEL_NM_RANGE[0], le=SAMPLE_PIXEL_NM_RANGE[1],
+                                               description="the sample image's pixel size "
                                                        "(default: its file's metadata; required when the file has none)")
     sample_data_bar: Literal["auto"] | Annotated[int, Field(ge=0, le=100_000)] = Field(
         "auto", description="rows of data bar to crop from the sample image: auto (metadata, else detected) or a number")

@@ -203,6 +203,41 @@ def test_refusals_say_why(tmp_path):
         SampleImage.open(picture, pixel_size_nm=100, height_image=heights)
     with pytest.raises(SampleImageError, match="same aspect ratio"):
         SampleImage.open(picture, pixel_size_nm=100, height_image=heights, height_um=2.0)
+    with pytest.raises(SampleImageError, match="a folder, not a sample image file"):
+        SampleImage.open(tmp_path, pixel_size_nm=100)
+    holes = np.zeros(small_picture().shape, np.float32)
+    holes[10:20, 10:20] = np.nan
+    tifffile.imwrite(heights, holes)
+    with pytest.raises(SampleImageError, match="height map has 100 NaN or infinite pixels"):
+        SampleImage.open(picture, pixel_size_nm=100, height_image=heights, height_um=2.0)
+    for pixel_um in (1e-9, 2e3, float("nan")):  # finer than 0.01 nm (frames would stall), over 1 mm, NaN
+        with pytest.raises(SampleImageError, match="pixel size must be 0.01-1e.06 nm"):
+            SampleImage.from_array(small_picture(), pixel_um)
+
+
+@pytest.mark.parametrize("option, value, says", [
+    ("--sample-pixel-nm", "nan", "must be a number from 0.01 up to 1e+06"),
+    ("--sample-pixel-nm", "1e-6", "must be a number from 0.01 up to 1e+06"),
+    ("--sample-pixel-nm", "abc", "not a number"),
+    ("--sample-height-um", "0", "must be a number above 0 up to 10000"),
+    ("--sample-denoise", "inf", "must be a number from 0 up to 10"),
+    ("--sample-max-upsampling", "0.5", "must be a number from 1 up to 100"),
+    ("--sample-max-field", "-1", "must be a number above 0 up to 100"),
+    ("--sample-data-bar", "-3", "must be auto or a number of rows"),
+])
+def test_an_option_out_of_its_range_is_refused_naming_the_option(capsys, option, value, says):
+    """Each --sample-* option is checked as it is read (NaN and infinities included), so
+    the error names the option, not the setting it becomes."""
+    import argparse
+
+    from semservo.simulation import sample_image
+
+    parser = argparse.ArgumentParser(prog="semservo up")
+    sample_image.add_arguments(parser)
+    with pytest.raises(SystemExit) as stopped:
+        parser.parse_args(["--sample-image", "x.tif", option, value])
+    assert stopped.value.code == 2
+    assert f"argument {option}: {says}" in capsys.readouterr().err
 
 
 def test_scans_beyond_the_picture_are_refused_with_the_magnifications_allowed(jeol):
@@ -267,5 +302,32 @@ def test_the_options_become_settings_and_the_depth_of_field_follows_the_scale(mo
     monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM", "707.7")
     derived = sample_image.system_environment(Settings())
     assert float(derived["SEMSERVO_ESTIMATOR__TILT_DEPTH_OF_FIELD_UM"]) == pytest.approx(35.4, abs=0.1)
+    # A scale whose depth of field the tilts' sweeps cannot take is refused, saying the largest pixel.
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM", "1e6")
+    with pytest.raises(sample_image.SampleImageError, match=r"over the 10000 um .* at most 2e\+05 nm"):
+        sample_image.system_environment(Settings())
     monkeypatch.delenv("SEMSERVO_FAKELAB__SAMPLE_IMAGE")
     assert sample_image.system_environment(Settings()) == {}
+
+
+def test_sample_options_that_would_not_be_seen_are_named(monkeypatch, capsys, sem_images):
+    """`up` and `demo` say which --sample-* options have no effect: without a picture, a
+    height without a height map, a picture while the frames come from a recording."""
+    from semservo import cli
+    from semservo.config import Settings
+
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM", "50")
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_EDGES", "tile")
+    cli._warn_unused_sample_options("up", Settings())
+    assert "--sample-pixel-nm, --sample-edges has no effect without --sample-image" in capsys.readouterr().err
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_IMAGE", str(sem_images / "jeol_grid.tif"))
+    monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_HEIGHT_UM", "2")
+    cli._warn_unused_sample_options("up", Settings())
+    assert "--sample-height-um has no effect without --sample-height-image" in capsys.readouterr().err
+    monkeypatch.delenv("SEMSERVO_FAKELAB__SAMPLE_HEIGHT_UM")
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__SOURCE", "replay")
+    cli._warn_unused_sample_options("up", Settings())
+    assert "frames come from the replay source: they will not show it" in capsys.readouterr().err
+    monkeypatch.setenv("SEMSERVO_IMAGESERVER__SOURCE", "sim")
+    cli._warn_unused_sample_options("up", Settings())
+    assert capsys.readouterr().err == ""

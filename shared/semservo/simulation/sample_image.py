@@ -49,7 +49,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from semservo.config import SCREEN_WIDTH_PX, SCREEN_WIDTH_UM
+from semservo.config import SAMPLE_PIXEL_NM_RANGE, SCREEN_WIDTH_PX, SCREEN_WIDTH_UM, EstimatorSettings
 from semservo.imagefiles import DataBar, ImageFileError, read_sem_image
 from semservo.sem_metadata import ImageMetadata
 from semservo.simulation.scenes import Sample
@@ -187,8 +187,10 @@ class SampleImage:
         if min(pixels.shape) < MIN_SIDE_PX:
             raise SampleImageError(f"{name}: {pixels.shape[1]} x {pixels.shape[0]} px is too small for a sample "
                                    f"(at least {MIN_SIDE_PX} px a side)")
-        if not (math.isfinite(pixel_um) and pixel_um > 0):
-            raise SampleImageError(f"{name}: the pixel size must be a positive number of um, got {pixel_um!r}")
+        low_nm, high_nm = SAMPLE_PIXEL_NM_RANGE
+        if not (math.isfinite(pixel_um) and low_nm <= pixel_um * 1000 <= high_nm):
+            raise SampleImageError(f"{name}: the pixel size must be {low_nm:g}-{high_nm:g} nm (the finest SEMs resolve "
+                                   f"about 0.1 nm), got {pixel_um * 1000!r} nm")
         if edges not in EDGES:
             raise SampleImageError(f"sample edges must be one of {', '.join(EDGES)}, got {edges!r}")
         if not max_upsampling >= 1:
@@ -323,6 +325,8 @@ class SampleImage:
 
 
 def _read(path: Path, data_bar: DataBar, what: str):
+    if path.is_dir():
+        raise SampleImageError(f"{path}: a folder, not a {what} file")
     if not path.is_file():
         raise SampleImageError(f"{path}: no such {what} file")
     try:
@@ -346,6 +350,10 @@ def _heights(height_map: np.ndarray, shape: tuple[int, int], height_um: float | 
         raise SampleImageError(f"{name}: the height map is {map_cols} x {map_rows} px, the picture {cols} x {rows}: "
                                "they must show the same field (the same aspect ratio)")
     values = np.asarray(height_map, np.float32)
+    unusable = int(np.count_nonzero(~np.isfinite(values)))
+    if unusable:
+        raise SampleImageError(f"{name}: its height map has {unusable} NaN or infinite pixels (of {values.size}); "
+                               "every pixel needs a height")
     low, high = float(values.min()), float(values.max())
     heights = np.zeros_like(values) if high <= low else (values - low) * (height_um / (high - low))
     if heights.shape != shape:
@@ -364,27 +372,50 @@ OPTION_SETTINGS = {
 }
 
 
+def _number(low: float, high: float, *, above: bool = False):
+    """An option's number type: finite, from ``low`` (or above it) to ``high``; argparse
+    names the option in its error."""
+    def number(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not (math.isfinite(value) and (value > low if above else value >= low) and value <= high):
+            raise argparse.ArgumentTypeError(f"must be a number {'above' if above else 'from'} {low:g} up to "
+                                             f"{high:g}, got {text!r}")
+        return value
+    return number
+
+
+def _data_bar(text: str) -> str:
+    if text == "auto" or (text.isdigit() and int(text) <= 100_000):
+        return text
+    raise argparse.ArgumentTypeError(f"must be auto or a number of rows from 0 up to 100000, got {text!r}")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The sample-image options (each also a SEMSERVO_FAKELAB__SAMPLE_* setting)."""
+    """The sample-image options (each also a SEMSERVO_FAKELAB__SAMPLE_* setting; the
+    ranges are the settings')."""
     group = parser.add_argument_group(
         "sample image", "a real SEM image (PNG/TIFF, 8/16 bit) as the simulated lab's sample, imaged like the "
                         "built-in scenes (semservo.simulation.sample_image)")
     group.add_argument("--sample-image", metavar="FILE", help="the picture to use as the sample (data bar cropped)")
-    group.add_argument("--sample-pixel-nm", type=float, metavar="NM",
+    group.add_argument("--sample-pixel-nm", type=_number(*SAMPLE_PIXEL_NM_RANGE), metavar="NM",
                        help="its pixel size on the sample, nm (default: the file's metadata; required without)")
-    group.add_argument("--sample-data-bar", metavar="ROWS", help="rows of data bar to crop: auto (default) or a number")
+    group.add_argument("--sample-data-bar", type=_data_bar, metavar="ROWS",
+                       help="rows of data bar to crop: auto (default) or a number")
     group.add_argument("--sample-height-image", metavar="FILE",
                        help="a height map of the same field (brighter is higher); default: flat")
-    group.add_argument("--sample-height-um", type=float, metavar="UM",
+    group.add_argument("--sample-height-um", type=_number(0, 1e4, above=True), metavar="UM",
                        help="the height map's brightest level over its darkest, um (required with a height map)")
     group.add_argument("--sample-edges", choices=EDGES,
                        help="beyond the picture's edges: mirror (default), tile, or pad (flat median grey)")
-    group.add_argument("--sample-denoise", type=float, metavar="K",
+    group.add_argument("--sample-denoise", type=_number(0, 10), metavar="K",
                        help=f"remove the picture's own noise, non-local means at K x its estimated deviation "
                             f"(default {DEFAULT_DENOISE:g}; 0: keep it)")
-    group.add_argument("--sample-max-upsampling", type=float, metavar="K",
+    group.add_argument("--sample-max-upsampling", type=_number(1, 100), metavar="K",
                        help=f"refuse scans more than K times finer than the picture (default {DEFAULT_MAX_UPSAMPLING:g})")
-    group.add_argument("--sample-max-field", type=float, metavar="K",
+    group.add_argument("--sample-max-field", type=_number(0, 100, above=True), metavar="K",
                        help=f"refuse scans whose field exceeds K times the picture (default {DEFAULT_MAX_FIELD:g})")
 
 
@@ -449,6 +480,15 @@ def system_environment(settings) -> dict[str, str]:
     sample.check_scan(magnification, rows, cols)
     pixel = scan_pixel_um(magnification, cols)
     aperture = settings.imageserver.scan_aperture_um or preset.aperture_um
-    depth_of_field = 2 * pixel / beam_half_angle(aperture, preset.working_distance_mm)
+    half_angle = beam_half_angle(aperture, preset.working_distance_mm)
+    depth_of_field = 2 * pixel / half_angle
+    largest = EstimatorSettings.model_fields["tilt_depth_of_field_um"].metadata
+    largest_um = min(rule.le for rule in largest if getattr(rule, "le", None) is not None)
+    if depth_of_field > largest_um:
+        raise SampleImageError(
+            f"the sample image {sample.name} scanned at {pixel * 1000:.4g} nm a pixel would have a depth of field of "
+            f"{depth_of_field:.4g} um (2 P / the beam's half-angle {half_angle:.3g} rad), over the {largest_um:g} um "
+            f"the tilts' sweeps can take: a scan pixel of at most {largest_um * half_angle / 2 * 1000:.4g} nm (is "
+            "--sample-pixel-nm right? or scan at a higher magnification: SEMSERVO_IMAGESERVER__SCAN_MAGNIFICATION)")
     return {"SEMSERVO_ESTIMATOR__TILT_DEPTH_OF_FIELD_UM": f"{depth_of_field:.6g}",
             "SEMSERVO_ESTIMATOR__TILT_CENTRE_UM": f"{-sample.median_height_um + 0.0:.6g}"}
