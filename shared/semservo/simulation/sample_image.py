@@ -201,7 +201,10 @@ class SampleImage:
             raise SampleImageError(f"the denoising strength must be 0 or more, got {denoise_strength!r}")
         if not np.all(np.isfinite(pixels)):
             raise SampleImageError(f"{name}: the image has NaN or infinite pixels")
-        yield_map = to_yield(pixels)
+        try:
+            yield_map = to_yield(pixels)
+        except SampleImageError as error:
+            raise SampleImageError(f"{name}: {error}") from None
         noise_before = noise_sigma(yield_map)
         intensity = denoise(yield_map, noise_before, denoise_strength)
         heights = None
