@@ -25,7 +25,10 @@ from semservo.simulation.world import PRESETS  # noqa: E402
 cv2.setNumThreads(1)
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args(argv)
     print(f"{'preset':24s} {'scene':12s} {'xG':>6s} {'ns/px':>6s} {'frame s':>8s} {'render ms':>10s} "
           f"{'moving ms':>10s} {'SNR dB':>7s}")
     worst = 0.0

@@ -31,7 +31,7 @@ import pydantic
 import zmq
 
 from semservo import __version__, security
-from semservo.config import Settings, connect
+from semservo.config import Settings, connect, unrecognised_settings
 from semservo.launcher import SERVICES, Launcher, LaunchError, spec, stage_rate_for
 from semservo.messages import MOTION_TOPIC, MotionEstimate
 from semservo.monitor import FrameStats, acquisition_text
@@ -91,6 +91,8 @@ def _sample_image_environment(command: str) -> bool:
     """With a sample image set (options or settings): check it before anything starts,
     and set what follows from it (the estimator's depth of field for the tilts) where
     not set already. False, with the reason on stderr, when the picture is refused."""
+    for problem in unrecognised_settings():
+        print(f"semservo {command}: {problem}", file=sys.stderr)
     try:
         _warn_unused_sample_options(command, Settings())
         derived = sample_image.system_environment(Settings())

@@ -315,6 +315,33 @@ class Settings(BaseSettings):
         return f"tcp://{self.bind_host}:{port}"
 
 
+def unrecognised_settings(environ=None) -> list[str]:
+    """What is wrong with each SEMSERVO_<SECTION>__<NAME> variable (``environ``, default
+    the process's) that names no setting of its section, with the closest names. The
+    settings ignore unknown names, so a misspelt one (``SEMSERVO_FAKELAB__SAMPLE_PIXEL_NM``)
+    would silently do nothing; ``semservo up`` and ``demo`` say so instead."""
+    import difflib
+
+    environ = os.environ if environ is None else environ
+    problems = []
+    for variable in sorted(environ):
+        upper = variable.upper()
+        if not upper.startswith("SEMSERVO_") or "__" not in upper:
+            continue
+        section, _, rest = upper[len("SEMSERVO_"):].partition("__")
+        field = Settings.model_fields.get(section.lower())
+        model = field.annotation if field is not None else None
+        if not (isinstance(model, type) and issubclass(model, BaseModel)):
+            continue
+        name = rest.partition("__")[0].lower()
+        if name in model.model_fields:
+            continue
+        close = difflib.get_close_matches(name, list(model.model_fields), n=2, cutoff=0.6)
+        hint = f"; did you mean {' or '.join(f'SEMSERVO_{section}__{match.upper()}' for match in close)}?" if close else ""
+        problems.append(f"{variable} names no setting of {section.lower()}, so it does nothing{hint}")
+    return problems
+
+
 def connect(host: str, port: int) -> str:
     """ZeroMQ address a client connects to."""
     return f"tcp://{host}:{port}"

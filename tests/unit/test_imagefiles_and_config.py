@@ -81,3 +81,19 @@ def test_default_settings_are_loopback_and_find_the_recording(recorded_run):
     settings = Settings()
     assert settings.bind_host == "127.0.0.1"
     assert settings.imageserver.replay_dir == recorded_run
+
+
+def test_a_misspelt_setting_is_named_with_the_closest_names():
+    """The settings ignore names they do not know; unrecognised_settings names each
+    SEMSERVO_<SECTION>__<NAME> that is not a setting of its section (what `semservo up`
+    and `demo` print), and leaves alone the variables read elsewhere and the good ones."""
+    from semservo.config import unrecognised_settings
+
+    problems = unrecognised_settings({
+        "SEMSERVO_FAKELAB__SAMPLE_PIXEL_NM": "50", "SEMSERVO_STAGE__BOGUS": "1",
+        "SEMSERVO_ESTIMATOR__TILT_KERNEL_PX": "16", "SEMSERVO_URL": "http://x", "SEMSERVO_COMPOSE__DIR": "/tmp",
+        "semservo_gateway__http_port": "8001", "PATH": "/bin"})
+    assert problems == [
+        "SEMSERVO_FAKELAB__SAMPLE_PIXEL_NM names no setting of fakelab, so it does nothing; did you mean "
+        "SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM or SEMSERVO_FAKELAB__SAMPLE_IMAGE?",
+        "SEMSERVO_STAGE__BOGUS names no setting of stage, so it does nothing"]
