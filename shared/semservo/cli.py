@@ -76,7 +76,8 @@ def _warn_unused_sample_options(command: str, settings: Settings) -> None:
         unused = [f"--{option.replace('_', '-')}" for option, setting in sample_image.OPTION_SETTINGS.items()
                   if option != "sample_image" and f"SEMSERVO_FAKELAB__{setting}" in os.environ]
         if unused:
-            print(f"semservo {command}: {', '.join(unused)} has no effect without --sample-image", file=sys.stderr)
+            print(f"semservo {command}: {', '.join(unused)} {'has' if len(unused) == 1 else 'have'} no effect without "
+                  "--sample-image", file=sys.stderr)
         return
     if fakelab.sample_height_um is not None and fakelab.sample_height_image is None:
         print(f"semservo {command}: --sample-height-um has no effect without --sample-height-image (the sample is "

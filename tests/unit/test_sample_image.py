@@ -319,7 +319,7 @@ def test_sample_options_that_would_not_be_seen_are_named(monkeypatch, capsys, se
     monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM", "50")
     monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_EDGES", "tile")
     cli._warn_unused_sample_options("up", Settings())
-    assert "--sample-pixel-nm, --sample-edges has no effect without --sample-image" in capsys.readouterr().err
+    assert "--sample-pixel-nm, --sample-edges have no effect without --sample-image" in capsys.readouterr().err
     monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_IMAGE", str(sem_images / "jeol_grid.tif"))
     monkeypatch.setenv("SEMSERVO_FAKELAB__SAMPLE_HEIGHT_UM", "2")
     cli._warn_unused_sample_options("up", Settings())
