@@ -214,6 +214,28 @@ def _check_estimator(settings: Settings, launcher: Launcher, timeout_s: float) -
 AUTO_CROP_FRACTION = 0.1
 
 
+def _polygon(text: str) -> list[tuple[float, float]]:
+    """A polygon option's corner points, 'X,Y X,Y ...' (pixels; at least three, finite)."""
+    try:
+        points = [tuple(float(value) for value in point.split(",")) for point in text.split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"corner points are X,Y pairs of numbers, got {text!r}") from None
+    if len(points) < 3 or any(len(point) != 2 or not all(math.isfinite(v) for v in point) for point in points):
+        raise argparse.ArgumentTypeError(f"at least three corner points, each X,Y of finite numbers, got {text!r}")
+    return points
+
+
+def _count(text: str) -> int:
+    """A positive count of things to print."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, got {value}")
+    return value
+
+
 def command_estimate(args: argparse.Namespace) -> int:
     """Motion of each IMAGE against REFERENCE, one line (or JSON object) per image."""
     import json
@@ -259,7 +281,7 @@ def command_estimate(args: argparse.Namespace) -> int:
             fail("a mask reference needs at least one readable image for its grey levels")
             return 2
         if args.polygon:
-            mask = [tuple(float(v) for v in point.split(",")) for point in args.polygon.split()]
+            mask = args.polygon
         else:
             mask = reference > 0
         reference = levels
@@ -274,6 +296,10 @@ def command_estimate(args: argparse.Namespace) -> int:
             fail(str(pixels))
             failures += 1
             continue
+        if float(np.ptp(pixels)) == 0.0:  # as a flat reference is refused: nothing to register
+            fail(f"{path}: the image is flat (every pixel {float(pixels.flat[0]):g}): nothing to register")
+            failures += 1
+            continue
         started = time.perf_counter()
         try:
             motion = estimator.estimate(pixels)
@@ -285,7 +311,9 @@ def command_estimate(args: argparse.Namespace) -> int:
         fields = {"image": str(path), **{k: v for k, v in motion.as_dict().items()
                                          if k in ("dx_px", "dy_px", "rotation_deg", "confidence", "snr_db")},
                   "elapsed_ms": elapsed_ms}
-        if args.json:
+        if args.json:  # JSON has no infinity (a frame of pure noise has an SNR of -inf dB): null
+            fields = {key: value if not isinstance(value, float) or math.isfinite(value) else None
+                      for key, value in fields.items()}
             print(json.dumps(fields), flush=True)
         else:
             print(f"{path}  dx_px={motion.dx:+9.4f}  dy_px={motion.dy:+9.4f}  rotation_deg={motion.rotation_deg:+8.4f}  "
@@ -317,12 +345,18 @@ def command_teach(args: argparse.Namespace) -> int:
 
     from semservo.protocol import estimator as estimator_protocol
 
+    if args.image and not Path(args.image).is_file():
+        print(f"semservo teach: {args.image}: "
+              f"{'a folder, not an image file' if Path(args.image).is_dir() else 'no such image file'}", file=sys.stderr)
+        return 2
     settings = Settings()
     if not args.during_run:
         in_the_way = _run_in_the_way(settings)
         if in_the_way:
-            print(f"semservo teach: refused: {in_the_way}, and a new reference would fail a run (stop it first: "
-                  "semservo stop, the dashboard's STOP or POST /stop; or --during-run to teach anyway)",
+            remedy = ("is the system up? semservo up starts it" if in_the_way.startswith("the controller")
+                      else "a new reference would fail it: stop it first (semservo stop, the dashboard's STOP or "
+                           "POST /stop)")
+            print(f"semservo teach: refused: {in_the_way}; {remedy}; or --during-run to teach anyway",
                   file=sys.stderr)
             return 1
     estimator = ServicePort(ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
@@ -332,7 +366,7 @@ def command_teach(args: argparse.Namespace) -> int:
         request["image_b64"] = base64.b64encode(Path(args.image).read_bytes()).decode()
         request["label"] = args.image
     elif args.polygon:
-        request["polygon"] = [[float(v) for v in point.split(",")] for point in args.polygon.split()]
+        request["polygon"] = [list(point) for point in args.polygon]
     else:
         request["frames"] = args.frames
     try:
@@ -876,7 +910,7 @@ def build_parser() -> argparse.ArgumentParser:
     fakelab.set_defaults(handler=command_fakelab)
 
     frames = commands.add_parser("frames", help="watch a frame stream and print each header")
-    frames.add_argument("--count", type=int, default=10, help="frames to print (default 10)")
+    frames.add_argument("--count", type=_count, default=10, help="frames to print (default 10)")
     frames.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
     frames.add_argument("--endpoint", help="frames address (default: the image server's)")
     frames.set_defaults(handler=command_frames)
@@ -893,7 +927,7 @@ def build_parser() -> argparse.ArgumentParser:
     estimate.add_argument("--no-rotation", action="store_true", help="translation only")
     estimate.add_argument("--mask", action="store_true",
                           help="REFERENCE is a binary mask of the object (paper case 6)")
-    estimate.add_argument("--polygon", metavar="'X,Y X,Y ...'",
+    estimate.add_argument("--polygon", type=_polygon, metavar="'X,Y X,Y ...'",
                           help="use the polygon of these corner points on REFERENCE as a mask reference")
     estimate.add_argument("--scan-averaged", action="store_true",
                           help="average the shift over the scan's bands of rows, as the estimator service does for "
@@ -917,7 +951,8 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--frames", type=int, default=1, help="average the last N live frames, 1..16 (default 1; "
                                                               "the stage must stand still)")
     source.add_argument("--image", help="PNG/TIFF file to use as the reference")
-    source.add_argument("--polygon", metavar="'X,Y X,Y ...'", help="corner points of a mask on the live frame")
+    source.add_argument("--polygon", type=_polygon, metavar="'X,Y X,Y ...'",
+                        help="corner points of a mask on the live frame")
     teach.add_argument("--tilts", action="store_true", help="also sweep the focus at the taught pose, so runs can "
                                                             "servo the tilts (waits for the sweep, with progress)")
     teach.add_argument("--during-run", action="store_true",
@@ -927,7 +962,7 @@ def build_parser() -> argparse.ArgumentParser:
     teach.set_defaults(handler=command_teach)
 
     motion = commands.add_parser("motion", help="watch the estimator's motion stream")
-    motion.add_argument("--count", type=int, default=10, help="estimates to print (default 10)")
+    motion.add_argument("--count", type=_count, default=10, help="estimates to print (default 10)")
     motion.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
     motion.set_defaults(handler=command_motion)
 

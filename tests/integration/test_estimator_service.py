@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import math
 import subprocess
 import sys
 
@@ -197,3 +198,41 @@ def test_estimate_compares_a_pair_whose_data_bar_was_cut_from_one_file_only(sem_
     refused = subprocess.run([sys.executable, "-m", "semservo", "estimate", "--crop", "none", *pair],
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 1 and "696 x 515, the reference is 696 x 520" in refused.stderr
+
+
+def test_estimate_refuses_a_flat_image_and_bad_options_and_its_json_stays_json(recorded_run, tmp_path):
+    """A flat current image is refused as a flat reference is (it gave invented numbers);
+    --polygon takes finite corner points; --json writes null, never -Infinity, for a
+    frame whose SNR is not finite (a frame of pure noise)."""
+
+    flat = tmp_path / "grey.png"
+    Image.fromarray(np.full((512, 512), 128, np.uint8)).save(flat)
+    reference = str(recorded_run / "reference.png")
+    done = subprocess.run([sys.executable, "-m", "semservo", "estimate", "--json", reference, str(flat),
+                           str(recorded_run / "frame00.png")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    assert "grey.png: the image is flat (every pixel 128): nothing to register" in done.stderr
+    assert [json.loads(line)["image"] for line in done.stdout.splitlines()] == [str(recorded_run / "frame00.png")]
+    done = subprocess.run([sys.executable, "-m", "semservo", "estimate", reference, str(flat), "--polygon",
+                           "nan,0 10,0 10,10"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "argument --polygon: at least three corner points" in done.stderr
+    noise = tmp_path / "noise.png"
+    Image.fromarray(np.random.default_rng(0).integers(0, 256, (512, 512), dtype=np.uint8)).save(noise)
+    done = subprocess.run([sys.executable, "-m", "semservo", "estimate", "--json", reference, str(noise)],
+                          capture_output=True, text=True, timeout=120)
+    assert "Infinity" not in done.stdout and "NaN" not in done.stdout
+    record = json.loads(done.stdout)
+    assert record["snr_db"] is None or math.isfinite(record["snr_db"])
+
+
+def test_teach_and_watch_commands_refuse_what_they_cannot_use(tmp_path):
+    """`semservo teach --image` on no file or a folder says so (it was a traceback), before
+    asking any service; `frames` and `motion` take a count of 1 or more."""
+    for path, says in ((tmp_path / "nope.png", "no such image file"), (tmp_path, "a folder, not an image file")):
+        done = subprocess.run([sys.executable, "-m", "semservo", "teach", "--image", str(path)], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 2 and says in done.stderr and "Traceback" not in done.stderr
+    for command in ("frames", "motion"):
+        done = subprocess.run([sys.executable, "-m", "semservo", command, "--count", "0"], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 2 and "argument --count: must be 1 or more, got 0" in done.stderr

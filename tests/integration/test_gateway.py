@@ -222,6 +222,12 @@ def test_bad_uploads_are_refused_and_keep_the_previous_reference(system):
     assert response.status_code == 422 and response.json()["error"]["field"] == "polygon"
     response = lab.http.post("/teach", params={"frames": 99})
     assert response.status_code == 422 and response.json()["error"]["field"] == "frames"
+    # A misspelt part or parameter would have taught the live frame in place of the upload.
+    response = lab.http.post("/teach", files={"imag": ("frame.png", png(np.zeros((512, 512), np.uint8)))})
+    refused = response.json()["error"]
+    assert response.status_code == 422 and refused["field"] == "imag" and "does not take 'imag'" in refused["message"]
+    response = lab.http.post("/teach", params={"frame": 4})
+    assert response.status_code == 422 and response.json()["error"]["field"] == "frame"
     assert lab.status()["reference"]["id"] == good["id"]
 
 

@@ -28,6 +28,11 @@ async def read_upload(request: Request, upload: UploadFile | str, field: str) ->
     return data
 
 
+#: What POST /teach reads: its query parameters and its multipart form's parts.
+TEACH_QUERY = frozenset({"frames", "dwell_ns", "tilts"})
+TEACH_PARTS = frozenset({"image", "mask", "label"})
+
+
 @router.post("/teach", response_model=TeachResult, dependencies=[Depends(require_token)],
              summary="Teach the reference: the live frame(s), one slow scan, an uploaded image, or a mask",
              description="An `image` or `mask` is the bytes of a PNG or TIFF file (8 or 16 bit) of the current "
@@ -50,6 +55,15 @@ async def teach(
         # Said, not ignored: a script posting {"frames": 4} would otherwise get one frame.
         raise CommandError("json_body", "POST /teach takes query parameters (?frames=4, ?dwell_ns=...) or a "
                                         "multipart upload (image or mask), not a JSON body")
+    # A misspelt part or parameter (`imag=@file`, `?frame=4`) would otherwise teach the
+    # live frame in place of what was meant: said, as a JSON body is.
+    unknown = sorted(set(request.query_params) - TEACH_QUERY)
+    if request.headers.get("content-type", "").split(";")[0].strip() == "multipart/form-data":
+        unknown += sorted(set((await request.form()).keys()) - TEACH_PARTS)
+    if unknown:
+        raise BadRequest(f"POST /teach does not take {', '.join(map(repr, unknown))}: its parameters are "
+                         f"{', '.join(sorted(TEACH_QUERY))} and its form parts {', '.join(sorted(TEACH_PARTS))}",
+                         field=unknown[0])
     if sum(given is not None for given in (image, mask, dwell_ns)) > 1:
         raise BadRequest("give one of image, mask, dwell_ns", field="image")
     image_bytes = await read_upload(request, image, "image") if image is not None else None
