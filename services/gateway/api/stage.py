@@ -12,7 +12,11 @@ router = APIRouter(prefix="/stage", tags=["stage"])
 
 
 @router.post("/move", response_model=MoveReply, dependencies=[Depends(require_token)],
-             summary="Jog (relative) or move (absolute), um")
+             summary="Jog (relative) or move (absolute), um",
+             description="Both of the stage's soft limits apply (GET /stage's `limits`): the travel (model "
+                         "displacement) and the amplifier's voltages. Near the ends of travel the voltage a position "
+                         "needs depends on the piezo's hysteresis branch, so a target inside the travel may still be "
+                         "refused (409 `voltage_limit`, saying the voltage): refused whole, never clipped.")
 def move(body: MoveRequest, core: Core) -> MoveReply:
     targets = {axis: value for axis, value in (("x", body.x_um), ("y", body.y_um)) if value is not None}
     if not targets:
