@@ -16,6 +16,7 @@ import numpy as np
 from semservo.errors import CommandError
 from semservo.estimation import MotionEstimator
 from semservo.estimation.common import MIN_SIZE
+from semservo.estimation.masks import binary_region
 from semservo.estimation.raster import (BAND_ROWS, PARTIAL_FRAME_FROM, SCAN_AVERAGED_FROM_S, rows_scanned_after,
                                        scan_lasted_s)
 from semservo.estimation.tilt import (MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, KernelDepths, TiltEstimate, as_taught,
@@ -564,8 +565,14 @@ class EstimatorCore:
         if mask is not None and mask.shape != self.latest.pixels.shape:
             raise TeachError(f"mask is {mask.shape[1]} x {mask.shape[0]}, the current scan is "
                              f"{self.latest.pixels.shape[1]} x {self.latest.pixels.shape[0]}")
+        if mask is not None:
+            try:
+                shape_mask = binary_region(mask)
+            except ValueError as error:
+                raise TeachError(str(error)) from None
         try:
-            shape_mask = [tuple(map(float, point)) for point in polygon] if polygon is not None else mask > 0
+            if polygon is not None:
+                shape_mask = [tuple(map(float, point)) for point in polygon]
         except (TypeError, ValueError):
             raise TeachError("polygon must be a list of [x, y] corner points") from None
         if polygon is not None:

@@ -28,6 +28,7 @@ from PIL import Image
 
 from semservo.control import CameraToStage
 from semservo.errors import BadRequest, CommandError, ServiceUnavailable
+from semservo.estimation.masks import binary_region
 from semservo.imagefiles import ImageFileError, read_image, write_image
 from semservo.messages import ACQUISITION_FIELDS, ControllerEvent
 from semservo.protocol import Command, Port
@@ -477,8 +478,12 @@ class GatewayCore:
                 reply = self.ask("estimator", estimator_protocol.TEACH, image_b64=base64.b64encode(image).decode(),
                                  label=label or "upload", source_interval_s=scanned_interval)
             else:
+                try:
+                    region = binary_region(pixels, "the mask upload")
+                except ValueError as error:
+                    raise BadRequest(str(error), field="mask") from None
                 reply = self.ask("estimator", estimator_protocol.TEACH,
-                                 mask_b64=png_b64((pixels > 0).astype(np.uint8) * 255))
+                                 mask_b64=png_b64(region.astype(np.uint8) * 255))
         elif polygon is not None:
             reply = self.ask("estimator", estimator_protocol.TEACH, polygon=polygon)
         else:

@@ -283,7 +283,13 @@ def command_estimate(args: argparse.Namespace) -> int:
         if args.polygon:
             mask = args.polygon
         else:
-            mask = reference > 0
+            from semservo.estimation.masks import binary_region
+
+            try:
+                mask = binary_region(reference, f"{args.reference} (the mask)")
+            except ValueError as error:
+                fail(str(error))
+                return 2
         reference = levels
     try:
         estimator = MotionEstimator(reference, rotation=not args.no_rotation, mask=mask, precision=args.precision,

@@ -216,6 +216,9 @@ def test_estimate_refuses_a_flat_image_and_bad_options_and_its_json_stays_json(r
     done = subprocess.run([sys.executable, "-m", "semservo", "estimate", reference, str(flat), "--polygon",
                            "nan,0 10,0 10,10"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "argument --polygon: at least three corner points" in done.stderr
+    done = subprocess.run([sys.executable, "-m", "semservo", "estimate", "--mask", reference,
+                           str(recorded_run / "frame00.png")], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "reference.png (the mask) is not binary" in done.stderr, done.stderr
     noise = tmp_path / "noise.png"
     Image.fromarray(np.random.default_rng(0).integers(0, 256, (512, 512), dtype=np.uint8)).save(noise)
     done = subprocess.run([sys.executable, "-m", "semservo", "estimate", "--json", reference, str(noise)],

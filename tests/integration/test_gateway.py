@@ -199,6 +199,7 @@ def test_a_move_outside_the_limits_is_refused_with_the_rule(system):
 def test_bad_uploads_are_refused_and_keep_the_previous_reference(system):
     lab = system["client"]
     frames_flowing(lab)
+    frame = np.array(Image.open(io.BytesIO(lab.http.get("/frames/latest.png").content)))
     good = lab.teach()
     cases = [
         ({"image": ("frame.png", b"not an image at all")}, 422, "unreadable_image"),
@@ -228,6 +229,9 @@ def test_bad_uploads_are_refused_and_keep_the_previous_reference(system):
     assert response.status_code == 422 and refused["field"] == "imag" and "does not take 'imag'" in refused["message"]
     response = lab.http.post("/teach", params={"frame": 4})
     assert response.status_code == 422 and response.json()["error"]["field"] == "frame"
+    # A picture given as a mask is not two levels: refused, not read as "every pixel above 0".
+    response = lab.http.post("/teach", files={"mask": ("frame.png", png(frame))})
+    assert response.status_code == 422 and "is not binary" in response.json()["error"]["message"]
     assert lab.status()["reference"]["id"] == good["id"]
 
 

@@ -240,6 +240,24 @@ def test_mask_reference_from_a_thresholded_reference(frame):
         assert motion.rotation_deg == 0.0 and motion.confidence > 0.5
 
 
+def test_a_mask_image_must_be_two_levels(frame):
+    """binary_region: a mask image (the object white on black, its edges perhaps
+    antialiased) is its pixels above the middle of its two levels; a grey picture given
+    as a mask is refused, not read as 'every pixel above 0' (the CLI's old reading, which
+    gave shifts larger than the image)."""
+    from semservo.estimation.masks import binary_region
+
+    mask = np.zeros((64, 64), np.uint8)
+    mask[16:48, 16:48] = 255
+    mask[16, 16:48] = 100  # an antialiased edge, darker than the middle
+    region = binary_region(mask)
+    assert region.sum() == 31 * 32 and not region[16, 20] and region[17, 20]
+    assert binary_region(mask.astype(bool)).sum() == 32 * 32
+    for picture, says in ((frame, "is not binary"), (np.full((64, 64), 9, np.uint8), "is not binary: 100%")):
+        with pytest.raises(ValueError, match=says):
+            binary_region(picture)
+
+
 def test_mask_reference_from_clicked_corners_tracks_the_object(frame):
     """A rough outline from clicked corners defines the target position; the estimate
     moves with the object exactly as the object moves."""

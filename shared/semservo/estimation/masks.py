@@ -20,6 +20,26 @@ def polygon_mask(shape: tuple[int, int], corners: Sequence[Sequence[float]]) -> 
     return np.asarray(canvas, dtype=bool)
 
 
+#: A mask image is two levels; its edges may be antialiased, so this share of its pixels
+#: at its darkest or brightest level is enough.
+MIN_BINARY_SHARE = 0.95
+
+
+def binary_region(mask: np.ndarray, name: str = "the mask") -> np.ndarray:
+    """The object of a mask image (paper case 6: the object bright on dark), as a boolean
+    array: the pixels above the middle of its two levels. ValueError when the image is not
+    two levels (a grey picture given as a mask would make a meaningless reference)."""
+    values = np.asarray(mask, dtype=np.float64)
+    if values.ndim != 2 or not np.all(np.isfinite(values)):
+        raise ValueError(f"{name} must be a 2-D image of finite grey levels")
+    low, high = float(values.min()), float(values.max())
+    at_either = np.count_nonzero((values == low) | (values == high)) / values.size
+    if high == low or at_either < MIN_BINARY_SHARE:
+        raise ValueError(f"{name} is not binary: {at_either:.0%} of its pixels are at its darkest or brightest level "
+                         f"(at least {MIN_BINARY_SHARE:.0%} needed: the object white on black)")
+    return values > (low + high) / 2
+
+
 def mask_reference(reference: np.ndarray, mask) -> np.ndarray:
     """The two-level image that stands in for a taught reference (paper case 6).
 
