@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 
 from semservo.estimation.common import MIN_SIZE, Motion, as_image
-from semservo.estimation.masks import mask_reference, polygon_mask
+from semservo.estimation.masks import binary_region, mask_reference, polygon_mask
 from semservo.estimation.raster import (ScanReference, band_start, scan_averaged_shift,
                                         vibration_lines)
 from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search, kept_near
@@ -234,6 +234,8 @@ class MotionEstimator:
         self._settings = dict(window=window, snr_threshold_db=snr_threshold_db, band=band, fft_effort=fft_effort,
                               angles=angles, mask_band=mask_band, precision=precision)
         self._given_reference = reference
+        if isinstance(mask, np.ndarray) and mask.ndim == 2 and mask.dtype != bool:
+            mask = binary_region(mask)  # a mask image: two levels, or refused
         self._mask_region = None if mask is None else (
             mask.astype(bool) if isinstance(mask, np.ndarray) and mask.ndim == 2 else polygon_mask(reference.shape, mask))
         self._rows_estimators: OrderedDict[tuple[int, bool], MotionEstimator] = OrderedDict()
