@@ -570,11 +570,11 @@ class EstimatorCore:
                 shape_mask = binary_region(mask)
             except ValueError as error:
                 raise TeachError(str(error)) from None
-        try:
-            if polygon is not None:
+        else:
+            try:
                 shape_mask = [tuple(map(float, point)) for point in polygon]
-        except (TypeError, ValueError):
-            raise TeachError("polygon must be a list of [x, y] corner points") from None
+            except (TypeError, ValueError):
+                raise TeachError("polygon must be a list of [x, y] corner points") from None
         if polygon is not None:
             if len(shape_mask) < 3:
                 raise TeachError(f"a polygon needs at least 3 corner points, got {len(shape_mask)}")

@@ -31,6 +31,7 @@ async def read_upload(request: Request, upload: UploadFile | str, field: str) ->
 #: What POST /teach reads: its query parameters and its multipart form's parts.
 TEACH_QUERY = frozenset({"frames", "dwell_ns", "tilts"})
 TEACH_PARTS = frozenset({"image", "mask", "label"})
+FORM_TYPES = frozenset({"multipart/form-data", "application/x-www-form-urlencoded"})
 
 
 @router.post("/teach", response_model=TeachResult, dependencies=[Depends(require_token)],
@@ -58,7 +59,7 @@ async def teach(
     # A misspelt part or parameter (`imag=@file`, `?frame=4`) would otherwise teach the
     # live frame in place of what was meant: said, as a JSON body is.
     unknown = sorted(set(request.query_params) - TEACH_QUERY)
-    if request.headers.get("content-type", "").split(";")[0].strip() == "multipart/form-data":
+    if request.headers.get("content-type", "").split(";")[0].strip() in FORM_TYPES:
         unknown += sorted(set((await request.form()).keys()) - TEACH_PARTS)
     if unknown:
         raise BadRequest(f"POST /teach does not take {', '.join(map(repr, unknown))}: its parameters are "
