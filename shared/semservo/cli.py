@@ -352,8 +352,8 @@ def command_teach(args: argparse.Namespace) -> int:
     from semservo.protocol import estimator as estimator_protocol
 
     if args.image and not Path(args.image).is_file():
-        print(f"semservo teach: {args.image}: "
-              f"{'a folder, not an image file' if Path(args.image).is_dir() else 'no such image file'}", file=sys.stderr)
+        what = "a folder, not an image file" if Path(args.image).is_dir() else "no such image file"
+        print(f"semservo teach: {args.image}: {what}", file=sys.stderr)
         return 2
     settings = Settings()
     if not args.during_run:

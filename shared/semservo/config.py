@@ -337,7 +337,8 @@ def unrecognised_settings(environ=None) -> list[str]:
         if name in model.model_fields:
             continue
         close = difflib.get_close_matches(name, list(model.model_fields), n=2, cutoff=0.6)
-        hint = f"; did you mean {' or '.join(f'SEMSERVO_{section}__{match.upper()}' for match in close)}?" if close else ""
+        names = " or ".join(f"SEMSERVO_{section}__{match.upper()}" for match in close)
+        hint = f"; did you mean {names}?" if close else ""
         problems.append(f"{variable} names no setting of {section.lower()}, so it does nothing{hint}")
     return problems
 

@@ -311,8 +311,9 @@ def normalized_variance_information(scene: TiltedTexture, working_distances_um, 
     rows, cols, _, _ = _kernel_grid(scene, kernel)
     pixels = kernel * kernel
 
-    def measures(offset_um: float) -> tuple[np.ndarray, np.ndarray]:
-        """eq. 13's noise-free measure and its variance under the pixels' noise, frames x kernels."""
+    def measures(offset_um: float, with_variance: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """eq. 13's noise-free measure and (``with_variance``) its variance under the
+        pixels' noise, frames x kernels."""
         measure, variance = [], []
         for distance in distances:
             frame = scene.noiseless_frame(float(distance) - offset_um)[:rows * kernel, :cols * kernel].astype(np.float64)
@@ -320,18 +321,20 @@ def normalized_variance_information(scene: TiltedTexture, working_distances_um, 
             block_mean = np.maximum(blocks.mean(axis=1), 1e-9)
             deviation = blocks - block_mean[:, None]
             block_variance = np.mean(deviation**2, axis=1)
+            measure.append(block_variance / block_mean)
+            if not with_variance:
+                continue
             pixel_variance = _pixel_noise(blocks, electrons, read_noise)
             variance_of_variance = np.sum(4 * deviation**2 * pixel_variance + 2 * pixel_variance**2, axis=1) / pixels**2
             variance_of_mean = np.sum(pixel_variance, axis=1) / pixels**2
             covariance = np.sum(2 * deviation * pixel_variance, axis=1) / pixels**2
-            measure.append(block_variance / block_mean)
             variance.append(variance_of_variance / block_mean**2 + block_variance**2 * variance_of_mean / block_mean**4
                             - 2 * block_variance * covariance / block_mean**3)
-        return np.array(measure), np.array(variance)
+        return np.array(measure), (np.array(variance) if with_variance else None)
 
-    _, variance = measures(0.0)
-    deeper, _ = measures(shift_um)
-    nearer, _ = measures(-shift_um)
+    _, variance = measures(0.0, with_variance=True)
+    deeper, _ = measures(shift_um, with_variance=False)  # only the slope is wanted of these
+    nearer, _ = measures(-shift_um, with_variance=False)
     slope = (deeper - nearer) / (2 * shift_um)
     return np.sum(slope**2 / np.maximum(variance, 1e-300), axis=0).reshape(rows, cols)
 
