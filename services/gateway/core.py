@@ -18,7 +18,8 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -156,6 +157,10 @@ class GatewayCore:
         self._health_cache: tuple[float, dict] = (-1e9, {})
         self.reconcile_lock = threading.Lock()
         self.reference_lock = threading.Lock()
+        # One teach at a time (a teach, a target's visit from its teach to its start): two
+        # at once would each answer 200 while the later one's reference replaced the other's.
+        self._teach_lock = threading.Lock()
+        self._teaching_what, self._teaching_thread = "", None
         self._reconciled_at = -1e9
         self._controller_silent_since: float | None = None
         self._truth_attempts: dict[str, int] = {}
@@ -453,6 +458,38 @@ class GatewayCore:
         at that dwell (a slow, high-quality reference, paper case 5). ``tilts``: the
         estimator then sweeps the focus at the taught pose, in the background (the
         reference's ``tilt_teach`` says how far)."""
+        with self._teaching("teaching", holder="a teach"):
+            return self._teach(frames=frames, image=image, mask=mask, polygon=polygon, label=label,
+                               dwell_ns=dwell_ns, tilts=tilts)
+
+    @contextmanager
+    def _teaching(self, what: str, holder: str) -> Iterator[None]:
+        """Hold the teach (for ``holder``, as refusals name it); another teach meanwhile is refused (409
+        ``teach_in_progress``), as is a start (:meth:`_refuse_while_teaching`): two teaches
+        at once would each answer 200 while the later one's reference replaced the other's
+        (a dashboard's double click, two scripts; a teach during a target's visit would
+        have its run position on the other reference)."""
+        if not self._teach_lock.acquire(blocking=False):
+            raise self._teach_in_progress(what)
+        try:
+            self._teaching_what, self._teaching_thread = holder, threading.get_ident()
+            yield
+        finally:
+            self._teaching_thread = None
+            self._teach_lock.release()
+
+    def _refuse_while_teaching(self, what: str) -> None:
+        """409 ``teach_in_progress`` while a teach is under way in another request: a run
+        started meanwhile would begin on the old reference and fail when the new one came."""
+        if self._teach_lock.locked() and self._teaching_thread != threading.get_ident():
+            raise self._teach_in_progress(what)
+
+    def _teach_in_progress(self, what: str) -> CommandError:
+        return CommandError("teach_in_progress", f"{what} refused: {self._teaching_what or 'a teach'} is under way; "
+                                                 "ask again when it has answered")
+
+    def _teach(self, *, frames: int, image: bytes | None, mask: bytes | None, polygon: list | None,
+               label: str | None, dwell_ns: float | None, tilts: bool) -> dict:
         self._refuse_during_run("teaching a new reference")
         self.ask("estimator", estimator_protocol.REPORT)  # a dead estimator named in seconds, not after the teach's 60
         latest = self.latest
@@ -618,6 +655,10 @@ class GatewayCore:
         """Back to a stored target: (``approach``) the stage to its stored positions, open
         loop through its model and every rule; its reference taught (the stored image);
         then a run positions on the image."""
+        with self._teaching(f"going to target {name!r}", holder=f"a visit to target {name!r} (its teach and start)"):
+            return self._go_to_target(name, settings, approach=approach, resume=resume)
+
+    def _go_to_target(self, name: str, settings: dict, *, approach: bool, resume: bool) -> dict:
         target, pixels = self.target(name), self.target_pixels(name)
         self._refuse_during_run(f"going to target {name!r}", controller_required=True)
         latest = self.latest
@@ -683,7 +724,9 @@ class GatewayCore:
     # -- stage and runs -------------------------------------------------------
     def move(self, targets: dict[str, float], relative: bool):
         """A jog or move. Refused during a run (it would fight the controller); the stage
-        refuses it too while a run's controller has it armed."""
+        refuses it too while a run's controller has it armed. Refused while a teach averages
+        frames (they would blend two views)."""
+        self._refuse_while_teaching("moving the stage")
         self._refuse_during_run("moving the stage")
         # The stage's rate rule refuses a step too soon after the last write (a jog
         # right after a run's last move): an operator's jog waits that moment out.
@@ -699,6 +742,7 @@ class GatewayCore:
     def rotate(self, targets: dict[str, float], relative: bool):
         """A turn or tilt of the rotation-and-tilt stage, through the stage service (its
         travel, step and owner rules). Refused during a run, as a jog is."""
+        self._refuse_while_teaching("turning the stage")
         self._refuse_during_run("turning the stage")
         return self.ask("stage", stage_protocol.ROTATE, targets=targets, relative=relative, owner="gateway")
 
@@ -744,6 +788,7 @@ class GatewayCore:
         (409 ``stage_stopped``) unless ``resume`` says the operator lets it move again. A
         stage held by its watchdog (a controller died, or the stage service restarted
         mid-run) is claimed by the new run's controller."""
+        self._refuse_while_teaching("starting a run")
         self._refuse_during_run("starting a run", controller_required=True)
         self._check_stage_may_move(resume)
         run_settings = RunSettings.model_validate_json(json.dumps(settings))

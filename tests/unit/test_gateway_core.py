@@ -109,6 +109,49 @@ def test_a_dead_controller_does_not_block_a_teach():
     assert core.teach()["id"] == "ref"
 
 
+def test_one_teach_at_a_time_and_no_start_or_jog_meanwhile():
+    """A second teach while one waits for its frames is refused (409), as are a start and a
+    jog (a run would begin on the old reference; a jog would blend the averaged frames);
+    both answer again once the teach has."""
+    import threading
+
+    asked_to_teach, release = threading.Event(), threading.Event()
+
+    def teach():
+        asked_to_teach.set()
+        release.wait(10)
+        return REFERENCE
+
+    estimator = Port(report={"reference": None, "rotation": True, "measure_rotation": True, "measure_tilts": False,
+                             "tilt_reference": None, "last_tilt": None, "tilt_error": None, "precision": "full",
+                             "latest_frame_seq": 3, "last_estimate": None},
+                     teach=teach, reference_image=CommandError("no_reference", "not in this test"))
+    stage = Port(move=MOVED, state=STAGE_STATE)
+    controller = Port(status=controller_status(), start={"run_id": "r1", "state": "servoing"},
+                      run={"id": "r1", "started_at_ns": 1, "settings": {}})
+    core = core_with(estimator=estimator, stage=stage, controller=controller)
+    first: dict = {}
+    teacher = threading.Thread(target=lambda: first.update(core.teach()))
+    teacher.start()
+    try:
+        assert asked_to_teach.wait(10)
+        for attempt, refused_what in ((lambda: core.teach(frames=2), "teaching"),
+                                      (lambda: core.start({}), "starting a run"),
+                                      (lambda: core.move({"x": 1.0}, relative=True), "moving the stage")):
+            with pytest.raises(CommandError) as refused:
+                attempt()
+            assert refused.value.code == "teach_in_progress" and http_status(refused.value.code) == 409
+            assert refused.value.message.startswith(f"{refused_what} refused: a teach is under way")
+    finally:
+        release.set()
+        teacher.join(10)
+    assert first["id"] == "ref"
+    assert [name for name, _ in estimator.asked].count("teach") == 1
+    assert "move" not in [name for name, _ in stage.asked]
+    assert core.move({"x": 1.0}, relative=True).voltages == {"x": 40.0}
+    assert core.start({})["run_id"] == "r1"
+
+
 def test_a_service_that_does_not_answer_is_a_503_naming_it():
     core = core_with(stage=Port(state=ServiceUnavailable("no reply after 1 tries")))
     with pytest.raises(CommandError) as refused:
