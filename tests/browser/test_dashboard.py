@@ -40,6 +40,21 @@ def test_the_page_shows_the_live_frame_state_and_every_service(page):
     assert not page.errors
 
 
+def test_a_double_click_on_teach_teaches_once(page):
+    """The second click of a double click lands while the first teach is out: the button
+    takes it no further (the gateway would refuse a second teach meanwhile, 409)."""
+    teaches = []
+    page.on("request", lambda request: teaches.append(request.url)
+            if request.method == "POST" and "/teach" in request.url else None)
+    before = page.inner_text("#reference-id")
+    page.dblclick("#teach-live")
+    expect(page.locator("#reference-id")).not_to_have_text(before)
+    expect(page.locator("#teach-live")).not_to_have_attribute("aria-busy", "true")
+    assert len(teaches) == 1, teaches
+    expect(page.locator("#message")).to_be_hidden()
+    assert not page.errors
+
+
 def test_jog_moves_the_stage_readout(page):
     page.wait_for_function("document.getElementById('stage-x').textContent !== '–'")
     before = float(page.inner_text("#stage-x"))

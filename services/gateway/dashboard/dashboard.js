@@ -75,6 +75,17 @@ function action(element, event, work) {
   });
 }
 
+// A button whose request is still out takes no second click (a double click on Teach or
+// Start would send two, and the gateway refuses the second: 409 teach_in_progress). Not
+// for Stop, which must always be pressable.
+function once(button, work) {
+  return async (e) => {
+    if (button.getAttribute("aria-busy") === "true") return;
+    button.setAttribute("aria-busy", "true");
+    try { await work(e); } finally { button.removeAttribute("aria-busy"); }
+  };
+}
+
 const fmt = (value, digits) => (value === null || value === undefined ? "–" : Number(value).toFixed(digits));
 
 function fmtDuration(seconds) {
@@ -597,11 +608,11 @@ action($("resume"), "click", async () => {
   pollStatus();
 });
 
-action($("teach-live"), "click", async () => {
+action($("teach-live"), "click", once($("teach-live"), async () => {
   const tilts = $("teach-tilts").checked ? "&tilts=true" : "";
   await api("POST", `/teach?frames=${Number($("teach-frames").value) || 1}${tilts}`);
   pollStatus();
-});
+}));
 
 action($("teach-file"), "change", async (e) => {
   const file = e.target.files[0];
@@ -642,12 +653,12 @@ action($("live-box"), "click", async (event) => {
 
 action($("clear-mask"), "click", async () => { state.mask = []; drawMask(); });
 
-action($("teach-mask"), "click", async () => {
+action($("teach-mask"), "click", once($("teach-mask"), async () => {
   await api("POST", "/teach/polygon", { polygon: state.mask });
   state.mask = [];
   drawMask();
   pollStatus();
-});
+}));
 
 function positionSettings() {
   return {
@@ -662,9 +673,9 @@ async function started(run) {
   plotRun(run.run_id).catch(() => {});
 }
 
-action($("start"), "click", async () => {
+action($("start"), "click", once($("start"), async () => {
   started(await api("POST", "/start", positionSettings()));
-});
+}));
 
 // -- stored targets -------------------------------------------------------------------
 function targetItem(target) {
@@ -692,7 +703,7 @@ function targetItem(target) {
   go.className = "small go";
   go.textContent = "Go";
   go.title = "Move to its stored pose, teach its reference, then position on the image (the Position panel's settings)";
-  action(go, "click", async () => started(await api("POST", `${path}/go`, { settings: positionSettings() })));
+  action(go, "click", once(go, async () => started(await api("POST", `${path}/go`, { settings: positionSettings() }))));
   const exported = document.createElement("a");
   exported.className = "export";
   exported.href = target.export_url || `${path}/export`;
