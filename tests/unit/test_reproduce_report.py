@@ -35,3 +35,25 @@ def test_the_summary_names_a_method_that_converges_more_often():
                       "sift": [0, 0], "orb": [0, 0]},
                      {"semservo": 2.0, "photometric": 0.4, "dis": 4.0, "farneback": 6.0, "sift": 70.0, "orb": 20.0})
     assert table4_summary(result).endswith("Converging more often than semservo: flow: DIS in case 1.")
+
+
+def test_progress_off_a_terminal_is_plain_lines_not_a_bar():
+    """In a log file a progress bar is a wall of carriage returns: there it is a line at
+    most every LINE_EVERY_S and one at the end."""
+    import io
+
+    from semservo.reproduce import Progress
+
+    log = io.StringIO()  # not a terminal
+    now = [0.0]
+    progress = Progress("table4", 4, stream=log)
+    progress.clock = lambda: now[0]
+    progress.started = progress.last_line = 0.0
+    for at, note in ((1.0, "optimal: converged"), (31.0, "noisy: converged"), (40.0, "unstable: failed"),
+                     (41.0, "mask: converged")):
+        now[0] = at
+        progress.step(note)
+    progress.close()
+    assert "\r" not in log.getvalue()
+    assert log.getvalue().splitlines() == ["table4: 2/4 after 31 s, about 31 s left (noisy: converged)",
+                                           "table4: 4/4 after 41 s, about 0 s left (mask: converged)"]

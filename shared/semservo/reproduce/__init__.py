@@ -32,7 +32,8 @@ Experiments (``--only`` takes these names):
 Results are kept per experiment in ``<out>/results/<name>.json``: a finished experiment is
 skipped when the command runs again (``--fresh`` redoes it), so a long run can be
 interrupted and resumed; ``time_to_target`` also keeps each trial as it finishes
-(``<out>/results/time_to_target.partial.jsonl``) and resumes mid-experiment. ``--quick`` runs a reduced version (fewer cases, trials and grid
+(``<out>/results/time_to_target.partial.jsonl``, removed once the experiment's result is
+written) and resumes mid-experiment. ``--quick`` runs a reduced version (fewer cases, trials and grid
 points) in a few minutes on 2 cores.
 """
 
@@ -92,20 +93,43 @@ def field_um(case: str) -> float:
 
 
 class Progress:
-    """A progress bar per experiment, with the time left (tqdm)."""
+    """A progress bar per experiment, with the time left (tqdm) on a terminal; elsewhere (a
+    log file, CI) a plain line at most every ``LINE_EVERY_S`` and at the end, not a bar's
+    carriage returns."""
 
-    def __init__(self, name: str, total: int, quiet: bool = False):
-        from tqdm import tqdm
+    #: Seconds between two progress lines when the output is not a terminal.
+    LINE_EVERY_S = 30.0
 
-        self.bar = tqdm(total=total, desc=f"{name:9s}", unit="trial", disable=quiet, dynamic_ncols=True,
-                        bar_format="{desc} {bar} {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}")
+    def __init__(self, name: str, total: int, quiet: bool = False, stream=None):
+        import sys
+        import time
+
+        self.name, self.total, self.done, self.quiet = name, total, 0, quiet
+        self.stream = stream or sys.stderr
+        self.clock = time.monotonic
+        self.started = self.last_line = self.clock()
+        self.bar = None
+        if not quiet and getattr(self.stream, "isatty", lambda: False)():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc=f"{name:9s}", unit="trial", dynamic_ncols=True, file=self.stream,
+                            bar_format="{desc} {bar} {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}")
 
     def step(self, note: str = "") -> None:
-        self.bar.set_postfix_str(note[:60])
-        self.bar.update(1)
+        self.done += 1
+        if self.bar is not None:
+            self.bar.set_postfix_str(note[:60])
+            self.bar.update(1)
+        elif not self.quiet and (self.clock() - self.last_line >= self.LINE_EVERY_S or self.done == self.total):
+            self.last_line = self.clock()
+            elapsed = self.last_line - self.started
+            left = elapsed / self.done * (self.total - self.done)
+            print(f"{self.name}: {self.done}/{self.total} after {elapsed:.0f} s, about {left:.0f} s left"
+                  + (f" ({note[:60]})" if note else ""), file=self.stream, flush=True)
 
     def close(self) -> None:
-        self.bar.close()
+        if self.bar is not None:
+            self.bar.close()
 
 
 # -- the experiments ------------------------------------------------------------------
@@ -461,6 +485,8 @@ def run(out: Path, *, quick: bool = False, only: list[str] | None = None, fresh:
         result.update(quick=quick, seconds=round(time.monotonic() - started, 1),
                       finished_at=time.strftime("%Y-%m-%d %H:%M:%S"))
         path.write_text(jsontext.dumps(result))
+        if "checkpoint" in extra:
+            extra["checkpoint"].unlink(missing_ok=True)  # its trials are in the result now
         say(f"{name}: done in {result['seconds']:.0f} s")
     return report.write(out, say=say)
 

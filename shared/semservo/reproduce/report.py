@@ -132,14 +132,16 @@ def table3_lines(result: dict) -> list[str]:
         if not trials:
             continue
         errors = np.abs([t["true_error_um"] for t in trials])
-        mean, std = errors.mean(axis=0), errors.std(axis=0)
+        mean = errors.mean(axis=0)
+        # One trial (--quick) has no spread to give: '–', not 0.0000.
+        std = errors.std(axis=0) if len(trials) > 1 else (None, None)
         measured = [t["measured_error_px"] for t in trials if t["measured_error_px"] is not None]
         rmse = [t["rmse"] for t in trials if "rmse" in t]
         psnr = [t["psnr_db"] for t in trials if "psnr_db" in t]
         ok = sum(t["outcome"] == "converged" for t in trials)
         paper = PAPER_TABLE3.get(case, (None,) * 6)
         lines.append(
-            f"| {CASE_NUMBERS[case]} {case} | {mean[0]:.3f}, {mean[1]:.3f} | {std[0]:.4f}, {std[1]:.4f} | "
+            f"| {CASE_NUMBERS[case]} {case} | {mean[0]:.3f}, {mean[1]:.3f} | {_fmt(std[0], 4)}, {_fmt(std[1], 4)} | "
             f"{_fmt(np.mean(measured) if measured else None, 3)} | {_fmt(np.mean(rmse) if rmse else None)} | "
             f"{_fmt(np.mean(psnr) if psnr else None)} | {ok}/{len(trials)} | {_fmt(paper[0])}, {_fmt(paper[1])} | "
             f"{_fmt(paper[2], 4)}, {_fmt(paper[3], 4)} | {_fmt(paper[4])}, {_fmt(paper[5])} |")
