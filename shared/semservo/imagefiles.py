@@ -8,8 +8,9 @@ tags (:mod:`semservo.sem_metadata`); semservo writes its own as a JSON
 
 Data bars, the strip of text and scale bar that SEM software saves under (or over) the
 image, are not sample, and the estimator must never register them. :func:`read_sem_image`
-crops them: the number of rows the metadata gives, else what :func:`find_data_bar`
-finds, else what the caller says (``data_bar=ROWS``, or ``0`` for none).
+crops them: by default (``data_bar="auto"``) the number of rows the metadata gives, else
+what :func:`find_data_bar` finds; a number the caller gives (``data_bar=ROWS``, or ``0``
+for none) replaces both.
 """
 
 from __future__ import annotations
