@@ -420,7 +420,10 @@ class StageCore:
             # Voltages from a copy of each model: a refused move must not change its state.
             volts = {axis: copy.copy(self.models[axis]).voltage_for(value) for axis, value in goal.items()}
             self._check_model_step(goal, volts)
-            self._check_voltages(volts, self.clock())
+            try:
+                self._check_voltages(volts, self.clock())
+            except Refused as refusal:
+                raise self._in_micrometres(refusal, goal, volts, here) from None
         except Refused:
             self.counters["refused"] += 1
             raise
@@ -429,6 +432,25 @@ class StageCore:
             self.models[axis].voltage_for(value)  # commit: position and branch direction
         result["positions_um"] = self.positions()
         return result
+
+    def _in_micrometres(self, refusal: Refused, goal: dict[str, float], volts: dict[str, float],
+                        here: dict[str, float]) -> Refused:
+        """A move refused for its voltage step, said in the unit it was asked in: how far
+        one command may move each axis from here (the step limit is in volts, the
+        request in micrometres; a user jogging 30 um learns 25 V is too much, not what is
+        not). Proportional: the model is near linear over one step."""
+        if refusal.code != "step_limit":
+            return refusal
+        largest = []
+        for axis, target in goal.items():
+            step_v = abs(volts[axis] - self.voltages[axis])
+            if step_v > self.limits.max_step_v:
+                moved_um = abs(target - here[axis])
+                largest.append(f"{axis} about {moved_um * self.limits.max_step_v / step_v:.1f} um")
+        if not largest:
+            return refusal
+        return Refused(refusal.code, f"{refusal.message}: one move may take {', '.join(largest)} from here "
+                                     "(move in pieces)", **refusal.extra)
 
     def set_voltages(self, volts: dict[str, float], *, owner: str | None = None) -> dict:
         """Raw voltages (calibration, the paper's homing), same limits as a move. The

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 import time
 
 import pytest
@@ -77,6 +78,20 @@ def test_refusals_name_the_rule_and_change_nothing(stage):
             call()
         assert refusal.value.code == code
     assert stage.voltages == before
+
+
+def test_a_jog_over_the_step_limit_says_the_largest_one_in_micrometres(stage):
+    """The request was in um; the refusal says how far one move may go from here (the
+    limit itself is in volts), and a move of that size is then taken."""
+    with pytest.raises(Refused) as refusal:
+        stage.move({"x": 25.0}, relative=True)
+    match = re.search(r"one move may take x about ([0-9.]+) um from here", refusal.value.message)
+    assert refusal.value.code == "step_limit" and match, refusal.value.message
+    largest_um = float(match.group(1))
+    assert 5.0 < largest_um < 25.0
+    start = stage.positions()["x"]
+    stage.move({"x": 0.9 * largest_um}, relative=True)
+    assert stage.positions()["x"] == pytest.approx(start + 0.9 * largest_um)
 
 
 def test_a_model_out_of_step_with_its_axis_is_refused_not_written(stage):
