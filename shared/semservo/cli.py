@@ -54,18 +54,40 @@ def _source_environment(args: argparse.Namespace) -> None:
         "SEMSERVO_FAKELAB__SAVE_FRAMES_DIR": args.watch_dir and args.sim_saves_frames
                                              and str(Path(args.watch_dir).resolve()),
         "SEMSERVO_FAKELAB__PRESET": args.preset,
-        "SEMSERVO_FAKELAB__SPEEDUP": args.speedup and str(args.speedup),
+        "SEMSERVO_FAKELAB__SPEEDUP": _text(args.speedup),
         "SEMSERVO_IMAGESERVER__REPLAY_GLOB": args.glob if not args.watch_dir else None,
         "SEMSERVO_IMAGESERVER__WATCH_GLOB": args.glob if args.watch_dir else None,
-        "SEMSERVO_IMAGESERVER__FPS": args.fps and str(args.fps),
+        "SEMSERVO_IMAGESERVER__FPS": _text(args.fps),
         "SEMSERVO_IMAGESERVER__LOOP": None if args.loop is None else str(args.loop).lower(),
-        "SEMSERVO_IMAGESERVER__MAGNIFICATION": args.magnification and str(args.magnification),
+        "SEMSERVO_IMAGESERVER__MAGNIFICATION": _text(args.magnification),
     }
     os.environ.update({key: value for key, value in overrides.items() if value})
     os.environ.update(sample_image.environment_from_arguments(args))
-    speedup = float(os.environ.get("SEMSERVO_FAKELAB__SPEEDUP") or 1.0)
-    if speedup != 1.0 and "SEMSERVO_STAGE__MAX_RATE_V_PER_S" not in os.environ:
+    try:
+        speedup = float(os.environ.get("SEMSERVO_FAKELAB__SPEEDUP") or 1.0)
+    except ValueError:
+        speedup = 1.0  # not a number: the settings refuse it by its own name
+    # A rate only from a speed-up that can be one: a bad one is refused by its own name,
+    # not as a stage rate the user never set.
+    if (math.isfinite(speedup) and speedup > 0 and speedup != 1.0
+            and "SEMSERVO_STAGE__MAX_RATE_V_PER_S" not in os.environ):
         os.environ["SEMSERVO_STAGE__MAX_RATE_V_PER_S"] = str(stage_rate_for(speedup))
+
+
+def _text(value: float | None) -> str | None:
+    """An option's value as a setting (None: not given; 0 is a value, not "unset")."""
+    return None if value is None else str(value)
+
+
+def settings_problems(error: pydantic.ValidationError) -> str:
+    """Every problem of the settings, each by the environment variable that sets it
+    (``SEMSERVO_FAKELAB__SPEEDUP: Input should be greater than 0``), not pydantic's dump."""
+    problems = []
+    for problem in error.errors():
+        name = "SEMSERVO_" + "__".join(str(part) for part in problem.get("loc", ())).upper()
+        given = problem.get("input")
+        problems.append(f"{name}{f' = {given!r}' if isinstance(given, (str, int, float)) else ''}: {problem['msg']}")
+    return "; ".join(problems)
 
 
 def _warn_unused_sample_options(command: str, settings: Settings) -> None:
@@ -97,8 +119,11 @@ def _sample_image_environment(command: str) -> bool:
     try:
         _warn_unused_sample_options(command, Settings())
         derived = sample_image.system_environment(Settings())
-    except (sample_image.SampleImageError, pydantic.ValidationError) as error:
+    except sample_image.SampleImageError as error:
         print(f"semservo {command}: sample image refused: {error}", file=sys.stderr)
+        return False
+    except pydantic.ValidationError as error:
+        print(f"semservo {command}: settings refused: {settings_problems(error)}", file=sys.stderr)
         return False
     for key, value in derived.items():
         os.environ.setdefault(key, value)
@@ -225,15 +250,53 @@ def _polygon(text: str) -> list[tuple[float, float]]:
     return points
 
 
-def _count(text: str) -> int:
-    """A positive count of things to print."""
+def _count(text: str, most: int | None = None) -> int:
+    """A positive count of things (at most ``most``)."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be 1 or more, got {value}")
+    if value < 1 or (most is not None and value > most):
+        raise argparse.ArgumentTypeError(f"must be 1{f'..{most}' if most else ' or more'}, got {value}")
     return value
+
+
+def _service_name(text: str) -> str:
+    """A service's name, refused with the list of names otherwise."""
+    names = [service.name for service in SERVICES]
+    if text not in names:
+        raise argparse.ArgumentTypeError(f"no service {text!r}; services: {', '.join(names)}")
+    return text
+
+
+def _teach_frames(text: str) -> int:
+    """Live frames averaged into a reference: 1..16, as the estimator takes."""
+    return _count(text, most=16)
+
+
+def _number(low: float = -math.inf, high: float = math.inf, *, above: bool = False):
+    """An option's type: a finite number from ``low`` (excluded when ``above``) to ``high``,
+    so a bad value is refused before anything is taught, moved or started."""
+    def number(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not math.isfinite(value) or value < low or (above and value == low) or value > high:
+            if math.isfinite(low) and math.isfinite(high) and not above:
+                bounds = f"from {low:g} to {high:g}"
+            else:
+                bounds = (f"over {low:g}" if above else f"at least {low:g}") if math.isfinite(low) else ""
+                if math.isfinite(high):
+                    bounds += (" and " if bounds else "") + f"at most {high:g}"
+            raise argparse.ArgumentTypeError(f"must be a finite number{' ' + bounds if bounds else ''}, got {text}")
+        return value
+    number.__name__ = "number"  # argparse names the type in its messages
+    return number
+
+
+_positive = _number(0, above=True)
+_finite = _number()
 
 
 def command_estimate(args: argparse.Namespace) -> int:
@@ -458,8 +521,26 @@ def command_motion(args: argparse.Namespace) -> int:
     finally:
         subscriber.close()
     if not received:
-        print("no motion estimates: is a reference taught? (semservo teach)", file=sys.stderr)
+        print(f"no motion estimates in {args.timeout:g} s: {_why_no_motion(settings)}", file=sys.stderr)
     return 0 if received else 1
+
+
+def _why_no_motion(settings: Settings) -> str:
+    """Why the estimator published nothing, as far as it says: down, nothing taught, or
+    taught but no frames reach it."""
+    control = ControlClient(connect(settings.estimator.host, settings.estimator.control_port),
+                            timeout_s=min(settings.request_timeout_s, 3.0), retries=0)
+    try:
+        report = control.request("report")
+    except ServiceUnavailable:
+        return f"the estimator does not answer on {control.endpoint}: is the system up? (semservo up)"
+    except CommandError as error:
+        return f"the estimator refused its report: {error.message}"
+    finally:
+        control.close()
+    if not report.get("reference"):
+        return "the estimator has no reference taught (semservo teach)"
+    return "the estimator has a reference but measured no frame: are frames flowing? (semservo frames)"
 
 
 def _run_binding(name: str, main, argv: list[str]) -> int:
@@ -663,6 +744,9 @@ def command_calibrate(args: argparse.Namespace) -> int:
 DEMO_OFFSET_UM = (6.0, -4.0)
 DEMO_PIXEL_UM = 0.1769
 DEMO_MAX_JOG_UM = 8.0
+#: --offset's bound: the gateway's for one move (semservo.api.MoveRequest); the stage's
+#: step limit may refuse less, and says how far one move may go.
+DEMO_MAX_OFFSET_UM = 100.0
 #: How long the demo waits for its run: x, y (and the turn) take seconds to a minute; five
 #: degrees of freedom wait on focus sweeps (tens of seconds each, one in two held back as
 #: scanned during a tilt move): on a real picture as the sample one run took 265 s, another
@@ -691,6 +775,7 @@ def command_demo(args: argparse.Namespace) -> int:
     launcher = None
     lab = Client(url, timeout=30)
     run_id, started_here = None, False
+    taught, displaced = None, None  # what the demo has done, said if a later step fails
     try:
         try:
             lab.status()
@@ -748,6 +833,7 @@ def command_demo(args: argparse.Namespace) -> int:
                       file=sys.stderr)
                 return 1
             raise
+        taught = reference.id
         print(f"1. taught reference {reference.id} (mean of {args.frames} live frames"
               + (f"; focus sweep of {reference.tilt['frames']} frames, {reference.tilt['kernels_used']} kernels "
                  "in focus somewhere)" if tilts else ")"))
@@ -761,6 +847,7 @@ def command_demo(args: argparse.Namespace) -> int:
                 offset = tuple(float(np.clip(value / DEMO_PIXEL_UM * pixel_nm / 1000, -DEMO_MAX_JOG_UM,
                                              DEMO_MAX_JOG_UM)) for value in DEMO_OFFSET_UM)
         lab.move(x_um=offset[0], y_um=offset[1])
+        displaced = f"({offset[0]:+.3g}, {offset[1]:+.3g}) um"
         in_pixels = f" = ({offset[0] * 1000 / pixel_nm:+.1f}, {offset[1] * 1000 / pixel_nm:+.1f}) px" if pixel_nm else ""
         print(f"2. displaced the stage by ({offset[0]:+.3g}, {offset[1]:+.3g}) um{in_pixels}, as an operator's "
               "joystick would")
@@ -770,6 +857,7 @@ def command_demo(args: argparse.Namespace) -> int:
             if tilts:
                 angles.update(tilt_x_deg=args.tilt[0], tilt_y_deg=args.tilt[1])
             lab.rotate(**angles)
+            displaced += " and turned by " + ", ".join(f"{value:+g} deg" for value in angles.values())
             dofs += ["gamma", "alpha", "beta"] if tilts else ["gamma"]
             print("   turned the sample by " + ", ".join(f"{value:+g} deg {name}" for name, value in zip(
                 ("gamma", "alpha", "beta"), (args.turn, *(args.tilt if tilts else ())))))
@@ -834,6 +922,11 @@ def command_demo(args: argparse.Namespace) -> int:
         return 1
     except SemservoError as error:
         print(f"demo failed: {error}", file=sys.stderr)
+        if run_id is None and displaced is not None:
+            print(f"   no run was started: the stage stays displaced by {displaced} from the view taught as "
+                  f"{taught}", file=sys.stderr)
+        elif run_id is None and taught is not None:
+            print(f"   nothing moved; the estimator keeps the reference {taught} this demo taught", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -875,25 +968,25 @@ def build_parser() -> argparse.ArgumentParser:
                              description="Start every service as a child process, wait until each is healthy, "
                                          "print what runs where, stream their logs, and stop them all on Ctrl-C.")
     up.add_argument("--check", action="store_true", help="exit after showing that frames flow (for scripts)")
-    up.add_argument("--frames", type=int, default=20, help="frames --check waits for (default 20)")
-    up.add_argument("--timeout", type=float, default=60.0,
+    up.add_argument("--frames", type=_count, default=20, help="frames --check waits for (default 20)")
+    up.add_argument("--timeout", type=_positive, default=60.0,
                     help="seconds to wait for health and for --check (default 60)")
     up.add_argument("--restart", action="store_true", help="restart a service that dies (with back-off)")
-    up.add_argument("--status-every", type=float, default=5.0, help="seconds between status lines")
+    up.add_argument("--status-every", type=_positive, default=5.0, help="seconds between status lines (default 5)")
     up.add_argument("--source", choices=["sim", "replay", "watch", "adapter"],
                     help="frames from the simulated SEM (default), a replay, a watched folder or a lab's adapter")
     up.add_argument("--preset", choices=sorted(PRESETS), metavar="PRESET",
                     help=f"simulated condition: {', '.join(PRESETS)} (default optimal; tilts: the small depth of "
                          "field the tilt measurement needs)")
-    up.add_argument("--speedup", type=float, help="simulated time runs this many times faster")
+    up.add_argument("--speedup", type=_positive, help="simulated time runs this many times faster (default 1)")
     up.add_argument("--replay-dir", help="replay this folder of frames instead (default folder: the 2013 recording)")
     up.add_argument("--glob", help="only files matching this pattern are frames, e.g. 'frame*' or '*.tif' (a replayed "
                                    "folder, and a watched one with --watch-dir)")
-    up.add_argument("--fps", type=float, help="replay frame rate")
+    up.add_argument("--fps", type=_positive, help="replay frame rate (default 10)")
     loop = up.add_mutually_exclusive_group()
     loop.add_argument("--loop", dest="loop", action="store_true", default=None, help="replay in a loop (default)")
     loop.add_argument("--once", dest="loop", action="store_false", help="replay once")
-    up.add_argument("--magnification", type=float, help="magnification of the replayed frames")
+    up.add_argument("--magnification", type=_positive, help="magnification of the replayed frames")
     up.add_argument("--watch-dir", help="frames from the folder an SEM's software saves into: each new file is "
                                         "published once it is complete (see docs/instruments.md)")
     sample_image.add_arguments(up)
@@ -915,9 +1008,13 @@ def build_parser() -> argparse.ArgumentParser:
     fakelab.add_argument("fakelab_args", nargs=argparse.REMAINDER)
     fakelab.set_defaults(handler=command_fakelab)
 
-    frames = commands.add_parser("frames", help="watch a frame stream and print each header")
+    frames = commands.add_parser(
+        "frames", help="watch a frame stream and print each header",
+        description="Subscribe to the image server's frames (or another frame stream) and print each frame's "
+                    "header: sequence number, size, pixel size, dwell, working distance, source times. The way to "
+                    "check what a real instrument's frames carry.")
     frames.add_argument("--count", type=_count, default=10, help="frames to print (default 10)")
-    frames.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
+    frames.add_argument("--timeout", type=_positive, default=30.0, help="give up after this many seconds (default 30)")
     frames.add_argument("--endpoint", help="frames address (default: the image server's)")
     frames.set_defaults(handler=command_frames)
 
@@ -954,8 +1051,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "The estimator's reference is the one the gateway, the dashboard and every run use, whoever "
                     "taught it.")
     source = teach.add_mutually_exclusive_group()
-    source.add_argument("--frames", type=int, default=1, help="average the last N live frames, 1..16 (default 1; "
-                                                              "the stage must stand still)")
+    source.add_argument("--frames", type=_teach_frames, default=1,
+                        help="average the last N live frames, 1..16 (default 1; the stage must stand still)")
     source.add_argument("--image", help="PNG/TIFF file to use as the reference")
     source.add_argument("--polygon", type=_polygon, metavar="'X,Y X,Y ...'",
                         help="corner points of a mask on the live frame")
@@ -967,9 +1064,13 @@ def build_parser() -> argparse.ArgumentParser:
                             "a teach during a run")
     teach.set_defaults(handler=command_teach)
 
-    motion = commands.add_parser("motion", help="watch the estimator's motion stream")
+    motion = commands.add_parser(
+        "motion", help="watch the estimator's motion stream",
+        description="Subscribe to the estimator's motion estimates (each frame against the taught reference) and "
+                    "print them: dx, dy (px, content moved right/down), rotation (degrees), confidence, SNR and the "
+                    "estimation time. Needs a running system with a taught reference (semservo teach).")
     motion.add_argument("--count", type=_count, default=10, help="estimates to print (default 10)")
-    motion.add_argument("--timeout", type=float, default=30.0, help="give up after this many seconds")
+    motion.add_argument("--timeout", type=_positive, default=30.0, help="give up after this many seconds (default 30)")
     motion.set_defaults(handler=command_motion)
 
     calibrate = commands.add_parser(
@@ -982,16 +1083,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "the simulated lab the true displacement is read too and the fit compared with it. Use "
                     "a magnification at which the whole stroke moves the image by less than its width.")
     calibrate.add_argument("--axis", choices=["x", "y"], default="x", help="stage axis (default x)")
-    calibrate.add_argument("--low", type=float, default=-19.0, help="sweep from this voltage (default -19)")
-    calibrate.add_argument("--high", type=float, default=96.0,
+    calibrate.add_argument("--low", type=_finite, default=-19.0, help="sweep from this voltage (default -19)")
+    calibrate.add_argument("--high", type=_finite, default=96.0,
                            help="up to this voltage (default 96: the lab's model covers -19..96 V, 0..100 um)")
-    calibrate.add_argument("--step", type=float, default=2.5, help="volts per step (default 2.5)")
-    calibrate.add_argument("--settle", type=float, default=0.3,
+    calibrate.add_argument("--step", type=_positive, default=2.5, help="volts per step (default 2.5)")
+    calibrate.add_argument("--settle", type=_number(0), default=0.3,
                            help="seconds to wait after each step before a frame counts (default 0.3)")
-    calibrate.add_argument("--keyframe-px", type=float, default=32.0,
+    calibrate.add_argument("--keyframe-px", type=_positive, default=32.0,
                            help="start a new key frame after the image moved this far (default 32)")
-    calibrate.add_argument("--frame-timeout", type=float, default=30.0,
-                           help="give up when no new frame comes within this many seconds")
+    calibrate.add_argument("--frame-timeout", type=_positive, default=30.0,
+                           help="give up when no new frame comes within this many seconds (default 30)")
     calibrate.add_argument("--no-truth", action="store_true", help="do not ask the simulated lab for the truth")
     calibrate.add_argument("--out", help="model file to write (default calibration-AXIS.json; plot beside it)")
     calibrate.set_defaults(handler=command_calibrate)
@@ -1003,10 +1104,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "hardware) the true final error, with the path of the run's report. Uses the running "
                     "system, or starts one on simulated hardware and stops it afterwards.")
     demo.add_argument("--url", help="gateway address (default http://127.0.0.1:HTTP_PORT)")
-    demo.add_argument("--offset", type=float, nargs=2, metavar=("X_UM", "Y_UM"),
+    demo.add_argument("--offset", type=_number(-DEMO_MAX_OFFSET_UM, DEMO_MAX_OFFSET_UM), nargs=2,
+                      metavar=("X_UM", "Y_UM"),
                       help="how far to displace the stage (default 6 -4 um: 34, -23 px at x1200; with a sample image "
                            "the same pixels at its scale, at most 8 um a side)")
-    demo.add_argument("--tolerance", type=float, default=0.1, help="converged under this error, px (default 0.1)")
+    demo.add_argument("--tolerance", type=_positive, default=0.1, help="converged under this error, px (default 0.1)")
     demo.add_argument("--dof", choices=["xy", "rotation", "all"], default="xy",
                       help="degrees of freedom: xy (default), rotation (x, y and the turn about the beam) or all five "
                            "(x, y, gamma and the tilts alpha, beta, from focus sweeps; a demo that starts the system "
@@ -1014,15 +1116,17 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--law", choices=["position", "paper"], default="position",
                       help="the law: position-based (default: a few moves, and one tilt move per measurement) or the "
                            "paper's (eq. 30-37; see the README's time-to-target table)")
-    demo.add_argument("--turn", type=float, default=3.0, help="with --dof rotation/all: turn about the beam, degrees")
-    demo.add_argument("--tilt", type=float, nargs=2, default=(2.0, -1.5), metavar=("ALPHA", "BETA"),
+    demo.add_argument("--turn", type=_finite, default=3.0, help="with --dof rotation/all: turn about the beam, degrees")
+    demo.add_argument("--tilt", type=_finite, nargs=2, default=(2.0, -1.5), metavar=("ALPHA", "BETA"),
                       help="with --dof all: tilts about x and y, degrees (default 2 -1.5)")
-    demo.add_argument("--frames", type=int, default=4, help="live frames averaged into the reference (default 4)")
-    demo.add_argument("--settle", type=float, default=1.0, help="seconds to wait after the jog (default 1)")
-    demo.add_argument("--timeout", type=float, default=None,
+    demo.add_argument("--frames", type=_teach_frames, default=4,
+                      help="live frames averaged into the reference (default 4)")
+    demo.add_argument("--settle", type=_number(0), default=1.0, help="seconds to wait after the jog (default 1)")
+    demo.add_argument("--timeout", type=_positive, default=None,
                       help=f"give up on the run after this many seconds (default {DEMO_TIMEOUT_S:g}; "
                            f"{DEMO_TIMEOUT_5DOF_S:g} with --dof all, whose focus sweeps take tens of seconds each)")
-    demo.add_argument("--speedup", type=float, help="when the demo starts the system: simulated time this much faster")
+    demo.add_argument("--speedup", type=_positive,
+                      help="when the demo starts the system: simulated time this much faster (default 1)")
     demo.add_argument("--verbose", action="store_true", help="show the services' logs when the demo starts them")
     demo.add_argument("--resume", action="store_true", help="let a stage an operator stopped move again first (a "
                                                             "stop holds until someone resumes, across restarts too)")
@@ -1052,8 +1156,12 @@ def build_parser() -> argparse.ArgumentParser:
     stop.add_argument("--reason", default="stopped from the command line", help="said in the run's record")
     stop.set_defaults(handler=command_stop)
 
-    health = commands.add_parser("health", help="ask services for their health")
-    health.add_argument("names", nargs="*", help="services (default: all)")
+    health = commands.add_parser(
+        "health", help="ask services for their health",
+        description="Ask each service over its control socket for its health: up or not, its endpoints and its "
+                    "counters (requests, refusals as rejected_<rule>, ...). Exit status 1 if any does not answer.")
+    health.add_argument("names", nargs="*", type=_service_name, metavar="NAME",
+                        help=f"services (default: all): {', '.join(s.name for s in SERVICES)}")
     health.set_defaults(handler=command_health)
 
     keys = commands.add_parser(

@@ -287,7 +287,8 @@ def _checked(call: "Call") -> "Call":
 
 
 def _unreachable(client, error: Exception) -> SemservoError:
-    return SemservoError(0, "unreachable", f"{client.http.base_url}: {error}")
+    return SemservoError(0, "unreachable", f"no gateway answers at {client.http.base_url} ({error}): is the system "
+                                           "up (./dev up)? Another address: Client(url) or $SEMSERVO_URL")
 
 
 def _answer(response: httpx.Response):

@@ -50,3 +50,38 @@ def test_the_maps_settings_table_gives_the_defaults_the_code_has(setting, defaul
     names = re.findall(r"`(SEMSERVO_\w+|__\w+)`", row.split("|")[1])
     values = [value.strip().strip("`") for value in row.split("|")[2].split(",")]
     assert values[names.index(setting)] == default, row
+
+
+@pytest.mark.parametrize("arguments, said", [
+    (["demo", "--tolerance", "-1"], "--tolerance: must be a finite number over 0, got -1"),
+    (["demo", "--offset", "nan", "0"], "--offset: must be a finite number from -100 to 100, got nan"),
+    (["demo", "--offset", "500", "0"], "got 500"),
+    (["demo", "--frames", "17"], "--frames: must be 1..16, got 17"),
+    (["demo", "--speedup", "0"], "--speedup: must be a finite number over 0, got 0"),
+    (["up", "--speedup", "0"], "--speedup: must be a finite number over 0"),
+    (["up", "--fps", "0"], "--fps: must be a finite number over 0"),
+    (["up", "--check", "--frames", "0"], "--frames: must be 1 or more, got 0"),
+    (["health", "nosuch"], "no service 'nosuch'; services: fakelab, imageserver"),
+    (["calibrate", "--step", "inf"], "--step: must be a finite number over 0, got inf"),
+])
+def test_a_bad_value_is_refused_before_anything_is_taught_moved_or_started(capsys, arguments, said):
+    """The demo taught and jogged before the gateway refused its tolerance, leaving the
+    stage displaced; `up --speedup 0` ran at x1 and `--fps 0` at 10 fps without a word;
+    `health nosuch` ended in a traceback. Each is now argparse's error, before any step."""
+    with pytest.raises(SystemExit) as exit_:
+        cli.build_parser().parse_args(arguments)
+    assert exit_.value.code == 2
+    assert said in " ".join(capsys.readouterr().err.split())
+
+
+def test_a_bad_setting_is_named_by_its_variable_not_as_a_sample_image(monkeypatch, capsys):
+    """A speed-up set to -5 was reported as 'sample image refused' with pydantic's dump,
+    naming the stage's rate the user never set."""
+    monkeypatch.setattr(os, "environ", {key: value for key, value in os.environ.items()
+                                        if not key.startswith("SEMSERVO_")} | {"SEMSERVO_FAKELAB__SPEEDUP": "-5"})
+    args = cli.build_parser().parse_args(["up"])
+    cli._source_environment(args)
+    assert not cli._sample_image_environment("up")
+    said = capsys.readouterr().err
+    assert "settings refused: SEMSERVO_FAKELAB__SPEEDUP = '-5': Input should be greater than 0" in said
+    assert "sample image" not in said and "MAX_RATE" not in said and "errors.pydantic.dev" not in said
