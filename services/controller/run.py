@@ -414,9 +414,10 @@ def measure(run: Run, estimate: MotionEstimate, *, new_sweep: bool = False) -> M
         # deviation added, within tolerance (the last frames measured poses left behind);
         # its estimate is the error the run reports (status, records).
         within = run.law.converged and within_tolerance(run, 0.0, 0.0, 0.0)
-        estimated = run.law.planar_estimate()[0]
-        if math.isfinite(estimated):
-            mean = (estimated, 0.0, mean_turn)
+        estimated, turn = run.law.planar_estimate()[0], run.law.turn_estimate()[0]
+        if math.isfinite(estimated) or math.isfinite(turn):
+            mean = (estimated if math.isfinite(estimated) else mean_size, 0.0,
+                    turn if math.isfinite(turn) else mean_turn)
     if run.tilts is None or run.tilts.last_error is not None:
         run.progress.update(normalized_error(run, mean), new_sweep)
     return Measurement(math.hypot(estimate.dx_px, estimate.dy_px), mean, within, servoes_planar(settings.dofs))
@@ -459,8 +460,14 @@ def converged_reason(run: Run, measurement: Measurement) -> str:
     elif planar_axes:
         said.append(f"mean error of the last {len(run.recent)} fresh frames {measurement.mean_error_px:.3f} px{named}, "
                     f"under {settings.tolerance_px:g} px")
-    if "rotation" in dofs:
-        said.append(f"the turn's mean error {measurement.mean[2]:.3f} deg, under {settings.tolerance_deg:g} deg")
+    turn, spread = run.law.turn_estimate() if law_judges_convergence(run) else (math.nan, math.nan)
+    if "rotation" in dofs and math.isfinite(turn):
+        said.append(f"the position law's turn {turn:.3f} deg (one standard deviation {spread:.3f} deg) within "
+                    f"{settings.tolerance_deg:g} deg")
+    elif "rotation" in dofs:
+        said.append(f"the turn's mean error over the last {len(run.recent)} fresh frames "
+                    f"{measurement.mean[2]:.3f} deg, "
+                    f"under {settings.tolerance_deg:g} deg")
     if run.tilts is not None and run.tilts.within:
         said.append("tilts " + ", ".join(f"{dof} {value:+.3f}" for dof, value in run.tilts.within.items())
                     + f" deg, within {settings.tolerance_tilt_deg:g} deg")

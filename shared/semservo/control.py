@@ -1112,6 +1112,15 @@ class PositionLaw:
         position, spread = self._forecast(None)
         return self._norms(position), self._norms(spread) / math.sqrt(max(sum(~self._rotation), 1))
 
+    def turn_estimate(self) -> tuple[float, float]:
+        """The turn about the beam as the law estimates it (|degrees|) and its spread (one
+        standard deviation), at the last frame: what its convergence judges the turn on;
+        (nan, nan) before the first frame, and for a law that servoes no turn."""
+        if self.state is None or not self._rotation.any():
+            return math.nan, math.nan
+        position, spread = self._forecast(None)
+        return self._norms(position, rotation=True), self._norms(spread, rotation=True)
+
     def _forecast(self, at_s: float | None) -> tuple[np.ndarray, np.ndarray]:
         """The error predicted at ``at_s`` (drift and the last move's creep) and its
         spread, per DOF."""

@@ -317,11 +317,31 @@ def test_a_run_that_leaves_x_and_y_alone_never_reports_a_translation_error_it_di
         assert measurement.mean_error_px is None
         verdict = judge(run, measurement)
     assert verdict.ending == "converged"
-    assert "0.000 px" not in verdict.reason and "turn's mean error 0.010 deg" in verdict.reason
+    assert "0.000 px" not in verdict.reason
+    assert "turn's mean error over the last 2 fresh frames 0.010 deg" in verdict.reason
     assert "not servoed: x, y (the view is +20.00 px in x, -15.00 px in y off)" in verdict.reason
     turning = PositionLaw(("rotation",))
     turning.step(20.0, -15.0, 0.5, 100.0, 1.0, frame_interval_s=(0.0, 0.5), now_s=0.6, scan_time_s=0.5)
     assert all(math.isnan(value) for value in turning.planar_estimate()), "it estimates no planar error"
+
+
+def test_a_converged_position_law_run_says_the_turn_it_judged_not_the_frames_mean():
+    """The position law judges the turn on its own estimate: the reason gives that, not the
+    mean over the last frames, one of them from before the correction (a demo reported
+    'the turn's mean error 0.147 deg, under 0.05 deg' with the true turn 0.025)."""
+    run = make_run(dofs=["x", "y", "rotation"], converge_frames=3, tolerance_deg=0.05)
+    run.law = PositionLaw(("x", "y", "rotation"), tolerance_px=0.1, tolerance_deg=0.05)
+    for frame in range(12):
+        start = frame * 0.6
+        run.law.step(0.01, -0.01, -0.002, 70.0, frame_interval_s=(start, start + 0.36), now_s=start + 0.4)
+    assert run.law.converged
+    verdict = None
+    for seq, turn in enumerate((0.44, -0.002, -0.002), 1):  # the first scanned before the turn's correction
+        verdict = judge(run, measure(run, estimate(0.01, -0.01, seq=seq, rotation_deg=turn)))
+    assert verdict is not None and verdict.ending == "converged"
+    judged_turn = run.law.turn_estimate()[0]
+    assert judged_turn < 0.05
+    assert f"the position law's turn {judged_turn:.3f} deg" in verdict.reason and "0.147" not in verdict.reason
 
 
 def test_a_run_along_x_alone_judges_x_and_says_how_far_off_y_is():
