@@ -31,7 +31,10 @@ with Client() as lab:
         data = event["data"]
         if event["kind"] == "iteration" and data.get("error_px") is not None:
             worst = max(worst, data["error_px"])
-            print(f"iteration {data['iteration']:4d}: error {data['error_px']:.3f} px")
+            # One event per fresh frame; the iteration counts moves, so a hold that needs
+            # none repeats it: the frame and what the run did tell the lines apart.
+            print(f"frame {data['seq']:6d} (move {data['iteration']:3d}): error {data['error_px']:.3f} px, "
+                  f"{data['action']}")
         if (event["kind"] in ("hello", "status") and data.get("run_id") == run.run_id
                 and data.get("state") in FINISHED):
             ended = f"{data['state']}: {data.get('reason') or 'no reason given'}"

@@ -47,6 +47,13 @@ def table4_lines(result: dict) -> list[str]:
     return lines
 
 
+def _span(values, spec: str) -> str:
+    """``low-high`` of ``values`` in ``spec``, or the one value when they are all alike
+    (one trial read "0-0 of 1 trials")."""
+    low, high = format(min(values), spec), format(max(values), spec)
+    return low if low == high else f"{low}-{high}"
+
+
 def table4_summary(result: dict) -> str:
     """Where semservo loses and where it does not, read from the table (a sentence
     written once went stale when the table was re-run)."""
@@ -70,13 +77,13 @@ def table4_summary(result: dict) -> str:
         counts = [successes(method, case) for case in cases]
         matched = [case for case, count in zip(cases, counts) if count >= ours[case]]
         if max(ratios) < 1:
-            sentences.append(f"{label} computes less per iteration ({min(ratios):.2f}-{max(ratios):.2f} x "
-                             f"semservo's) but reaches the tolerance in {min(counts)}-{max(counts)} of "
+            sentences.append(f"{label} computes less per iteration ({_span(ratios, '.2f')} x "
+                             f"semservo's) but reaches the tolerance in {_span(counts, 'd')} of "
                              f"{result['trials']} trials per case"
                              + (f", as often as semservo in {case_list(matched)} only" if matched else ""))
         elif matched:
             sentences.append(f"{label} matches semservo's successes in {case_list(matched)} at "
-                             f"{min(ratios):.1f}-{max(ratios):.1f} x its computation")
+                             f"{_span(ratios, '.1f')} x its computation")
     more = [f"{methods.LABELS[method]} in {case_list(better)}" for method in methods.METHODS[1:]
             if (better := [case for case in cases if successes(method, case) > ours[case]])]
     return ("Where semservo loses or ties (read from the table): " + "; ".join(sentences) + ". "
