@@ -267,6 +267,10 @@ class StageCore:
         if self.link == "connected":
             self.counters["link_lost"] += 1
             log.error("serial link lost: %s", reason)
+        elif reason != self.last_error:
+            # Never connected, or a new reason: said once, not only in health (a stage
+            # on a missing /dev/ttyUSB0 logged "ready" and nothing else).
+            log.warning("serial link not up: %s; retrying with back-off", reason)
         self.link = "lost"
         self.last_error = reason
         delay = RECONNECT_BACKOFF_S[min(self.attempts, len(RECONNECT_BACKOFF_S) - 1)]

@@ -20,6 +20,18 @@ import serial
 from semservo import nv40
 from semservo.instruments import LinkError, LogEntry
 
+try:
+    import termios
+
+    _TERMINAL_ERRORS: tuple[type[BaseException], ...] = (termios.error,)
+except ImportError:  # not POSIX: pyserial raises its own
+    _TERMINAL_ERRORS = ()
+
+#: What a port raises when its device goes away: pyserial's error, the OS's, and termios's
+#: (a pulled USB adapter or a closed pseudo-terminal fails tcflush with EIO as a
+#: termios.error, which is neither, and once took the whole stage service down).
+LINK_FAILURES: tuple[type[BaseException], ...] = (serial.SerialException, OSError, *_TERMINAL_ERRORS)
+
 __all__ = ["LinkError", "LogEntry", "NV403Driver"]
 
 
@@ -48,12 +60,15 @@ class NV403Driver:
                 url, baudrate=nv40.BAUD_RATE, bytesize=serial.EIGHTBITS, parity=serial.PARITY_NONE,
                 stopbits=serial.STOPBITS_ONE, xonxoff=False, timeout=0.02,
             )
-        except (serial.SerialException, ValueError, OSError) as error:
+        except (*LINK_FAILURES, ValueError) as error:
             raise LinkError(f"cannot open {url}: {error}") from None
         return cls(port, **options)
 
     def close(self) -> None:
-        self.port.close()
+        try:
+            self.port.close()
+        except LINK_FAILURES:
+            pass  # a port whose device went away is closed as far as it can be
 
     # -- transactions ---------------------------------------------------------------
     def _record(self, direction: str, text: str) -> None:
@@ -98,7 +113,7 @@ class NV403Driver:
                 self.port.write(command)
                 self._record("sent", command.decode(nv40.ENCODING).strip())
                 lines = self._read_reply(expect_lines)
-            except (serial.SerialException, OSError) as error:
+            except LINK_FAILURES as error:
                 raise LinkError(f"serial link failed: {error}") from None
         for line in lines:
             nv40.parse_reply(line)  # raises on ErrorCode / ERROR
@@ -122,7 +137,7 @@ class NV403Driver:
                 prompt = b""
                 while time.monotonic() < deadline and not prompt.endswith(b">"):
                     prompt += self.port.read(self.port.in_waiting or 1)
-            except (serial.SerialException, OSError) as error:
+            except LINK_FAILURES as error:
                 raise LinkError(f"serial link failed: {error}") from None
         if not prompt.endswith(b">"):
             raise LinkError("no prompt from the amplifier: is it an NV 40/3 and switched on?")

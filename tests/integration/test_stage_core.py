@@ -80,6 +80,29 @@ def test_refusals_name_the_rule_and_change_nothing(stage):
     assert stage.voltages == before
 
 
+def test_a_pseudo_terminal_that_goes_away_is_a_lost_link_not_a_crash(link):
+    """The emulator killed under a stage on a pseudo-terminal (as a USB adapter pulled
+    from /dev/ttyUSB0): tcflush fails with EIO as a termios.error, neither pyserial's
+    error nor OSError, and took the stage service down. Now: link_lost, a move refused
+    with the reason, polls go on."""
+    _, pty = link
+    clock = FakeClock()
+    core = StageCore(pty.path, limits=StageLimits(max_rate_v_per_s=1e6), clock=clock)
+    try:
+        assert core.connect()
+        pty.stop()  # the device end of the line is gone
+        clock.now += 5.0  # past the read-back interval
+        for _ in range(3):
+            core.poll()
+            clock.now += 1.0
+        assert core.link == "lost" and core.counters["link_lost"] == 1
+        with pytest.raises(Refused) as refusal:
+            core.move({"x": 0.5}, relative=True)
+        assert refusal.value.code == "link_lost"
+    finally:
+        core.close()
+
+
 def test_a_jog_over_the_step_limit_says_the_largest_one_in_micrometres(stage):
     """The request was in um; the refusal says how far one move may go from here (the
     limit itself is in volts), and a move of that size is then taken."""
