@@ -36,6 +36,9 @@ from semservo.wire import Frame
 
 #: The lab fitted its polynomials to this order (V = p1 d^4 + ... + p5).
 MODEL_ORDER = 4
+#: A fit whose residual exceeds this share of the stroke is no model (the lab's loop fits
+#: to well under 1 %; a sweep whose frames lagged their moves read 87 um over a 6.7 um stroke).
+MAX_RESIDUAL_SHARE = 0.05
 
 
 class CalibrationError(RuntimeError):
@@ -140,6 +143,16 @@ class CalibrationResult:
             summary["true_error_um"] = self.true_error_um
         return summary
 
+    def fit_problem(self) -> str | None:
+        """Why the fit cannot be trusted as a model, or None: a residual over
+        :data:`MAX_RESIDUAL_SHARE` of the stroke means the frames did not measure the steps
+        (frames scanned before their move, a scene lost between key frames)."""
+        if self.stroke_um <= 0 or self.residual_um > MAX_RESIDUAL_SHARE * self.stroke_um:
+            return (f"the fit's residual ({self.residual_um * 1000:.0f} nm) is over {MAX_RESIDUAL_SHARE:.0%} of the "
+                    f"stroke ({self.stroke_um:.3f} um): the frames did not measure the steps (frames scanned before "
+                    "their move, or a scene lost between key frames)")
+        return None
+
     def save(self, path: str | Path) -> Path:
         """The model as :func:`semservo.stage_model.load_model` reads it, with the sweep
         kept beside it (``calibration``) so a fit can be checked or redone later."""
@@ -192,7 +205,9 @@ class Calibrator:
     ``next_frame``: ``next_frame(after_ns)`` returns the first frame whose scan started
     after ``after_ns`` (``time.time_ns`` clock), or raises :class:`CalibrationError`.
     ``truth``: optional, ``truth(frame)`` gives the true displacement of the axis (um)
-    while the frame was scanned (the simulator knows it).
+    while the frame was scanned (the simulator knows it), or None where it cannot tell.
+    ``started_v`` and ``last_v``: where the axis was before the sweep and the last voltage
+    set, for a caller to say where a failed sweep left it.
     """
 
     stage: Port
@@ -204,14 +219,18 @@ class Calibrator:
     min_confidence: float = 0.3
     truth: Callable[[Frame], float] | None = None
     progress: Callable[[SweepPoint, int, int], None] | None = None
+    started_v: float | None = None
+    last_v: float | None = None
 
     def _set(self, voltage: float) -> int:
         self.stage.call(stage_protocol.SET_VOLTAGES, voltages={self.axis: voltage}, owner="calibrate")
+        self.last_v = voltage
         return time.time_ns()
 
     def _approach(self, target_v: float, step_v: float) -> None:
         """Walk to the sweep's start in steps the stage's step and rate limits allow."""
         voltage = float(self.stage.call(stage_protocol.STATE).voltages[self.axis])
+        self.started_v = self.last_v = voltage
         while abs(target_v - voltage) > 1e-9:
             voltage += float(np.clip(target_v - voltage, -step_v, step_v))
             self._set(voltage)
@@ -247,9 +266,8 @@ class Calibrator:
                 raise CalibrationError("the frames carry no pixel size, so image motion cannot be measured in "
                                        "micrometres: set SEMSERVO_IMAGESERVER__PIXEL_SIZE_NM")
             along, across = self._moved_um(content[0], content[1], frame.header.pixel_size_nm)
-            true = None
-            if self.truth is not None:
-                true = self.truth(frame)
+            true = self.truth(frame) if self.truth is not None else None
+            if true is not None:
                 origin_true = true if origin_true is None else origin_true
                 true -= origin_true
             point = SweepPoint(voltage, direction, along, across, confidence, frame.header.seq, true)
@@ -263,7 +281,7 @@ class Calibrator:
         measured = np.array([p.displacement_um for p in points])
         result = CalibrationResult(self.axis, points, model, loop_width(points), fit_residual_um(model, points),
                                    float(measured.max() - measured.min()))
-        if points[0].true_displacement_um is not None:
+        if all(point.true_displacement_um is not None for point in points):
             errors = np.abs(measured - np.array([p.true_displacement_um for p in points]))
             result.true_loop_width = loop_width(points, "true_displacement_um")
             result.true_error_um = {"mean": round(float(errors.mean()), 4), "max": round(float(errors.max()), 4)}

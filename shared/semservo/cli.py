@@ -685,8 +685,17 @@ def calibration_ports(settings: Settings, *, frame_timeout_s: float = 30.0, trut
 
     def true_displacement(axis: str):
         channel_key = f"{axis}_um"
+        untimed = []
 
-        def truth_of(frame) -> float:
+        def truth_of(frame) -> float | None:
+            # Frames without the simulator's scan times (a watched folder's files, an
+            # adapter's) cannot be matched to its pose: no truth, said once.
+            if frame.header.source_interval_s is None:
+                if not untimed:
+                    untimed.append(frame.header.seq)
+                    print("the simulated lab answers, but the frames carry no scan times to ask it the truth by "
+                          "(a watched folder's or an adapter's): calibrating without the truth", flush=True)
+                return None
             return float(fakelab.request("pose", interval_s=list(frame.header.source_interval_s))[channel_key])
 
         return truth_of
@@ -715,16 +724,25 @@ def command_calibrate(args: argparse.Namespace) -> int:
     calibrator = Calibrator(stage, next_frame, axis=args.axis, camera=config.camera_to_stage(),
                             settle_s=args.settle, keyframe_px=args.keyframe_px,
                             truth=truth(args.axis) if truth else None, progress=progress)
+    def left_at() -> str:
+        if calibrator.last_v is None or calibrator.started_v is None:
+            return ""
+        return f"; the {args.axis} axis is left at {calibrator.last_v:.2f} V (it was at {calibrator.started_v:.2f} V)"
+
     try:
         result = calibrator.run(args.low, args.high, args.step)
     except (CalibrationError, CommandError, ServiceUnavailable, ValueError) as error:
-        print(f"calibration failed: {error}", file=sys.stderr)
+        print(f"calibration failed: {error}{left_at()}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("interrupted: nothing written", file=sys.stderr)
+        print(f"interrupted: nothing written{left_at()}", file=sys.stderr)
         return 130
     finally:
         close()
+    problem = result.fit_problem()
+    if problem is not None:
+        print(f"calibration failed: {problem}; no model written{left_at()}", file=sys.stderr)
+        return 1
     out = Path(args.out or f"calibration-{args.axis}.json")
     result.save(out)
     plot = result.plot(out.with_suffix(".png"))

@@ -61,3 +61,22 @@ def test_loop_width_of_a_stage_that_did_not_move_is_an_error():
 def test_fit_needs_enough_points_per_branch():
     with pytest.raises(ValueError, match="more than 4 points"):
         fit_branches(points_on(lambda v: v, lambda v: v, 0.0, 10.0, 5.0))
+
+
+def test_a_fit_the_frames_did_not_measure_is_no_model_and_partial_truth_is_none():
+    """A watched folder's frames that lagged their moves read displacements that no loop
+    explains (87 um of residual over a 6.7 um stroke, and the model was written); and
+    frames the simulator cannot time give no truth, which the result must not half-use."""
+    from semservo.calibration import Calibrator
+
+    increasing, decreasing = TRITOR_POLYNOMIALS[("x", "increasing")], TRITOR_POLYNOMIALS[("x", "decreasing")]
+    calibrator = Calibrator(stage=None, next_frame=None)
+    good = calibrator.result(points_on(inverse(increasing), inverse(decreasing)))
+    assert good.fit_problem() is None and good.true_loop_width is None
+    scrambled = np.random.default_rng(3).permutation([p.displacement_um for p in points_on(
+        inverse(increasing), inverse(decreasing))])
+    lagged = [SweepPoint(p.voltage, p.direction, float(d), 0.0, 1.0, p.frame_seq, None if i % 2 else 1.0)
+              for i, (p, d) in enumerate(zip(points_on(inverse(increasing), inverse(decreasing)), scrambled))]
+    bad = calibrator.result(lagged)
+    assert "the frames did not measure the steps" in bad.fit_problem()
+    assert bad.true_loop_width is None and bad.true_error_um is None
