@@ -364,6 +364,11 @@ class GatewayCore:
             return None, "no true pose was recorded when the reference was taught", False
         if "unknown" in taught:
             return None, taught["unknown"], False
+        lab_health = self._health_cache[1].get("fakelab")
+        if lab_health is not None and not lab_health["up"]:
+            # Known down from the health just asked: not a request timeout inside every
+            # /status (the reconcile asks each second; it took /status to 15-27 s).
+            return None, f"the simulated lab is down ({lab_health['last_error']}): asked again when it answers", True
         try:
             pose = self.ports["fakelab"].call(fakelab_protocol.POSE, interval_s=[scans[0][0], scans[-1][1]])
         except ServiceUnavailable as error:

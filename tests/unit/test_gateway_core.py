@@ -230,3 +230,24 @@ def test_the_status_right_after_a_stop_says_stopped():
     assert core.status()["state"] == "servoing"
     assert core.stop("operator")["state"] == "stopped"
     assert core.status()["state"] == "stopped"
+
+
+def test_the_truth_is_not_asked_of_a_simulated_lab_known_to_be_down():
+    """With the fake lab down after a run, every /status (its reconcile asks for a pending
+    truth each second) waited out a pose request: 15-27 s, and clients timed out. The
+    health just asked says it is down: the truth stays pending, nobody waits."""
+    fakelab = Port(health=ServiceUnavailable("no answer"), pose=ServiceUnavailable("no answer"))
+    core = core_with(fakelab=fakelab)
+    core.store.save_reference(REFERENCE, {"x_um": 1.0, "y_um": 2.0, "world_id": "w"}, 1)
+    record = {"reference_id": "ref", "settings": {"law": "paper"},
+              "records": [{"frame_source_interval_s": [1.0, 1.5], "action": "moved", "pixel_size_nm": 177.0}]}
+    core.health()
+    truth, note, retry = core._true_final_error(record)
+    assert truth is None and retry and "the simulated lab is down" in note
+    assert "pose" not in [command for command, _ in fakelab.asked]
+    fakelab.answers["health"] = {"service": "fakelab", "state": "running", "pid": 1, "uptime_s": 1.0, "counters": {}, "last_error": None,
+                                 "details": {}}
+    core.forget_health()
+    core.health()
+    core._true_final_error(record)
+    assert "pose" in [command for command, _ in fakelab.asked], "asked again once it answers"
