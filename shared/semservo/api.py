@@ -102,14 +102,21 @@ class TeachResult(Response):
 
 
 # -- stage ---------------------------------------------------------------------------------
+#: A move's sanity bound (um): beyond any stage semservo drives (10 mm). Below it the
+#: stage's own soft limits decide, with the rule's name (a fixed +-100 refused a move a
+#: long-travel stage's settings allowed, before the stage was asked).
+MOVE_BOUND_UM = 10_000.0
+
+
 class MoveRequest(BaseModel):
     """A jog (relative) or a move to a target (absolute), on x, y or both."""
 
     # The schema says what the endpoint checks: at least one axis must be given.
     model_config = {**STRICT, "json_schema_extra": {"anyOf": [
         {"required": [axis], "properties": {axis: {"type": "number"}}} for axis in ("x_um", "y_um")]}}
-    x_um: float | None = Field(None, ge=-100, le=100, description="micrometres (target, or step if relative)")
-    y_um: float | None = Field(None, ge=-100, le=100)
+    x_um: float | None = Field(None, ge=-MOVE_BOUND_UM, le=MOVE_BOUND_UM,
+                               description="micrometres (target, or step if relative); the stage's soft limits apply")
+    y_um: float | None = Field(None, ge=-MOVE_BOUND_UM, le=MOVE_BOUND_UM)
     relative: bool = Field(True, description="a step from here (jog), or an absolute target")
 
 

@@ -762,8 +762,8 @@ def command_calibrate(args: argparse.Namespace) -> int:
 DEMO_OFFSET_UM = (6.0, -4.0)
 DEMO_PIXEL_UM = 0.1769
 DEMO_MAX_JOG_UM = 8.0
-#: --offset's bound: the gateway's for one move (semservo.api.MoveRequest); the stage's
-#: step limit may refuse less, and says how far one move may go.
+#: --offset's bound: the stage's travel (100 um); its step limit may refuse less, and
+#: says how far one move may go.
 DEMO_MAX_OFFSET_UM = 100.0
 #: How long the demo waits for its run: x, y (and the turn) take seconds to a minute; five
 #: degrees of freedom wait on focus sweeps (tens of seconds each, one in two held back as

@@ -177,7 +177,7 @@ def test_a_bad_start_body_is_a_422_naming_the_field(system, body, field):
 
 @pytest.mark.parametrize("body, field", [
     ({"x_um": "left"}, "x_um"),
-    ({"x_um": 1000}, "x_um"),
+    ({"x_um": 1e5}, "x_um"),
     ({}, "x_um"),
     ({"x_um": 1, "teleport": True}, "teleport"),
 ])
@@ -194,6 +194,9 @@ def test_a_move_outside_the_limits_is_refused_with_the_rule(system):
     with pytest.raises(SemservoError) as refused:
         lab.move(x_um=40.0)
     assert refused.value.status == 409 and refused.value.code == "step_limit"
+    with pytest.raises(SemservoError) as refused:  # past +-100: the stage's travel rule, not a fixed 422
+        lab.move(x_um=500.0, relative=False)
+    assert refused.value.status == 409 and refused.value.code == "travel_limit"
 
 
 def test_bad_uploads_are_refused_and_keep_the_previous_reference(system):
