@@ -74,8 +74,9 @@ class ReplaySource:
         if not self.paths:
             raise FileNotFoundError(f"no PNG or TIFF frames matching {pattern or '*'!r} in {self.folder}")
         self.images: list[tuple[np.ndarray, ImageMetadata]] = []
+        detected: dict[tuple[int, ...], int] = {}  # one crop per file shape for the whole replay
         for path in self.paths:
-            image = read_sem_image(path, data_bar=data_bar)
+            image = read_sem_image(path, data_bar=data_bar, detected=detected)
             image.pixels.setflags(write=False)  # published zero-copy: nobody may change it
             self.images.append((image.pixels, image.metadata.updated(data_bar_rows=image.data_bar_rows or None)))
         first = self.images[0][0]

@@ -126,6 +126,8 @@ class WatchSource:
         self.overrides = {key: value for key, value in (overrides or {}).items() if value is not None}
         self.fallbacks = {key: value for key, value in (fallbacks or {}).items() if value is not None}
         self.data_bar = data_bar
+        #: The data bar detection found on the first file of each shape, kept for the rest.
+        self.detected_bars: dict[tuple[int, ...], int] = {}
         self.clock = clock
         self.counters = {"files_published": 0, "files_skipped": 0, "files_vanished": 0, "files_ignored": 0,
                          "files_renamed": 0}
@@ -292,7 +294,7 @@ class WatchSource:
             log.info("%s is %s renamed: already published", path.name, self._published[identity])
             return None
         try:
-            image = read_sem_image(path, data_bar=self.data_bar)
+            image = read_sem_image(path, data_bar=self.data_bar, detected=self.detected_bars)
             after = path.stat()
         except FileNotFoundError:
             self.note(path, gone=True)

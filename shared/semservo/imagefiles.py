@@ -137,12 +137,17 @@ def _read_tiff(handle, path: Path | None, page: int) -> tuple[np.ndarray, ImageM
     return pixels, metadata
 
 
-def read_sem_image(source: str | Path | bytes, *, data_bar: DataBar = "auto", page: int = 0) -> SemImage:
+def read_sem_image(source: str | Path | bytes, *, data_bar: DataBar = "auto", page: int = 0,
+                   detected: dict[tuple[int, ...], int] | None = None) -> SemImage:
     """An SEM image file (a path, or the bytes of an upload) as sample pixels (uint8,
     uint16 or float32, 2-D, the data bar cropped) with its metadata.
 
     ``data_bar``: ``"auto"`` crops what the metadata says, else what
     :func:`find_data_bar` sees; a number crops that many rows (``0``: none).
+    ``detected``: a stream's memory of what detection found per file shape (a replayed
+    or watched folder's): the first frame of a shape decides for the frames after it, so
+    a frame's height never changes mid-stream (detection cut a drifted frame's 5 blank
+    rows, and every frame after a teach was refused for its size).
     """
     if isinstance(source, (bytes, bytearray)):
         path, handle = None, io.BytesIO(source)
@@ -168,8 +173,14 @@ def read_sem_image(source: str | Path | bytes, *, data_bar: DataBar = "auto", pa
         said = re.sub(r"<_io\.BytesIO object at 0x[0-9a-fA-F]+>", "the upload", str(error))
         raise ImageFileError(f"{name}: unreadable image ({type(error).__name__}: {said})") from None
     pixels = _grey(pixels, name)
-    if data_bar == "auto":
-        crop = metadata.data_bar_rows if metadata.data_bar_rows is not None else find_data_bar(pixels)
+    if data_bar == "auto" and metadata.data_bar_rows is not None:
+        crop = metadata.data_bar_rows
+    elif data_bar == "auto" and detected is not None:
+        if pixels.shape not in detected:
+            detected[pixels.shape] = find_data_bar(pixels)
+        crop = detected[pixels.shape]
+    elif data_bar == "auto":
+        crop = find_data_bar(pixels)
     elif isinstance(data_bar, int) and not isinstance(data_bar, bool) and data_bar >= 0:
         crop = data_bar
     else:

@@ -182,3 +182,21 @@ def test_an_imagej_calibrated_tiff_gives_its_pixel_size(tmp_path):
     assert read_sem_image(tmp_path / "fiji.tif").metadata.pixel_size_nm == pytest.approx(25.0)
     tifffile.imwrite(tmp_path / "pixels.tif", np.zeros((32, 48), np.uint8), imagej=True, metadata={"unit": "pixel"})
     assert read_sem_image(tmp_path / "pixels.tif").metadata.pixel_size_nm is None  # uncalibrated: unknown
+
+
+def test_a_stream_keeps_the_crop_its_first_frame_of_a_size_had(sem_images, tmp_path):
+    """Replayed (or watched) together, the drift pair's second frame lost its 5 blank rows
+    to detection: the replay refused to start ('(515, 696) differs from (520, 696)') and a
+    watched folder refused every frame after a teach. A stream decides once per size."""
+    from services.imageserver.sources import ReplaySource
+
+    for name in ("drift_pair_before.tif", "drift_pair_after.tif"):
+        (tmp_path / name).symlink_to(sem_images / name)
+    replay = ReplaySource(tmp_path)
+    shapes = {pixels.shape for pixels, _ in replay.images}
+    assert shapes == {(515, 696)}, "the first file in order (after) decides: 5 rows for both"
+    detected: dict = {}
+    first = read_sem_image(sem_images / "drift_pair_before.tif", detected=detected)
+    second = read_sem_image(sem_images / "drift_pair_after.tif", detected=detected)
+    assert first.pixels.shape == second.pixels.shape == (520, 696)
+    assert read_sem_image(sem_images / "drift_pair_after.tif").pixels.shape == (515, 696), "alone, as before"
