@@ -20,9 +20,9 @@ poll, in name order), each **once**: a file is known by
 its device, inode, size and modification time, so a frame renamed after it was
 published is not published again, while a file rewritten in place is a new frame.
 Files that are deleted before they are read, that are not images, or that stay
-unreadable (unchanged for a second and still not an image) are logged, counted
-(``files_*`` in health) and skipped; a file that never completes holds the ones after
-it for ``give_up_s`` at most.
+unreadable (unchanged for a second and still not an image; a file that looks unfinished,
+cut short and not closed, for ``give_up_s``) are logged, counted (``files_*`` in health)
+and skipped; a file that never completes holds the ones after it for ``give_up_s`` at most.
 """
 
 from __future__ import annotations
@@ -43,6 +43,10 @@ from semservo.instruments import AcquiredImage, NotReady
 from services.imageserver.sources import merge_metadata
 
 log = logging.getLogger("imageserver.watch")
+# A file being written is read many times before it is whole: tifffile would warn at
+# each try ("invalid offset to first page", fifty a second); this module says once what
+# became of the file.
+logging.getLogger("tifffile").setLevel(logging.ERROR)
 
 #: How often the folder is listed again, whatever the events say.
 RESCAN_S = 1.0
@@ -55,6 +59,12 @@ UNREADABLE_AFTER_S = 1.0
 SAME_BATCH_S = 0.05
 #: How often a pending file (being written, or settling) is looked at again.
 PENDING_CHECK_S = 0.02
+
+
+def looks_unfinished(reason: str) -> bool:
+    """Whether a file's read failed as a file still being written fails: pixel data past
+    its end, no page yet (an index written last), a PNG cut short."""
+    return any(sign in reason for sign in ("truncated", "no page 0", "broken PNG", "unexpected end"))
 
 
 @dataclass
@@ -301,8 +311,14 @@ class WatchSource:
             return None
         except (ImageFileError, OSError) as error:
             candidate.unreadable = str(error)
-            # Unchanged for a while and still unreadable: not an image we can use.
-            if given_up:
+            # Unchanged for a while and still unreadable: not an image we can use. But a
+            # file that looks unfinished and was not closed may be a writer pausing (a slow
+            # share, a TIFF whose index comes last): it waits up to give_up_s, holding the
+            # files after it, instead of being skipped after a second and published out of
+            # order when its last chunk lands.
+            unfinished = not candidate.closed and looks_unfinished(str(error))
+            if now - candidate.stable_since >= (self.give_up_s if unfinished else
+                                                max(2 * self.settle_s, UNREADABLE_AFTER_S)):
                 self._skip(candidate, identity, str(error))
             return None
         if (after.st_dev, after.st_ino, after.st_size, after.st_mtime_ns) != identity:

@@ -223,3 +223,26 @@ def test_a_file_written_to_while_it_is_read_is_published_once_when_it_settles(wa
     assert grown and len(images) == 1 and images[0].label == "frame_000.tif"
     assert nothing_more(source, for_s=2.5)  # past a rescan: not published again
     assert source.describe()["files_published"] == 1
+
+
+@pytest.mark.parametrize("polling", [False, True], ids=["os-events", "polling"])
+def test_a_tiff_half_written_and_held_open_waits_and_keeps_its_place(tmp_path, polling):
+    """A third of a TIFF written and the file held open (a writer pausing on a slow share)
+    was skipped as truncated after a second, then published after the files behind it
+    when its last chunk landed. It now waits (up to give_up_s), holding the later ones."""
+    source = WatchSource(tmp_path, settle_s=0.3, give_up_s=10.0, polling=polling)
+    try:
+        data = fei_file(1)
+        with open(tmp_path / "a_held.tif", "wb") as held:
+            held.write(data[: len(data) // 3])
+            held.flush()
+            time.sleep(0.05)
+            (tmp_path / "b.tif").write_bytes(fei_file(2))
+            assert nothing_more(source, 2.5), "nothing while the first file is unfinished"
+            held.write(data[len(data) // 3:])
+        images = collect(source, 2)
+        assert [image.label for image in images] == ["a_held.tif", "b.tif"]
+        np.testing.assert_array_equal(images[0].pixels, frame(1))
+        assert source.counters["files_skipped"] == 0
+    finally:
+        source.close()
