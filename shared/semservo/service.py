@@ -55,7 +55,6 @@ class ServiceRuntime:
         )
         self.control.register("health", lambda args: self.health().model_dump())
         self.add_reader(self.control.socket, self.control.handle_one)
-        self.report_errors_from(lambda: self.control.last_error)
         self.last_error: str | None = None
         # From here on a stop request is honoured, even before run(): a SIGTERM during
         # start-up ends the service cleanly instead of killing it.
@@ -69,7 +68,8 @@ class ServiceRuntime:
         self.poller.register(socket, zmq.POLLIN)
 
     def report_errors_from(self, source: Callable[[], str | None]) -> None:
-        """Health's ``last_error`` also looks at ``source`` (e.g. a subscriber's)."""
+        """Health's ``last_error`` also looks at ``source`` (e.g. a subscriber's), first:
+        a condition that holds now outranks the last refused request."""
         self._errors.append(source)
 
     def error(self, message: str) -> None:
@@ -79,7 +79,9 @@ class ServiceRuntime:
         log.error("%s", message)
 
     def health(self) -> Health:
-        errors = [self.last_error] + [source() for source in self._errors]
+        # What is wrong now (a lost serial link, a subscriber's) before the last refused
+        # request: a stage whose cable was pulled showed an earlier 'owned' refusal.
+        errors = [source() for source in self._errors] + [self.last_error, self.control.last_error]
         return Health(
             service=self.name,
             state=self.state,

@@ -255,3 +255,22 @@ def test_lazy_pirate_retries_until_a_late_server_answers(context):
         thread.join()
         client.close()
     assert server_ready.is_set() and handled[0] >= 1
+
+
+def test_health_names_what_is_wrong_now_before_the_last_refused_request():
+    """A stage whose cable was pulled showed 'owned: ...' (an earlier refusal) as its last
+    error in health, not the lost link."""
+    from semservo.config import Settings
+    from semservo.service import ServiceRuntime
+
+    runtime = ServiceRuntime("stage", Settings(), "tcp://127.0.0.1:*")
+    try:
+        runtime.control.last_error = "owned: a run (r1) is moving the stage"
+        assert runtime.health().last_error == "owned: a run (r1) is moving the stage"
+        link = {"error": "serial link to /dev/ttyUSB0 lost: EIO"}
+        runtime.report_errors_from(lambda: link["error"])
+        assert runtime.health().last_error == "serial link to /dev/ttyUSB0 lost: EIO"
+        link["error"] = None  # reconnected: the refusal is the last error again
+        assert runtime.health().last_error.startswith("owned")
+    finally:
+        runtime.context.destroy(linger=0)
