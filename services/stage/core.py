@@ -441,8 +441,8 @@ class StageCore:
                         here: dict[str, float]) -> Refused:
         """A move refused for its voltage step, said in the unit it was asked in: how far
         one command may move each axis from here (the step limit is in volts, the
-        request in micrometres; a user jogging 30 um learns 25 V is too much, not what is
-        not). Proportional: the model is near linear over one step."""
+        request in micrometres: a user who asked for 30 um learned only that 31.5 V is
+        over 25 V). Proportional: the model is near linear over one step."""
         if refusal.code != "step_limit":
             return refusal
         largest = []

@@ -724,6 +724,7 @@ def command_calibrate(args: argparse.Namespace) -> int:
     calibrator = Calibrator(stage, next_frame, axis=args.axis, camera=config.camera_to_stage(),
                             settle_s=args.settle, keyframe_px=args.keyframe_px,
                             truth=truth(args.axis) if truth else None, progress=progress)
+
     def left_at() -> str:
         if calibrator.last_v is None or calibrator.started_v is None:
             return ""
