@@ -92,6 +92,10 @@ def test_teach_start_converge_and_the_plots_fill(page):
 
 def test_stop_a_run_midway(page):
     teach(page)
+    for step in ("", "50"):  # empty sent 0; over the field's 20 went out as it was
+        page.fill("#jog-step", step)
+        page.click("#jog-x-plus")
+        expect(page.locator("#message-text")).to_contain_text("jog step (µm): a number from 0.01 to 20")
     page.fill("#jog-step", "9")
     page.click("#jog-x-plus")
     page.click("#jog-y-plus")
@@ -113,6 +117,7 @@ def test_stop_a_run_midway(page):
     page.click("#jog-x-minus")
     expect(page.locator("#message-text")).to_contain_text("stopped")
     page.click("#resume")
+    expect(page.locator("#message")).to_be_hidden()  # the refusal does not outlive a later action's success
     expect(page.locator("#stage-state")).to_have_text("ready")
     expect(page.locator("#resume")).to_be_hidden()
     page.click("#refresh-runs")

@@ -29,6 +29,8 @@ def test_controls_need_the_token_typed_into_the_header(browser, tmp_path):
     try:
         wait_http(url)
         page.goto(url + "/")
+        # The live events are refused without the token: said, not an empty plot forever.
+        expect(page.locator("#message-text")).to_contain_text("live updates (plots, iterations) need the API token")
         page.click("#stop")
         expect(page.locator("#message-text")).to_contain_text("bearer token")
         page.fill("#token", TOKEN)

@@ -68,11 +68,24 @@ function say(text) {
 }
 $("message-close").addEventListener("click", () => { $("message").hidden = true; });
 
-// Every control reports its failure in words, never swallowed.
+// Every control reports its failure in words, never swallowed; a new action's outcome
+// replaces the last one's (a refusal stayed over the run a later click started).
 function action(element, event, work) {
   element.addEventListener(event, async (e) => {
+    $("message").hidden = true;
     try { await work(e); } catch (error) { say(error.message); }
   });
+}
+
+// A number field's value, or an error naming the field and its range (an empty jog step
+// sent 0, a step of 50 over the field's 20 went out, an average of 0 taught 1 frame).
+function fieldNumber(id, label, { whole = false } = {}) {
+  const input = $(id), value = Number(input.value), low = Number(input.min), high = Number(input.max);
+  if (input.value.trim() === "" || !Number.isFinite(value) || value < low || value > high
+      || (whole && !Number.isInteger(value))) {
+    throw new Error(`${label}: ${whole ? "a whole number" : "a number"} from ${low} to ${high}, not "${input.value}"`);
+  }
+  return value;
 }
 
 // A button whose request is still out takes no second click (a double click on Teach or
@@ -464,8 +477,12 @@ function showRunSettings(run) {
 function showStatus(status) {
   state.status = status;
   const badge = $("state");
-  badge.textContent = status.state;
-  badge.className = `state state-${status.state}`;
+  // A stage an operator stopped holds across runs and restarts: the header says so, not
+  // only "idle" or "converged" (the next start or jog would be refused).
+  const stageStopped = status.stage && status.stage.state === "stopped" && !["servoing", "stopped"].includes(status.state);
+  badge.textContent = stageStopped ? `${status.state} · stage stopped` : status.state;
+  badge.className = `state state-${stageStopped ? "stopped" : status.state}`;
+  badge.title = stageStopped ? `the stage holds until resumed: ${status.stage.reason || ""}` : "";
   $("run-id").textContent = status.run_id || "–";
   $("iteration").textContent = status.iteration;
   // The error the controller judges (mean of its last fresh frames), else the last frame's.
@@ -585,7 +602,16 @@ function connectEvents() {
       pollStatus();
     }
   };
-  socket.onclose = () => setTimeout(connectEvents, 1000);
+  socket.onclose = (closed) => {
+    // 1008: the gateway wants the API token. The status still refreshes, so the page
+    // would look alive with no plots: say it once.
+    if (closed.code === 1008 && !state.eventsRefusedSaid) {
+      state.eventsRefusedSaid = true;
+      say("live updates (plots, iterations) need the API token: enter it in the token field");
+    }
+    if (closed.code !== 1008) state.eventsRefusedSaid = false;
+    setTimeout(connectEvents, 1000);
+  };
 }
 
 // -- controls -------------------------------------------------------------------------
@@ -597,7 +623,7 @@ action($("stop"), "click", async () => {
 
 for (const button of document.querySelectorAll(".jog button")) {
   action(button, "click", async () => {
-    const step = Number($("jog-step").value) * Number(button.dataset.sign);
+    const step = fieldNumber("jog-step", "jog step (µm)") * Number(button.dataset.sign);
     await api("POST", "/stage/move", { [`${button.dataset.axis}_um`]: step, relative: true });
     pollStatus();
   });
@@ -610,7 +636,7 @@ action($("resume"), "click", async () => {
 
 action($("teach-live"), "click", once($("teach-live"), async () => {
   const tilts = $("teach-tilts").checked ? "&tilts=true" : "";
-  await api("POST", `/teach?frames=${Number($("teach-frames").value) || 1}${tilts}`);
+  await api("POST", `/teach?frames=${fieldNumber("teach-frames", "average (frames)", { whole: true })}${tilts}`);
   pollStatus();
 }));
 
