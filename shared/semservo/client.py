@@ -66,7 +66,7 @@ class SemservoError(Exception):
 
 
 class RunActive(SemservoError):
-    """409 on start: a run is active; ``run_id`` names it."""
+    """409: a run is active (on a start, a teach or a jog); ``run_id`` names it."""
 
     @property
     def run_id(self) -> str | None:
@@ -297,6 +297,27 @@ def _answer(response: httpx.Response):
         else response.content
 
 
+def _events_failure(http, error: Exception) -> SemservoError:
+    """Why ``WS /events`` failed, as a :class:`SemservoError` like every other failure of
+    the clients (a script got a bare ConnectionRefusedError, or websockets' InvalidStatus
+    for a missing token where REST says 401)."""
+    from websockets.exceptions import ConnectionClosedError, InvalidStatus
+
+    url = _events_url(http)
+    token_hint = "give the API token: Client(token=...) or $SEMSERVO_API_TOKEN"
+    if isinstance(error, InvalidStatus):
+        status = error.response.status_code
+        return SemservoError(status, "unauthorized" if status in (401, 403) else "refused",
+                             f"the gateway refused the live events at {url} (HTTP {status}); {token_hint}")
+    if isinstance(error, ConnectionClosedError):
+        if error.rcvd is not None and error.rcvd.code == 1008:
+            return SemservoError(401, "unauthorized", f"the gateway refused the live events: {error.rcvd.reason}; "
+                                                      f"{token_hint}")
+        return SemservoError(0, "unreachable", f"the live events from {url} were cut off: {error}")
+    return SemservoError(0, "unreachable", f"no gateway answers at {url} ({error}): is the system up (./dev up)? "
+                                           "Another address: Client(url) or $SEMSERVO_URL")
+
+
 def _events_url(http) -> str:
     return str(http.base_url).replace("http", "ws", 1).rstrip("/") + "/events"
 
@@ -406,19 +427,22 @@ class Client(_Endpoints):
         status, iteration and reference events as they happen. With ``quiet_s``, None
         after that many seconds without one, so a loop can look at its clock or the
         status (after a run ends no events come; a lost one is never sent again)."""
-        from websockets.exceptions import ConnectionClosedOK
+        from websockets.exceptions import ConnectionClosedError, ConnectionClosedOK, InvalidHandshake
         from websockets.sync.client import connect
 
-        with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
-            while True:
-                try:
-                    message = socket.recv(timeout=quiet_s)
-                except TimeoutError:
-                    yield None
-                    continue
-                except ConnectionClosedOK:  # the gateway said goodbye (it is stopping)
-                    return
-                yield json.loads(message)
+        try:
+            with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
+                while True:
+                    try:
+                        message = socket.recv(timeout=quiet_s)
+                    except TimeoutError:
+                        yield None
+                        continue
+                    except ConnectionClosedOK:  # the gateway said goodbye (it is stopping)
+                        return
+                    yield json.loads(message)
+        except (OSError, InvalidHandshake, ConnectionClosedError) as error:
+            raise _events_failure(self.http, error) from None
 
 
 class AsyncClient(_Endpoints):
@@ -510,15 +534,18 @@ class AsyncClient(_Endpoints):
     async def events(self, quiet_s: float | None = None) -> AsyncIterator[dict | None]:
         """As :meth:`Client.events`."""
         from websockets.asyncio.client import connect
-        from websockets.exceptions import ConnectionClosedOK
+        from websockets.exceptions import ConnectionClosedError, ConnectionClosedOK, InvalidHandshake
 
-        async with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
-            while True:
-                try:
-                    message = await asyncio.wait_for(socket.recv(), quiet_s)
-                except TimeoutError:
-                    yield None
-                    continue
-                except ConnectionClosedOK:  # the gateway said goodbye (it is stopping)
-                    return
-                yield json.loads(message)
+        try:
+            async with connect(_events_url(self.http), additional_headers=_auth_only(self.http.headers)) as socket:
+                while True:
+                    try:
+                        message = await asyncio.wait_for(socket.recv(), quiet_s)
+                    except TimeoutError:
+                        yield None
+                        continue
+                    except ConnectionClosedOK:  # the gateway said goodbye (it is stopping)
+                        return
+                    yield json.loads(message)
+        except (OSError, InvalidHandshake, ConnectionClosedError) as error:
+            raise _events_failure(self.http, error) from None

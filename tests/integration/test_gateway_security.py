@@ -62,6 +62,17 @@ def test_a_token_guards_every_state_changing_endpoint(ports, monkeypatch, tmp_pa
             with pytest.raises(SemservoError) as refused:
                 lab.stop("checking the token")
             assert refused.value.status == 503 and refused.value.code == "stop_failed"
+            assert next(lab.events())["kind"] == "hello"
+        # The live events without the token: the clients' own error, as REST's 401 (a
+        # script got websockets' ConnectionClosedError or InvalidStatus).
+        with Client(url) as lab:
+            with pytest.raises(SemservoError) as refused:
+                next(lab.events())
+            assert refused.value.code == "unauthorized" and "give the API token" in refused.value.message
+        with Client(f"http://127.0.0.1:{ports['gateway_http'] + 1}") as nobody:  # no gateway there
+            with pytest.raises(SemservoError) as refused:
+                next(nobody.events())
+            assert refused.value.code == "unreachable" and "is the system up" in refused.value.message
     finally:
         process.terminate()
         output, _ = process.communicate(timeout=15)

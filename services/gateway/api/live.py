@@ -30,6 +30,9 @@ async def events(socket: WebSocket) -> None:
     configured, it must come as ``?token=`` or as a bearer header."""
     app = socket.app
     if not token_matches(app.state.api_token, websocket_token(socket)):
+        # Accepted, then closed with the reason: a close before the handshake reaches a
+        # browser as a bare 1006, and the dashboard could not say why its plots stay empty.
+        await socket.accept()
         await socket.close(code=1008, reason="a valid token is required (?token=...)")
         return
     await socket.accept()
