@@ -726,10 +726,9 @@ def command_calibrate(args: argparse.Namespace) -> int:
                             truth=truth(args.axis) if truth else None, progress=progress)
 
     def left_at() -> str:
-        last_v, started_v = getattr(calibrator, "last_v", None), getattr(calibrator, "started_v", None)
-        if last_v is None or started_v is None:
+        if calibrator.last_v is None or calibrator.started_v is None:
             return ""
-        return f"; the {args.axis} axis is left at {last_v:.2f} V (it was at {started_v:.2f} V)"
+        return f"; the {args.axis} axis is left at {calibrator.last_v:.2f} V (it was at {calibrator.started_v:.2f} V)"
 
     try:
         result = calibrator.run(args.low, args.high, args.step)

@@ -61,7 +61,8 @@ class SemservoError(Exception):
     """The gateway said no (4xx/5xx) or could not be reached (status 0)."""
 
     def __init__(self, status: int, code: str, message: str, field: str | None = None, body: dict | None = None):
-        super().__init__(f"{status} {code}: {message}" + (f" (field {field})" if field else ""))
+        # Status 0 is no answer at all: not shown as if it were an HTTP status.
+        super().__init__(f"{f'{status} ' if status else ''}{code}: {message}" + (f" (field {field})" if field else ""))
         self.status, self.code, self.message, self.field, self.body = status, code, message, field, body or {}
 
 
@@ -286,9 +287,14 @@ def _checked(call: "Call") -> "Call":
     return call
 
 
+def _no_gateway(url, error: Exception) -> SemservoError:
+    """No gateway at ``url`` (REST or the live events): said with how to start one."""
+    return SemservoError(0, "unreachable", f"no gateway answers at {url} ({error}): is the system up (./dev up)? "
+                                           "Another address: Client(url) or $SEMSERVO_URL")
+
+
 def _unreachable(client, error: Exception) -> SemservoError:
-    return SemservoError(0, "unreachable", f"no gateway answers at {client.http.base_url} ({error}): is the system "
-                                           "up (./dev up)? Another address: Client(url) or $SEMSERVO_URL")
+    return _no_gateway(client.http.base_url, error)
 
 
 def _answer(response: httpx.Response):
@@ -314,8 +320,7 @@ def _events_failure(http, error: Exception) -> SemservoError:
             return SemservoError(401, "unauthorized", f"the gateway refused the live events: {error.rcvd.reason}; "
                                                       f"{token_hint}")
         return SemservoError(0, "unreachable", f"the live events from {url} were cut off: {error}")
-    return SemservoError(0, "unreachable", f"no gateway answers at {url} ({error}): is the system up (./dev up)? "
-                                           "Another address: Client(url) or $SEMSERVO_URL")
+    return _no_gateway(url, error)
 
 
 def _events_url(http) -> str:

@@ -123,6 +123,8 @@ def test_calibration_uses_the_camera_to_stage_transform_of_the_settings(monkeypa
     seen = {}
 
     class Capture:
+        started_v = last_v = None  # as a Calibrator before its first move
+
         def __init__(self, stage, next_frame, **options):
             seen.update(options)
 

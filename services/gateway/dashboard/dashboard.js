@@ -479,7 +479,8 @@ function showStatus(status) {
   const badge = $("state");
   // A stage an operator stopped holds across runs and restarts: the header says so, not
   // only "idle" or "converged" (the next start or jog would be refused).
-  const stageStopped = status.stage && status.stage.state === "stopped" && !["servoing", "stopped"].includes(status.state);
+  const stageStopped = status.stage && status.stage.state === "stopped"
+    && !["servoing", "stopped"].includes(status.state);
   badge.textContent = stageStopped ? `${status.state} · stage stopped` : status.state;
   badge.className = `state state-${stageStopped ? "stopped" : status.state}`;
   badge.title = stageStopped ? `the stage holds until resumed: ${status.stage.reason || ""}` : "";
