@@ -15,9 +15,13 @@ reference taught at (0, 0, 0), as ``bench/tilt.py`` does (``semservo.reproduce.t
 the paper's three poses and ``--poses`` random ones (tilts within +-15 degrees, gamma
 within +-90). The reference is taught as the estimator service teaches it: a sweep of
 the flat view, and more of it, their kernel depths pooled, while they pin the tilts
-loosely (``--reference-sweeps``, at most 4 by default; 1: one sweep, as before); a
-pose whose first sweep cannot pin the tilts is swept again and pooled as the service
-does in a run (``--pose-sweeps``, at most 4; 1: refused at once, as before).
+loosely (``--reference-sweeps``, at most 4 by default; 1: one sweep, as before), and
+where those cannot pin them, fine sweeps about the depths they found (a quarter of a
+depth of field apart, ``--fine-sweeps``, at most 8; 0: none, refused there); a pose
+whose first sweep cannot pin the tilts is swept again and pooled as the service does in
+a run (``--pose-sweeps``, at most 4; 1: refused at once, as before), of the same plan
+(``--pose-fine-sweeps``: against a fine teach, finely about the depths found, as the
+service's tracker does in a run).
 
 What was tuned on what: the tilt estimate's changes for this issue (the noise taken out
 of eq. 13's measure, the clear-peak test, the robust plane, the refusals, each kernel's
@@ -51,7 +55,7 @@ import numpy as np
 
 from semservo import jsontext
 from semservo.config import find_sem_images
-from semservo.estimation.tilt import FOCUS_MEASURES, MAX_TEACH_SWEEPS
+from semservo.estimation.tilt import FOCUS_MEASURES, MAX_FINE_TEACH_SWEEPS, MAX_TEACH_SWEEPS
 from semservo.focus_sweeps import DEFOCUS_SHAPES, DefocusModel
 from semservo.imagefiles import read_sem_image
 from semservo.reproduce import Progress
@@ -145,8 +149,9 @@ def print_table(shape: str, results: dict, own: frozenset[str] = frozenset()) ->
         summary, table = entry["summary"], entry["table"]
         plane, tracking, egi = summary["plane"], summary["plane_tracking"], summary["egi"]
         pinned = f"+-{table['taught_uncertainty'][0]:.3f}, +-{table['taught_uncertainty'][1]:.3f}"
-        teach = (f"{table['taught_sweeps']}, refused ({pinned})" if table["taught_reason"] else
-                 f"{table['taught_sweeps']}; {table['taught'][0]:+.3f}, {table['taught'][1]:+.3f} ({pinned})")
+        sweeps = f"{table['taught_sweeps']}" + (" fine" if table.get("taught_fine") else "")
+        teach = (f"{sweeps}, refused ({pinned})" if table["taught_reason"] else
+                 f"{sweeps}; {table['taught'][0]:+.3f}, {table['taught'][1]:+.3f} ({pinned})")
         bound = table.get("taught_bound_one_sweep", [math.nan, math.nan])
         say(f"| {name} | {which_set(name, shape, own)} | {summary['refused']} of {summary['poses']} | {cell(plane['alpha'])} "
             f"| {cell(plane['beta'])} | {plane['sign_errors']} of {plane['signs_checked']} | "
@@ -187,6 +192,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pose-sweeps", type=int, default=MAX_TEACH_SWEEPS,
                         help="the most focus sweeps of a pose whose first sweep cannot pin the tilts, pooled as the "
                              f"estimator service does in a run (default {MAX_TEACH_SWEEPS}; 1: none)")
+    parser.add_argument("--fine-sweeps", type=int, default=MAX_FINE_TEACH_SWEEPS,
+                        help="the most fine sweeps (a quarter of a depth of field apart, about the depths found) a "
+                             "teach takes where the wide ones cannot pin the tilts, as the estimator service does "
+                             f"(default {MAX_FINE_TEACH_SWEEPS}; 0: none, the teach refused there)")
+    parser.add_argument("--pose-fine-sweeps", action="store_true",
+                        help="against a fine teach, follow a pose's first sweep that cannot pin the tilts with fine "
+                             "sweeps about its depths, as the service's tracker does in a run (single measurements "
+                             "at tilted poses then carry the pull between samples: docs/tilts.md)")
     parser.add_argument("--focus-measure", choices=FOCUS_MEASURES, default="normalized_variance",
                         help="the focus measure the sweeps are read by (default: eq. 13's normalized variance; "
                              "gradient: each kernel's gradient energy over its mean, see bench/tilt_bounds.py)")
@@ -198,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     textures = read_textures(parser, args.images, args.image_files)
     own = frozenset(path.stem for path in args.image_files)
     output = {"poses": poses, "reference_sweeps": args.reference_sweeps, "pose_sweeps": args.pose_sweeps,
+              "fine_sweeps": args.fine_sweeps, "pose_fine_sweeps": args.pose_fine_sweeps,
               "focus_measure": args.focus_measure,
               "field_um": FIELD_UM, "field_px": FIELD_PX,
               "depth_of_field_um": DEPTH_OF_FIELD_UM,
@@ -212,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
             bar = Progress(f"{name}, {shape}", len(poses))  # a pose of a sparse texture may take a minute
             table = table_one(poses, args.seed, say=lambda text: bar.step(text.split("): ", 1)[-1].rsplit(" (", 1)[0]),
                               lab=lab(texture, shape, args.seed), reference_sweeps=args.reference_sweeps,
-                              sweeps_when_refused=args.pose_sweeps, measure=args.focus_measure)
+                              sweeps_when_refused=args.pose_sweeps, measure=args.focus_measure,
+                              fine_sweeps=args.fine_sweeps, pose_fine_sweeps=args.pose_fine_sweeps)
             bar.close()
             results[name] = {"table": table, "summary": summarize(table)}
             summary = results[name]["summary"]
@@ -220,12 +235,12 @@ def main(argv: list[str] | None = None) -> int:
             bound = table["taught_bound_one_sweep"]
             say(f"    one sweep of the taught view cannot pin the tilts better than +-{bound[0]:.3f}, +-{bound[1]:.3f} "
                 "(the Cramer-Rao bound)")
+            swept = f"{table['taught_sweeps']} {'fine ' if table['taught_fine'] else ''}sweep(s)"
             if table["taught_reason"]:
-                say(f"    refused at the teach after {table['taught_sweeps']} sweep(s) (pinned to {pinned}): every "
-                    "pose is refused with it")
+                say(f"    refused at the teach after {swept} (pinned to {pinned}): every pose is refused with it")
             else:
-                say(f"    taught from {table['taught_sweeps']} sweep(s): alpha {table['taught'][0]:+.3f}, beta "
-                    f"{table['taught'][1]:+.3f} (true 0), pinned to {pinned}")
+                say(f"    taught from {swept} of {table['taught_frames']} frames: alpha {table['taught'][0]:+.3f}, "
+                    f"beta {table['taught'][1]:+.3f} (true 0), pinned to {pinned}")
             pooled = [row for row in table["rows"] if row["sweeps"] > 1]
             say(f"    plane fit alpha {cell(summary['plane']['alpha'])}, beta {cell(summary['plane']['beta'])}, "
                 f"refused {summary['refused']} of {summary['poses']}; {len(pooled)} poses swept again and pooled "
@@ -243,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
                                                   lab_for=lambda factor, texture=texture: lab(texture, shape, args.seed,
                                                                                               factor),
                                                   reference_sweeps=args.reference_sweeps,
-                                                  measure=args.focus_measure)
+                                                  measure=args.focus_measure, fine_sweeps=args.fine_sweeps)
                 bar.close()
             output["depth_of_field"][shape] = scans
             print_scan(shape, scans, own)

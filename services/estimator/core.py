@@ -19,10 +19,11 @@ from semservo.estimation.common import MIN_SIZE
 from semservo.estimation.masks import binary_region
 from semservo.estimation.raster import (BAND_ROWS, PARTIAL_FRAME_FROM, SCAN_AVERAGED_FROM_S, rows_scanned_after,
                                        scan_lasted_s)
-from semservo.estimation.tilt import (MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, KernelDepths, TiltEstimate, as_taught,
-                                      check_sweep, content_shifts, egi_tilt_between, kernel_depths, line_against,
-                                      measured_against, plan_sweep, pool_depths, pooled_tilt, rows_seen_square_on,
-                                      undo_foreshortening, undoes_foreshortening, wants_another_sweep)
+from semservo.estimation.tilt import (MAX_FINE_TEACH_SWEEPS, MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, KernelDepths,
+                                      TiltEstimate, as_taught, check_sweep, content_shifts, egi_tilt_between,
+                                      kernel_depths, line_against, measured_against, plan_fine_sweep, plan_sweep,
+                                      pool_depths, pooled_tilt, rows_seen_square_on, undo_foreshortening,
+                                      undoes_foreshortening, wants_another_sweep, wants_fine_sweeps)
 from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
@@ -137,6 +138,9 @@ class TiltSettings:
     #: The most focus sweeps a teach takes of the taught pose, pooled, before it refuses
     #: (:func:`semservo.estimation.tilt.wants_another_sweep`).
     teach_sweeps: int = MAX_TEACH_SWEEPS
+    #: Where those cannot pin the tilts, the most fine sweeps the teach takes instead, about
+    #: the depths they found (:func:`semservo.estimation.tilt.wants_fine_sweeps`, ``plan_fine_sweep``; 0: none).
+    fine_teach_sweeps: int = MAX_FINE_TEACH_SWEEPS
     #: During a run, sweeps near the goal (tilts within this many degrees of the taught
     #: ones) pinned more loosely than the teach's aim are pooled too (:meth:`EstimatorCore.sweep_again`).
     pool_near_deg: float = 0.5
@@ -152,6 +156,9 @@ class TiltReference:
     pixel_size_um: float
     frames: int
     working_distances: tuple[float, ...] = ()
+    #: Taught from fine sweeps (the wide ones could not pin the tilts): a run's sweep that
+    #: cannot pin them is followed by a fine one too (:meth:`EstimatorCore.fine_sweep_after`).
+    fine: bool = False
 
     @property
     def grid(self) -> tuple[float, float]:
@@ -170,6 +177,11 @@ class TeachPool:
     #: How far each sweep's content moved while it scanned (px; None: not steadied).
     content_moved_px: list[float | None] = field(default_factory=list)
     estimate: TiltEstimate | None = None
+    #: The fine sweeps' working distances once the wide ones could not pin the tilts
+    #: (None: the wide sweeps so far); the pool then holds the fine sweeps only.
+    fine_sweep: tuple[float, ...] | None = None
+    #: The wide sweeps' outcome, kept for the teach's record once it sweeps finely.
+    wide: dict | None = None
 
 
 def _prepare_rows(estimator: MotionEstimator, bands: list[int], rotation: bool) -> None:
@@ -252,6 +264,10 @@ class EstimatorCore:
         settings, reference = self.tilt_settings, self.tilt_reference
         if self.latest is None or self.latest.header.pixel_size_nm is None:
             raise TeachError("a focus sweep needs frames with a pixel size; none has arrived")
+        pool = self.teach_pool
+        if (pool is not None and pool.fine_sweep is not None and self.reference is not None
+                and pool.reference_id == self.reference.id):
+            return list(pool.fine_sweep)
         field_um = self.latest.pixels.shape[1] * self.latest.header.pixel_size_nm / 1000
         last = self.last_tilt if self.last_tilt and self.last_tilt.get("confidence", 0) > 0 else None
         if last is not None:
@@ -309,20 +325,46 @@ class EstimatorCore:
         within ``TiltSettings.pool_near_deg`` of the taught ones but pinned more loosely
         than the teach's aim (near the goal, where the run converges on the measurement,
         a sweep's noise of +-0.1 degree would be acted on as tilt); at most
-        ``TiltSettings.teach_sweeps`` in all. Far from the goal one sweep is enough: the
-        next move is larger than its noise."""
+        ``TiltSettings.teach_sweeps`` in all (fine sweeps against a finely taught reference:
+        as many as its teach could take, ``fine_teach_sweeps``). Far from the goal one sweep
+        is enough: the next move is larger than its noise."""
         reference = self.tilt_reference
-        if reference is None or len(depth_maps) >= self.tilt_settings.teach_sweeps:
+        most = self.tilt_settings.teach_sweeps
+        if reference is not None and reference.fine and len(working_distances) > 1:
+            step = (working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)
+            if step <= reference.grid[1] * 1.01:
+                most = max(most, self.tilt_settings.fine_teach_sweeps)
+        if reference is None or len(depth_maps) >= most:
             return False
         estimate = measured_against(self.pooled_estimate(depth_maps, working_distances, pixel_size_nm),
                                     reference.estimate)
-        if not wants_another_sweep(estimate, self.tilt_settings.teach_sweeps, line_against(reference.estimate)):
+        if not wants_another_sweep(estimate, most, line_against(reference.estimate)):
             return False
         if estimate.confidence <= 0:
             return True
         near = max(abs(estimate.alpha_deg - reference.estimate.alpha_deg),
                    abs(estimate.beta_deg - reference.estimate.beta_deg))
         return near <= self.tilt_settings.pool_near_deg
+
+    def fine_sweep_after(self, depth_maps: list[KernelDepths], working_distances: list[float],
+                         pixel_size_nm: float | None) -> list[float] | None:
+        """During a run against a finely taught reference: where these sweeps of one view
+        (coarser than the taught grid) cannot pin the tilts for their uncertainty alone, the
+        fine sweep about the depths they found that the tracker sweeps next instead, on the
+        taught grid (:func:`semservo.estimation.tilt.plan_fine_sweep`); None otherwise,
+        and always against a reference the wide sweeps taught (its runs are as before)."""
+        reference = self.tilt_reference
+        if reference is None or not reference.fine or len(working_distances) < 2:
+            return None
+        step = (working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)
+        if step <= reference.grid[1] * 1.01:
+            return None  # already as fine as the teach
+        estimate = self.pooled_estimate(depth_maps, working_distances, pixel_size_nm)
+        if not wants_fine_sweeps(estimate, line_against(reference.estimate)):
+            return None
+        fine = plan_fine_sweep(pool_depths(depth_maps).depths, working_distances, self.tilt_settings.depth_of_field_um,
+                               grid=reference.grid)
+        return None if fine is None else fine.tolist()
 
     def pooled_estimate(self, depth_maps: list[KernelDepths], working_distances: list[float],
                         pixel_size_nm: float | None) -> TiltEstimate:
@@ -340,7 +382,11 @@ class EstimatorCore:
         description when the tilts are taught; None when the sweeps so far pin them too
         loosely and another sweep of the same view may pin them better (at most
         ``TiltSettings.teach_sweeps`` in all: :func:`semservo.estimation.tilt.wants_another_sweep`;
-        ``teach_pool`` holds them and their estimate so far); refused with the reason (how
+        ``teach_pool`` holds them and their estimate so far). Where the wide sweeps cannot
+        pin the tilts for their uncertainty alone, the teach sweeps the view finely about the
+        depths they found instead (``teach_pool.fine_sweep``, which :meth:`next_sweep`
+        plans; at most ``TiltSettings.fine_teach_sweeps``, pooled alike; the taught grid is
+        then theirs); refused with the reason (how
         well the tilts were pinned, after how many sweeps) when it cannot tell the tilts
         (a flat scene, focus outside it, a depth of field too large for the field's depth)."""
         if self.reference is None:
@@ -357,24 +403,42 @@ class EstimatorCore:
         pool.estimate = pooled_tilt(pool.depth_maps, self.tilt_settings.kernel_px, pixel_size_nm / 1000,
                                     float(np.mean(pool.steps)))
         estimate = pool.estimate
-        if wants_another_sweep(estimate, self.tilt_settings.teach_sweeps, MAX_TAUGHT_UNCERTAINTY_DEG):
+        settings = self.tilt_settings
+        fine = pool.fine_sweep is not None
+        most = settings.fine_teach_sweeps if fine else settings.teach_sweeps
+        if wants_another_sweep(estimate, most, MAX_TAUGHT_UNCERTAINTY_DEG, begun=fine):
             self.teach_pool = pool
             return None
+        if pool.fine_sweep is None and settings.fine_teach_sweeps > 0 and wants_fine_sweeps(estimate):
+            fine = plan_fine_sweep(pool_depths(pool.depth_maps).depths, working_distances, settings.depth_of_field_um)
+            if fine is not None:
+                # The wide sweeps found the depths; the fine ones, on the flanks of the
+                # kernels' focus curves, pin them (the pool starts again with them).
+                self.teach_pool = TeachPool(pool.reference_id, fine_sweep=tuple(float(value) for value in fine),
+                                            wide={"sweeps": estimate.sweeps, "frames": len(sweep),
+                                                  "alpha_uncertainty_deg": estimate.alpha_uncertainty_deg,
+                                                  "beta_uncertainty_deg": estimate.beta_uncertainty_deg})
+                return None
         self.teach_pool = None
         estimate = as_taught(estimate)  # refused where it would leave its runs less than it took
         if estimate.confidence <= 0:
             swept = "focus sweep" if estimate.sweeps == 1 else f"{estimate.sweeps} focus sweeps"
+            if pool.fine_sweep is not None:
+                wide = pool.wide["sweeps"]
+                swept = f"{wide} wide focus sweep{'s' if wide > 1 else ''} and {estimate.sweeps} fine"
             raise NoTiltReference(f"the reference's {swept} cannot tell the tilts: {estimate.reason}")
         self.tilt_reference = TiltReference(self.reference.id, pool_depths(pool.depth_maps).depths, estimate,
                                             pixel_size_nm / 1000, len(sweep),
-                                            tuple(float(value) for value in working_distances))
+                                            tuple(float(value) for value in working_distances),
+                                            fine=pool.fine_sweep is not None)
         self.last_tilt = None
         self.reference.detail["tilt"] = {
             "alpha_deg": estimate.alpha_deg, "beta_deg": estimate.beta_deg, "centre_um": estimate.centre_depth,
             "kernels_used": estimate.kernels_used, "frames": len(sweep), "sweeps": estimate.sweeps,
             "alpha_uncertainty_deg": estimate.alpha_uncertainty_deg,
             "beta_uncertainty_deg": estimate.beta_uncertainty_deg,
-            "content_moved_px": [None if moved is None else round(moved, 3) for moved in pool.content_moved_px]}
+            "content_moved_px": [None if moved is None else round(moved, 3) for moved in pool.content_moved_px],
+            "fine": pool.fine_sweep is not None, "wide_sweeps": pool.wide}
         return self.reference.describe()
 
     def tilt_from_sweep(self, sweep: np.ndarray, working_distances: list[float], pixel_size_nm: float | None, *,

@@ -40,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     runtime = ServiceRuntime("estimator", settings, settings.bind(config.control_port))
     tilt = TiltSettings(depth_of_field_um=config.tilt_depth_of_field_um, centre_um=config.tilt_centre_um,
                         max_tilt_deg=config.tilt_max_deg, kernel_px=config.tilt_kernel_px, method=config.tilt_method,
-                        teach_sweeps=config.tilt_teach_sweeps, focus_measure=config.tilt_focus_measure)
+                        teach_sweeps=config.tilt_teach_sweeps, focus_measure=config.tilt_focus_measure,
+                        fine_teach_sweeps=config.tilt_fine_teach_sweeps)
     core = EstimatorCore(rotation=config.rotation and not args.no_rotation,
                          precision=args.precision or config.precision, fft_effort=config.fft_effort,
                          counters=runtime.counters, tilt=tilt, scan_averaged=config.scan_averaged,

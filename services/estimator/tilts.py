@@ -245,7 +245,18 @@ class TiltTracker:
                                          reference_id=reference_id, frame_times_ns=reply.get("frame_times_ns"))
                 if taught is not None:
                     break
-                pinned = core.teach_pool.estimate
+                pool = core.teach_pool
+                if pool.estimate is None:  # the wide sweeps could not pin the tilts: finely from here
+                    wide = pool.wide
+                    state.update(sweep=state["sweep"] + 1, scanned=0, fine=True,
+                                 max_sweeps=state["sweep"] + core.tilt_settings.fine_teach_sweeps,
+                                 pinned_deg=[wide["alpha_uncertainty_deg"], wide["beta_uncertainty_deg"]])
+                    log.info("reference %s: %d wide focus sweeps pin the tilts to +-%.3f and +-%.3f degree only; "
+                             "sweeping finely about the depths they found (%d frames, %.3g um apart)", reference_id,
+                             wide["sweeps"], wide["alpha_uncertainty_deg"], wide["beta_uncertainty_deg"],
+                             len(pool.fine_sweep), pool.fine_sweep[1] - pool.fine_sweep[0])
+                    continue
+                pinned = pool.estimate
                 state.update(sweep=state["sweep"] + 1, scanned=0,
                              pinned_deg=[pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg])
                 log.info("reference %s: %d focus sweeps pin the tilts to +-%.3f and +-%.3f degree; sweeping again",
@@ -281,7 +292,7 @@ class TiltTracker:
             cancelled = (lambda: self._stop.is_set() or not core.measure_tilts or self._teach_for is not None
                          or tilted_since())
             earlier: list = []  # the same view's sweeps before this one, while they are pooled
-            first, took_s = None, 0.0
+            first, took_s, fine = None, 0.0, False
             while True:
                 sweep, reply = run_sweep(self.client(), plan, self.timeout_s, cancelled=cancelled,
                                          stopping=self._stop.is_set)
@@ -291,6 +302,13 @@ class TiltTracker:
                     return
                 distances, pixel_nm = reply["working_distances_um"], reply["pixel_size_nm"]
                 depths = core.sweep_depths(sweep, distances, pixel_nm, reply.get("frame_times_ns"))
+                finer = None if fine else core.fine_sweep_after([*earlier, depths], distances, pixel_nm)
+                if finer is not None:
+                    # Against a finely taught reference: the view swept as the teach was,
+                    # about the depths just found; those sweeps are pooled from here.
+                    log.info("the sweeps cannot pin the tilts; sweeping finely (%d frames)", len(finer))
+                    plan, earlier, fine = finer, [], True
+                    continue
                 if not core.sweep_again([*earlier, depths], distances, pixel_nm):
                     break
                 earlier.append(depths)

@@ -68,6 +68,8 @@ class TiltTeach(Response):
     frames: int = 0
     sweep: int = Field(1, description="which sweep is scanning (or the last one), from 1")
     max_sweeps: int = Field(1, description="the most sweeps the teach takes before it refuses")
+    fine: bool = Field(False, description="the wide sweeps could not pin the tilts: these sweep the view finely, a "
+                                          "quarter of a depth of field apart, about the depths they found")
     focus_measure: FocusMeasure = Field(
         "normalized_variance", description="the focus measure the sweeps are read by "
                                            "(SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE): eq. 13 or the gradient energy")

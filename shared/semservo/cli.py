@@ -476,8 +476,12 @@ def _wait_for_tilt_teach(estimator, reference_id: str, timeout_s: float = 180.0)
         if teach.state == "done":
             tilt = reference.tilt or {}
             sweeps = tilt.get("sweeps", 1)
-            swept = f"{sweeps} focus sweeps of {teach.frames} frames pooled" if sweeps > 1 else \
-                f"focus sweep of {teach.frames} frames"
+            fine = "fine " if tilt.get("fine") else ""
+            swept = f"{sweeps} {fine}focus sweeps of {teach.frames} frames pooled" if sweeps > 1 else \
+                f"{fine}focus sweep of {teach.frames} frames"
+            if tilt.get("fine") and tilt.get("wide_sweeps"):
+                wide = tilt["wide_sweeps"]["sweeps"]
+                swept += f" (after {wide} wide one{'s' if wide > 1 else ''} could not pin the tilts)"
             print(f"{swept}: the taught pose's plane tilts alpha {tilt.get('alpha_deg', 0):+.2f}, beta "
                   f"{tilt.get('beta_deg', 0):+.2f} deg, pinned to +-{tilt.get('alpha_uncertainty_deg', math.nan):.3f} "
                   f"and +-{tilt.get('beta_uncertainty_deg', math.nan):.3f} ({tilt.get('kernels_used')} kernels in "
@@ -487,7 +491,8 @@ def _wait_for_tilt_teach(estimator, reference_id: str, timeout_s: float = 180.0)
             print(f"semservo teach: the image is taught, not its tilts: {teach.error}", file=sys.stderr)
             return 1
         measure = "" if teach.focus_measure == "normalized_variance" else f", read by the {teach.focus_measure} measure"
-        progress = (f"focus sweep {teach.sweep} (of at most {teach.max_sweeps}{measure}): {teach.scanned} of "
+        fine = "fine " if teach.fine else ""
+        progress = (f"{fine}focus sweep {teach.sweep} (of at most {teach.max_sweeps}{measure}): {teach.scanned} of "
                     f"{teach.frames} frames")
         if teach.pinned_deg:
             progress += (f"; the sweeps so far pin the tilts to +-{teach.pinned_deg[0]:.3f} and "

@@ -202,6 +202,10 @@ class EstimatorSettings(BaseModel):
                                            "which pins the tilts of sparse textures more tightly (bench/tilt_bounds.py)")
     tilt_teach_sweeps: int = Field(4, ge=1, le=16, description="the most focus sweeps a teach with tilts takes of the "
                                                                "taught pose, pooled, while they pin the tilts loosely")
+    tilt_fine_teach_sweeps: int = Field(8, ge=0, le=16,
+                                        description="where those cannot pin the tilts, the most fine sweeps (a quarter "
+                                                    "of a depth of field apart, about the depths they found) the teach "
+                                                    "takes instead (0: none, the teach refused there)")
     sweep_timeout_s: float = Field(120.0, gt=0, le=3600, description="a focus sweep that takes longer has failed")
 
 

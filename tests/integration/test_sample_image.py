@@ -188,3 +188,35 @@ def test_the_five_degree_of_freedom_demo_on_a_textured_picture_converges(ports, 
     assert re.search(r"4\. converged after \d+ iterations", out), out
     angles = true_final_angles(out)
     assert abs(angles["gamma"]) < 0.1 and abs(angles["alpha"]) < 0.3 and abs(angles["beta"]) < 0.3
+
+
+@pytest.mark.timeout(300)
+def test_a_sparse_picture_the_wide_sweeps_cannot_pin_is_taught_from_fine_sweeps(tmp_path, sem_images):
+    """drift_pair_before (sparse particles in one corner of a dark field) under the tilts
+    preset's optics: one wide sweep pins its tilts to about +-0.14 degree, and 4 could not
+    bring them under the +-0.071 a teach may keep. Through the whole stack the teach then
+    sweeps the view finely about the depths it found (the estimator plans those sweeps, the
+    image server scans them) and is taught from them, or refused saying it swept both ways."""
+    from semservo.client import Client, SemservoError
+    from semservo.launcher import simulated_system
+    from semservo.simulation.sample_image import scan_pixel_um
+    from semservo.simulation.world import PRESETS
+
+    pixel_nm = scan_pixel_um(PRESETS["tilts"].magnification, 512) * 1000
+    with simulated_system(tmp_path, speedup=20, SEMSERVO_FAKELAB__PRESET="tilts",
+                          SEMSERVO_FAKELAB__SAMPLE_IMAGE=str(sem_images / "drift_pair_before.tif"),
+                          SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM=f"{pixel_nm:.6g}") as (_launcher, settings):
+        with Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=60) as lab:
+            wait_for(lambda: lab.status()["latest_frame_seq"] is not None, 60, "a frame at the gateway")
+            try:
+                reference = lab.teach(frames=2, tilts=True)
+            except SemservoError as error:  # refused: after both kinds of sweep, saying so
+                assert re.search(r"wide focus sweeps? and \d fine cannot tell the tilts", str(error)), str(error)
+                return
+    tilt = reference.tilt
+    assert tilt["fine"] is True and 1 <= tilt["sweeps"] <= 8, tilt
+    wide = tilt["wide_sweeps"]
+    assert max(wide["alpha_uncertainty_deg"], wide["beta_uncertainty_deg"]) > 0.071, tilt
+    assert max(tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"]) <= 0.071, tilt
+    assert abs(tilt["alpha_deg"]) < 0.3 and abs(tilt["beta_deg"]) < 0.3, tilt  # the stage is level
+    assert tilt["frames"] < 25  # only the depths its kernels are at, a quarter of a depth of field apart

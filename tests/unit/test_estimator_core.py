@@ -224,6 +224,91 @@ def test_a_teach_whose_sweep_pins_the_tilts_loosely_sweeps_again_and_pools_them(
     assert calls == 1 or f"{calls} focus sweeps" in str(refusal.value)
 
 
+def test_a_teach_the_wide_sweeps_cannot_pin_sweeps_finely_about_the_depths_they_found():
+    """A faint texture one wide sweep pins to +-0.08-0.11 degree only (the teach keeps at
+    most +-0.071): the teach goes on with sweeps at a quarter of a depth of field on the
+    wide sweep's grid, about the depths it found, pools those, and runs sweep that grid."""
+    from services.estimator.core import NoTiltReference, TiltSettings
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    settings = TiltSettings(teach_sweeps=1, fine_teach_sweeps=4, depth_of_field_um=0.5)
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE", tilt=settings)
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    faint = 100 + 3.5 * (texture() - 100) / 60
+    depths = plane_depths(2.0, -1.0)
+    wide = list(WORKING_DISTANCES_UM)
+    assert core.teach_tilt(sweep_of_depths(depths, faint, 0), wide, PIXEL_UM * 1000) is None
+    fine = core.next_sweep()
+    assert fine == list(core.teach_pool.fine_sweep) and core.teach_pool.estimate is None
+    wide_step, fine_step = wide[1] - wide[0], fine[1] - fine[0]
+    assert fine_step == pytest.approx(wide_step / 2)  # a quarter of 0.5 um: half the wide step
+    assert (np.abs(np.round((np.array(fine) - wide[0]) / fine_step) * fine_step + wide[0] - fine) < 1e-9).all()
+    assert fine[0] <= depths.min() - 2 * 0.5 + 1e-9 and fine[-1] >= depths.max() + 2 * 0.5 - 1e-9
+    assert len(fine) < 2 * len(wide) - 1  # only the depths the kernels are at
+    taught = None
+    for seed in range(1, 5):
+        taught = core.teach_tilt(sweep_of_depths(depths, faint, seed, fine), core.next_sweep(), PIXEL_UM * 1000)
+        if taught is not None:
+            break
+    tilt = taught["tilt"]
+    assert tilt["fine"] is True and tilt["wide_sweeps"]["sweeps"] == 1 and 1 <= tilt["sweeps"] <= 4
+    assert max(tilt["wide_sweeps"]["alpha_uncertainty_deg"], tilt["wide_sweeps"]["beta_uncertainty_deg"]) > 0.071
+    assert max(tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"]) <= 0.071
+    assert tilt["alpha_deg"] == pytest.approx(2.0, abs=0.2) and tilt["beta_deg"] == pytest.approx(-1.0, abs=0.2)
+    assert core.tilt_reference.grid == pytest.approx((fine[0], fine_step)) and core.teach_pool is None
+    # A run's sweeps sample the fine grid (its pull between samples, the teach's, cancels at the goal).
+    core.last_tilt = {"confidence": 1.0, "absolute_alpha_deg": 2.0, "absolute_beta_deg": -1.0,
+                      "centre_um": tilt["centre_um"]}  # near the taught pose
+    run_sweep = np.array(core.next_sweep())
+    on_grid = (run_sweep - fine[0]) / fine_step
+    assert np.allclose(on_grid, np.round(on_grid)) and np.allclose(np.diff(run_sweep), fine_step)
+
+    # A run's coarser sweep that cannot pin the tilts is followed by a fine one about its depths.
+    run_depths = core.sweep_depths(sweep_of_depths(depths, faint, 7), wide, PIXEL_UM * 1000)
+    follow = core.fine_sweep_after([run_depths], wide, PIXEL_UM * 1000)
+    assert follow is not None and np.allclose(np.diff(follow), fine_step)
+    assert np.allclose((np.array(follow) - fine[0]) / fine_step, np.round((np.array(follow) - fine[0]) / fine_step))
+    assert core.fine_sweep_after([run_depths], follow, PIXEL_UM * 1000) is None  # already fine
+    # Its fine sweeps are pooled up to as many as the teach's (4 here), a coarse one's up to teach_sweeps (1).
+    assert not core.sweep_again([run_depths], wide, PIXEL_UM * 1000)
+    fine_depths = core.sweep_depths(sweep_of_depths(depths, 100 + 2.2 * (texture() - 100) / 60, 8, follow), follow,
+                                    PIXEL_UM * 1000)
+    assert core.sweep_again([fine_depths], follow, PIXEL_UM * 1000)
+
+    # Too faint for the fine sweeps too: refused, saying it swept both ways; never a third way.
+    core.measure(None, tilts=False)
+    core.teach_latest()
+    fainter = 100 + 2.0 * (texture() - 100) / 60
+    assert core.teach_tilt(sweep_of_depths(depths, fainter, 0), wide, PIXEL_UM * 1000) is None
+    with pytest.raises(NoTiltReference, match=r"1 wide focus sweep and \d fine cannot tell the tilts"):
+        for seed in range(1, 10):
+            plan = core.next_sweep()
+            core.teach_tilt(sweep_of_depths(depths, fainter, seed, plan), plan, PIXEL_UM * 1000)
+    assert core.tilt_reference is None and core.teach_pool is None
+
+
+def test_a_teach_with_fine_sweeps_off_is_refused_where_the_wide_ones_cannot_pin_the_tilts():
+    from services.estimator.core import NoTiltReference, TiltSettings
+    from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
+
+    core = EstimatorCore(rotation=False, fft_effort="FFTW_ESTIMATE",
+                         tilt=TiltSettings(teach_sweeps=1, fine_teach_sweeps=0, depth_of_field_um=0.5))
+    core.process(frame(texture().astype(np.float32), 0, pixel_size_nm=PIXEL_UM * 1000))
+    core.teach_latest()
+    faint = 100 + 3.5 * (texture() - 100) / 60
+    with pytest.raises(NoTiltReference, match=r"the reference's focus sweep cannot tell the tilts: .*pin the tilts"):
+        core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0), faint, 0), list(WORKING_DISTANCES_UM),
+                        PIXEL_UM * 1000)
+    # A reference the wide sweeps taught: its runs' sweeps are never swapped for fine ones.
+    core.teach_latest()
+    assert core.teach_tilt(sweep_of_depths(plane_depths(2.0, -1.0)), list(WORKING_DISTANCES_UM), PIXEL_UM * 1000)
+    assert core.tilt_reference.fine is False
+    loose = core.sweep_depths(sweep_of_depths(plane_depths(2.0, -1.0), faint, 3), list(WORKING_DISTANCES_UM),
+                              PIXEL_UM * 1000)
+    assert core.fine_sweep_after([loose], list(WORKING_DISTANCES_UM), PIXEL_UM * 1000) is None
+
+
 def test_a_new_reference_does_not_pool_the_sweeps_of_the_one_before():
     from tests.unit.test_tilt import PIXEL_UM, WORKING_DISTANCES_UM, plane_depths, sweep_of_depths, texture
 

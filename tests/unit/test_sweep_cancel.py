@@ -126,6 +126,7 @@ def test_a_tilt_move_cancels_the_tracking_sweep_and_the_next_waits_for_the_tilt_
     core = SimpleNamespace(
         measure_tilts=True, tilt_error=None, last_estimate=None, next_sweep=lambda: [-2.0, -1.0, 0.0, 1.0, 2.0],
         sweep_depths=lambda sweep, distances, pixel_nm, *_: len(sweep), sweep_again=lambda depths, *_: False,
+        fine_sweep_after=lambda *_: None,
         tilt_from_sweep=lambda sweep, *_, **kw: measured.append(kw["scan_started_at_ns"]) or {"confidence": 1.0})
     tracker = TiltTracker(core, lambda: server, timeout_s=30)
     settles_at = time.time_ns() + 300_000_000

@@ -30,14 +30,15 @@ def plane_depths(alpha_deg: float, beta_deg: float, centre_um: float = 0.1, size
             - np.tan(np.radians(beta_deg)) / np.cos(np.radians(alpha_deg)) * x)
 
 
-def sweep_of_depths(depths: np.ndarray, scene: np.ndarray | None = None, seed: int = 5) -> np.ndarray:
+def sweep_of_depths(depths: np.ndarray, scene: np.ndarray | None = None, seed: int = 5,
+                    working_distances=WORKING_DISTANCES_UM) -> np.ndarray:
     """Frames of a surface whose kernels lie at ``depths`` (kernel rows x kernel cols, um)
     at each working distance: each kernel blurred by its distance from focus, with
     shot-like noise."""
     scene = texture() if scene is None else scene
     rng = np.random.default_rng(seed)
     frames = []
-    for distance in WORKING_DISTANCES_UM:
+    for distance in working_distances:
         frame = np.empty(scene.shape)
         blurred: dict[float, np.ndarray] = {}
         for (row, col), depth in np.ndenumerate(depths):
@@ -163,6 +164,49 @@ def test_sweeps_are_planned_wide_first_then_on_the_taught_grid():
         assert np.allclose((sweep - grid[0]) / grid[1], np.round((sweep - grid[0]) / grid[1]))
     with pytest.raises(ValueError):
         plan_sweep(0.0, float("nan"), 36.0)
+
+
+def test_a_fine_teach_sweep_lies_on_the_wide_grid_about_the_depths_found():
+    from semservo.estimation.tilt import FINE_STEP_DOF, MARGIN_DOF, plan_fine_sweep, plan_sweep
+
+    depth_of_field = 2.5
+    wide = plan_sweep(0.0, depth_of_field, 25.0)  # 1.25 um apart
+    depths = np.full((8, 8), np.nan)
+    depths[2:6, 3:7] = np.linspace(-0.3, 0.4, 16).reshape(4, 4)  # a bunched, slightly tilted cluster
+    depths[0, 0] = wide[0] + 0.1  # a marginal peak read at the sweep's end
+    fine = plan_fine_sweep(depths, wide, depth_of_field)
+    step = fine[1] - fine[0]
+    assert step == pytest.approx(FINE_STEP_DOF * depth_of_field) and np.ptp(np.diff(fine)) < 1e-9
+    on_grid = (fine - wide[0]) / step
+    assert np.allclose(on_grid, np.round(on_grid))  # every wide sample is on it too
+    margin = MARGIN_DOF * depth_of_field
+    assert fine[0] <= -0.3 - margin + 1e-9 and fine[-1] >= 0.4 + margin - 1e-9
+    assert fine[0] > -0.3 - margin - step and fine[-1] < 0.4 + margin + step  # not out to the odd kernel
+    # On a fine grid already taught, from a wide sweep off it (a run's): on that grid.
+    taught_grid = (fine[0] + 0.3 * step, step)
+    kept = plan_fine_sweep(depths, wide + 0.4, depth_of_field, grid=taught_grid)
+    on_taught = (kept - taught_grid[0]) / step
+    assert np.allclose(on_taught, np.round(on_taught)) and np.allclose(np.diff(kept), step)
+    # Kernels over too many depths for 25 frames at that step: none (the wide sweeps stand).
+    assert plan_fine_sweep(np.linspace(-6, 6, 64).reshape(8, 8), wide, depth_of_field) is None
+    assert plan_fine_sweep(np.full((8, 8), np.nan), wide, depth_of_field) is None
+
+
+def test_fine_sweeps_are_for_a_teach_pinned_too_loosely_not_for_one_refused_otherwise():
+    from dataclasses import replace
+
+    from semservo.estimation.tilt import MAX_TAUGHT_UNCERTAINTY_DEG, MIN_KERNELS, TiltEstimate, wants_fine_sweeps
+
+    loose = TiltEstimate(0.1, 0.2, 0.0, 40, 256, 0.05, 0.9, "", 0.08, 0.06)  # taught alone, over a teach's line
+    assert wants_fine_sweeps(loose) and not wants_fine_sweeps(replace(loose, alpha_uncertainty_deg=0.05))
+    refused = replace(loose, alpha_deg=np.nan, beta_deg=np.nan, confidence=0.0, alpha_uncertainty_deg=0.2,
+                      reason="the 40 kernels that see focus ... pin the tilts to +-0.20")
+    assert wants_fine_sweeps(refused)
+    # Refused for its scatter (under the 0.1 line) or too few kernels: finer sampling does not help.
+    assert not wants_fine_sweeps(replace(refused, alpha_uncertainty_deg=0.09))
+    assert not wants_fine_sweeps(replace(refused, kernels_used=MIN_KERNELS - 1))
+    assert not wants_fine_sweeps(replace(refused, alpha_uncertainty_deg=np.nan, beta_uncertainty_deg=np.nan))
+    assert not wants_fine_sweeps(loose, line_deg=0.1) and MAX_TAUGHT_UNCERTAINTY_DEG < 0.08
 
 
 def test_undoing_the_foreshortening_restores_the_square_view():
@@ -459,6 +503,9 @@ def test_a_hopeless_texture_is_refused_at_once_with_how_well_it_pinned_the_tilts
     assert wants_another_sweep(marginal) and not wants_another_sweep(replace(marginal, sweeps=4))
     # Far over the line even then (2 sweeps at twice the line project 1.4 x it for 4): refused.
     assert not wants_another_sweep(replace(marginal, sweeps=2, alpha_uncertainty_deg=2 * MAX_TILT_UNCERTAINTY_DEG))
+    # The first of a teach's fine sweeps, after its wide ones: pooling has begun, the slack holds.
+    first_fine = replace(marginal, sweeps=1, alpha_uncertainty_deg=2.4 * MAX_TILT_UNCERTAINTY_DEG)  # 1.2 x for 4
+    assert not wants_another_sweep(first_fine) and wants_another_sweep(first_fine, begun=True)
     # A plane that holds for too few kernels is refused for that, however its errors read.
     from semservo.estimation.tilt import MIN_KERNELS
 
@@ -483,11 +530,44 @@ def test_the_benchmarks_teach_pools_its_reference_as_the_service_does():
             return sweep_of_depths(plane_depths(*pose[:2]), faint, seed=self.sweeps)
 
     lab = FaintLab()
-    pooled, depths = teach_reference(lab, WORKING_DISTANCES_UM, max_sweeps=4)
+    pooled, depths, _ = teach_reference(lab, WORKING_DISTANCES_UM, max_sweeps=4)
     assert 1 < pooled.sweeps == lab.sweeps <= 4 and pooled.confidence > 0 and depths.shape == (SIZE // KERNEL,) * 2
     assert pooled.alpha_deg == pytest.approx(0.0, abs=0.3) and pooled.beta_deg == pytest.approx(0.0, abs=0.3)
-    single, _ = teach_reference(FaintLab(), WORKING_DISTANCES_UM, max_sweeps=1)
+    single = teach_reference(FaintLab(), WORKING_DISTANCES_UM, max_sweeps=1).estimate
     assert single.sweeps == 1
+
+
+def test_the_benchmarks_teach_sweeps_finely_where_the_wide_sweeps_cannot_as_the_service_does():
+    from semservo.reproduce.tilts import teach_reference
+
+    faint = 100 + 3.5 * (texture() - 100) / 60
+
+    class FaintLab:
+        """A flat view of a faint texture, swept where it is asked (a depth of field of 0.5 um)."""
+
+        pixel_um, depth_of_field_um = PIXEL_UM, 0.5
+
+        def __init__(self):
+            self.plans = []
+
+        def sweep(self, pose, working_distances):
+            self.plans.append(np.asarray(working_distances))
+            return sweep_of_depths(plane_depths(*pose[:2]), faint, seed=len(self.plans),
+                                   working_distances=working_distances)
+
+    lab = FaintLab()
+    taught, _, swept = teach_reference(lab, WORKING_DISTANCES_UM, max_sweeps=1)
+    wide_step = WORKING_DISTANCES_UM[1] - WORKING_DISTANCES_UM[0]
+    assert np.array_equal(lab.plans[0], WORKING_DISTANCES_UM) and len(lab.plans) > 1
+    assert all(np.array_equal(plan, swept) for plan in lab.plans[1:]) and swept[1] - swept[0] == pytest.approx(
+        wide_step / 2)
+    assert taught.sweeps == len(lab.plans) - 1  # the fine ones, pooled apart from the wide one
+    assert taught.confidence > 0 and max(taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg) <= 0.071
+    assert abs(taught.alpha_deg) < 0.2 and abs(taught.beta_deg) < 0.2
+    # Without fine sweeps the same teach is refused (one wide sweep pins it to +-0.08-0.1 degree).
+    never = teach_reference(FaintLab(), WORKING_DISTANCES_UM, max_sweeps=1, fine_sweeps=0)
+    assert np.array_equal(never.working_distances, WORKING_DISTANCES_UM) and never.estimate.sweeps == 1
+    assert never.estimate.confidence == 0 and "pin the tilts" in never.estimate.reason
 
 
 # --------------------------------------------------------------------------------------

@@ -440,7 +440,9 @@ function showTiltTeach(tiltTeach, tilt) {
       const pinned = tiltTeach.pinned_deg
         ? `; so far the tilts are pinned to ±${fmt(tiltTeach.pinned_deg[0], 3)}° and ±${fmt(tiltTeach.pinned_deg[1], 3)}°`
         : "";
-      $("tilt-teach-text").textContent = `focus sweep${which}: ${tiltTeach.scanned} of ${tiltTeach.frames} frames scanned${pinned}`;
+      const fine = tiltTeach.fine ? "fine " : "";
+      $("tilt-teach-text").textContent =
+        `${fine}focus sweep${which}: ${tiltTeach.scanned} of ${tiltTeach.frames} frames scanned${pinned}`;
     } else {
       progress.removeAttribute("value");
       $("tilt-teach-text").textContent = "focus sweep: starting";
@@ -448,7 +450,9 @@ function showTiltTeach(tiltTeach, tilt) {
   } else if (tiltTeach.state === "done") {
     progress.hidden = true;
     const plane = tilt ? `: α ${fmt(tilt.alpha_deg, 2)}° β ${fmt(tilt.beta_deg, 2)}°` : "";
-    const sweeps = tilt && tilt.sweeps > 1 ? `${tilt.sweeps} sweeps of ${tiltTeach.frames} frames, pooled` : `${tiltTeach.frames} frames`;
+    const fine = tilt && tilt.fine ? "fine " : "";
+    const sweeps = tilt && tilt.sweeps > 1
+      ? `${tilt.sweeps} ${fine}sweeps of ${tiltTeach.frames} frames, pooled` : `${fine}${tiltTeach.frames} frames`;
     $("tilt-teach-text").textContent = `focus sweep done (${sweeps})${plane}; tilts can be servoed`;
   } else {
     progress.hidden = true;

@@ -31,16 +31,16 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
 from semservo.config import EstimatorSettings
 from semservo.estimation import MotionEstimator
-from semservo.estimation.tilt import (MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, TiltEstimate, as_taught, depth_map,
-                                      egi_tilt_between, estimate_tilt,
-                                      kernel_depths, line_against, measured_against, plan_sweep, pool_depths, pooled_tilt,
-                                      undo_foreshortening, wants_another_sweep)
+from semservo.estimation.tilt import (MAX_FINE_TEACH_SWEEPS, MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, TiltEstimate,
+                                      as_taught, depth_map, egi_tilt_between, estimate_tilt, kernel_depths,
+                                      line_against, measured_against, plan_fine_sweep, plan_sweep, pool_depths,
+                                      pooled_tilt, undo_foreshortening, wants_another_sweep, wants_fine_sweeps)
 from semservo.runs import resting_frames, resting_interval
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
@@ -138,27 +138,51 @@ class TextureLab:
         return tilt_bound(scene, working_distances, electrons=self.electrons, read_noise=self.read_noise)
 
 
+class TaughtReference(NamedTuple):
+    """A teach's outcome (:func:`teach_reference`): the tilts, the pooled kernel depths and
+    the working distances of the sweeps they came from (the grid a run's sweeps sample)."""
+
+    estimate: TiltEstimate
+    depths: np.ndarray
+    working_distances: np.ndarray
+
+
 def teach_reference(lab, working_distances, max_sweeps: int = MAX_TEACH_SWEEPS,
-                    kernel: int = 32, measure: str = "normalized_variance") -> tuple[TiltEstimate, np.ndarray]:
+                    kernel: int = 32, measure: str = "normalized_variance",
+                    fine_sweeps: int = MAX_FINE_TEACH_SWEEPS) -> TaughtReference:
     """The taught pose's tilts as the estimator service teaches them: a focus sweep at
     (0, 0, 0), and another of the same view, the kernel depths pooled, while
     :func:`semservo.estimation.tilt.wants_another_sweep` asks for it (at most
     ``max_sweeps``; 1: a single sweep), read by the focus ``measure``
-    (:data:`semservo.estimation.tilt.FOCUS_MEASURES`). Returns the estimate and the pooled depths."""
+    (:data:`semservo.estimation.tilt.FOCUS_MEASURES`). Where those cannot pin the tilts for
+    their uncertainty (:func:`semservo.estimation.tilt.wants_fine_sweeps`), the view is
+    swept finely about the depths they found instead (:func:`semservo.estimation.tilt.plan_fine_sweep`),
+    pooled the same way, at most ``fine_sweeps`` (0: never; a lab without a
+    ``depth_of_field_um`` is not swept finely)."""
     working_distances = np.asarray(working_distances, dtype=np.float64)
-    step = float(working_distances[1] - working_distances[0])
-    maps = []
-    while True:
-        maps.append(kernel_depths(lab.sweep((0.0, 0.0, 0.0), working_distances), working_distances, kernel,
-                                  lab.pixel_um, measure=measure))
-        estimate = pooled_tilt(maps, kernel, lab.pixel_um, step)
-        if not wants_another_sweep(estimate, max_sweeps, MAX_TAUGHT_UNCERTAINTY_DEG):
-            return as_taught(estimate), pool_depths(maps).depths
+
+    def pooled(plan: np.ndarray, most: int, begun: bool = False) -> tuple[TiltEstimate, list]:
+        step, maps = float(plan[1] - plan[0]), []
+        while True:
+            maps.append(kernel_depths(lab.sweep((0.0, 0.0, 0.0), plan), plan, kernel, lab.pixel_um, measure=measure))
+            estimate = pooled_tilt(maps, kernel, lab.pixel_um, step)
+            if not wants_another_sweep(estimate, most, MAX_TAUGHT_UNCERTAINTY_DEG, begun=begun):
+                return estimate, maps
+
+    estimate, maps = pooled(working_distances, max_sweeps)
+    depth_of_field = getattr(lab, "depth_of_field_um", None)
+    if fine_sweeps > 0 and depth_of_field is not None and wants_fine_sweeps(estimate):
+        fine = plan_fine_sweep(pool_depths(maps).depths, working_distances, depth_of_field)
+        if fine is not None:
+            working_distances = fine
+            estimate, maps = pooled(fine, fine_sweeps, begun=True)
+    return TaughtReference(as_taught(estimate), pool_depths(maps).depths, working_distances)
 
 
 def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[[str], None] = print,
               lab=None, reference_sweeps: int = 1, sweeps_when_refused: int = 1,
-              measure: str = "normalized_variance") -> dict:
+              measure: str = "normalized_variance", fine_sweeps: int = MAX_FINE_TEACH_SWEEPS,
+              pose_fine_sweeps: bool = False) -> dict:
     """Table I on ``poses`` ((alpha, beta, gamma) in degrees), each against a reference
     taught at (0, 0, 0): per pose, the errors (measured - true) of both methods, signs,
     frames, simulated scan time and compute time (see the module's text). ``lab``: the
@@ -170,12 +194,21 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
     its uncertainty, pooled as the estimator service pools them in a run (1: none; the
     paper's EGI and the tracking sweep are measured on the first sweep only); ``measure``:
     the focus measure both methods read the sweeps by
-    (:data:`semservo.estimation.tilt.FOCUS_MEASURES`)."""
+    (:data:`semservo.estimation.tilt.FOCUS_MEASURES`); ``fine_sweeps``: the most fine
+    sweeps a teach the wide ones cannot pin takes (:func:`teach_reference`; 0, none).
+    ``pose_fine_sweeps``: against such a teach, a pose whose first sweep cannot pin the
+    tilts is swept finely about the depths it found instead, and up to as many of those
+    are pooled, as the service's tracker does in a run (``EstimatorCore.fine_sweep_after``);
+    off by default: a run re-measures near the goal, where the taught grid's pull between
+    samples cancels, but as single measurements at tilted poses those fine sweeps read
+    the drift pair up to 0.34 degree off, 3.7 of their standard errors (docs/tilts.md)."""
     lab = Lab(seed) if lab is None else lab
     depth_of_field = lab.depth_of_field_um
     reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
-    grid = (reference_sweep[0], reference_sweep[1] - reference_sweep[0])
-    taught, taught_depths = teach_reference(lab, reference_sweep, reference_sweeps, measure=measure)
+    taught, taught_depths, taught_sweep = teach_reference(lab, reference_sweep, reference_sweeps, measure=measure,
+                                                          fine_sweeps=fine_sweeps)
+    taught_fine = not np.array_equal(taught_sweep, reference_sweep)
+    grid = (taught_sweep[0], taught_sweep[1] - taught_sweep[0])
     # The bound of one sweep of the taught view, where the lab can tell it (a texture's).
     bound = (lab.tilt_bound((0.0, 0.0, 0.0), reference_sweep, measure) if hasattr(lab, "tilt_bound")
              else (math.nan, math.nan))
@@ -197,24 +230,32 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         # As the estimator service measures a pose: against the taught reading, the two
         # readings' standard errors together within the line, else refused.
         line = line_against(taught)
+        pose_plan, most = first_sweep, sweeps_when_refused
+        maps = [kernel_depths(frames, first_sweep, 32, lab.pixel_um, measure=measure)]
+        fine = (plan_fine_sweep(maps[0].depths, first_sweep, depth_of_field, grid=grid)
+                if pose_fine_sweeps and taught_fine and first_sweep[1] - first_sweep[0] > grid[1] * 1.01
+                and wants_fine_sweeps(plane, line) else None)
+        if fine is not None:
+            # As the service's tracker does in a run against a finely taught reference
+            # (fine_sweep_after): the pose swept again finely about the depths found.
+            pose_plan, most = fine, max(sweeps_when_refused, fine_sweeps)
+            maps = [kernel_depths(lab.sweep(pose, fine), fine, 32, lab.pixel_um, measure=measure)]
+            plane = pooled_tilt(maps, 32, lab.pixel_um, float(fine[1] - fine[0]))
         plane = measured_against(plane, taught)
         clock = time.perf_counter()
         egi_alpha, egi_beta, _ = egi_tilt_between(taught_depths, depth_map(frames, first_sweep, 32, lab.pixel_um,
                                                                            measure=measure), 32, lab.pixel_um)
         egi_ms = (time.perf_counter() - clock) * 1e3
-        pose_sweeps = 1
-        if plane.confidence <= 0 and wants_another_sweep(plane, sweeps_when_refused, line):
+        if plane.confidence <= 0 and wants_another_sweep(plane, most, line):
             # As the estimator service does in a run: a sweep that cannot pin the tilts
             # is followed by more of the same plan, their depths pooled.
-            step = float(first_sweep[1] - first_sweep[0])
-            maps = [kernel_depths(frames, first_sweep, 32, lab.pixel_um, measure=measure)]
+            step = float(pose_plan[1] - pose_plan[0])
             while True:
-                maps.append(kernel_depths(lab.sweep(pose, first_sweep), first_sweep, 32, lab.pixel_um,
-                                          measure=measure))
+                maps.append(kernel_depths(lab.sweep(pose, pose_plan), pose_plan, 32, lab.pixel_um, measure=measure))
                 plane = measured_against(pooled_tilt(maps, 32, lab.pixel_um, step), taught)
-                if not wants_another_sweep(plane, sweeps_when_refused, line):
+                if not wants_another_sweep(plane, most, line):
                     break
-            pose_sweeps = len(maps)
+        pose_sweeps = len(maps) + (fine is not None)
         refused = plane.confidence <= 0 or taught.confidence <= 0
         measured_alpha, measured_beta = plane.alpha_deg - taught.alpha_deg, plane.beta_deg - taught.beta_deg
         if refused:
@@ -252,25 +293,29 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
             f"{rows[-1]['egi'][0]:+.3f} {rows[-1]['egi'][1]:+.3f}, gamma {rows[-1]['gamma_compensated']:+.4f} "
             f"({left:.0f} s left)")
     return {"taught": [taught.alpha_deg, taught.beta_deg], "taught_reason": taught.reason, "frame_time_s": frame_time,
-            "taught_sweeps": taught.sweeps,
+            "taught_sweeps": taught.sweeps, "taught_frames": len(taught_sweep),
+            "taught_fine": taught_fine,
             "taught_uncertainty": [taught.alpha_uncertainty_deg, taught.beta_uncertainty_deg],
             "taught_bound_one_sweep": list(bound), "rows": rows}
 
 
 def depth_of_field_scan(poses: list[tuple[float, float, float]], seed: int, factors=(1.0, 2.0, 4.0, 8.0),
                         say: Callable[[str], None] = print, lab_for: Callable[[float], object] | None = None,
-                        reference_sweeps: int = 1, measure: str = "normalized_variance") -> list[dict]:
+                        reference_sweeps: int = 1, measure: str = "normalized_variance",
+                        fine_sweeps: int = MAX_FINE_TEACH_SWEEPS) -> list[dict]:
     """The plane fit's error as the depth of field grows (a smaller aperture or a longer
     working distance): ``lab_for(factor)`` is the lab with its depth of field that many
     times larger (the simulated SEM's beam half-angle divided by it, unless given); the
-    sweeps are scaled to the depth of field; ``reference_sweeps`` and ``measure`` as :func:`table_one`."""
+    sweeps are scaled to the depth of field; ``reference_sweeps``, ``measure`` and ``fine_sweeps`` as
+    :func:`table_one`."""
     lab_for = (lambda factor: Lab(seed, depth_of_field_factor=factor)) if lab_for is None else lab_for
     rows = []
     for factor in factors:
         lab = lab_for(factor)
         depth_of_field = lab.depth_of_field_um
         reference_sweep = plan_sweep(0.0, depth_of_field, lab.field_um)
-        taught, _ = teach_reference(lab, reference_sweep, reference_sweeps, measure=measure)
+        taught = teach_reference(lab, reference_sweep, reference_sweeps, measure=measure,
+                                 fine_sweeps=fine_sweeps).estimate
         errors, signs, refused = [], [], 0
         for alpha, beta, gamma in poses:
             measured = measured_against(estimate_tilt(lab.sweep((alpha, beta, gamma), reference_sweep), reference_sweep,
