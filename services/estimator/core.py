@@ -22,8 +22,9 @@ from semservo.estimation.raster import (BAND_ROWS, PARTIAL_FRAME_FROM, SCAN_AVER
 from semservo.estimation.tilt import (MAX_FINE_TEACH_SWEEPS, MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, KernelDepths,
                                       TiltEstimate, as_taught, check_sweep, content_shifts, egi_tilt_between,
                                       kernel_depths, line_against, measured_against, plan_fine_sweep, plan_sweep,
-                                      pool_depths, pooled_tilt, rows_seen_square_on, undo_foreshortening,
-                                      undoes_foreshortening, wants_another_sweep, wants_fine_sweeps)
+                                      pool_depths, pooled_tilt, rows_seen_square_on, sampled_as_finely,
+                                      undo_foreshortening, undoes_foreshortening, wants_another_sweep,
+                                      wants_fine_sweeps)
 from semservo.instruments import scan_middle_ns
 from semservo.imagefiles import ImageFileError, read_image
 from semservo.messages import ACQUISITION_FIELDS, MotionEstimate
@@ -330,10 +331,8 @@ class EstimatorCore:
         is enough: the next move is larger than its noise."""
         reference = self.tilt_reference
         most = self.tilt_settings.teach_sweeps
-        if reference is not None and reference.fine and len(working_distances) > 1:
-            step = (working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)
-            if step <= reference.grid[1] * 1.01:
-                most = max(most, self.tilt_settings.fine_teach_sweeps)
+        if reference is not None and reference.fine and sampled_as_finely(working_distances, reference.grid[1]):
+            most = max(most, self.tilt_settings.fine_teach_sweeps)
         if reference is None or len(depth_maps) >= most:
             return False
         estimate = measured_against(self.pooled_estimate(depth_maps, working_distances, pixel_size_nm),
@@ -356,8 +355,7 @@ class EstimatorCore:
         reference = self.tilt_reference
         if reference is None or not reference.fine or len(working_distances) < 2:
             return None
-        step = (working_distances[-1] - working_distances[0]) / (len(working_distances) - 1)
-        if step <= reference.grid[1] * 1.01:
+        if sampled_as_finely(working_distances, reference.grid[1]):
             return None  # already as fine as the teach
         estimate = self.pooled_estimate(depth_maps, working_distances, pixel_size_nm)
         if not wants_fine_sweeps(estimate, line_against(reference.estimate)):

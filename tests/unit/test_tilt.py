@@ -192,6 +192,17 @@ def test_a_fine_teach_sweep_lies_on_the_wide_grid_about_the_depths_found():
     assert plan_fine_sweep(np.full((8, 8), np.nan), wide, depth_of_field) is None
 
 
+def test_a_sweep_is_as_fine_as_a_grid_when_its_samples_are_no_farther_apart():
+    from semservo.estimation.tilt import sampled_as_finely
+
+    grid_step = 0.625
+    assert sampled_as_finely(np.arange(17) * grid_step + 3.0, grid_step)
+    assert sampled_as_finely(np.arange(17) * grid_step * 1.005, grid_step)  # rounding, not coarser
+    assert sampled_as_finely(np.arange(40) * 0.3, grid_step)  # finer
+    assert not sampled_as_finely(np.arange(21) * 1.25, grid_step)  # a wide sweep
+    assert not sampled_as_finely([2.0], grid_step)  # one frame has no step
+
+
 def test_fine_sweeps_are_for_a_teach_pinned_too_loosely_not_for_one_refused_otherwise():
     from dataclasses import replace
 

@@ -1704,6 +1704,16 @@ def wants_fine_sweeps(estimate: TiltEstimate, line_deg: float = MAX_TAUGHT_UNCER
     return bool(np.isfinite(worst)) and worst > line_deg and estimate.kernels_used >= MIN_KERNELS and for_uncertainty
 
 
+def sampled_as_finely(working_distances, step: float) -> bool:
+    """Whether a sweep's ``working_distances`` are at most ``step`` apart (a taught grid's;
+    1 % slack for rounding): a run's sweep as fine as a fine teach's needs no finer one
+    after it, and pools as many as that teach could."""
+    distances = np.asarray(working_distances, dtype=np.float64)
+    if distances.size < 2:
+        return False
+    return bool((distances[-1] - distances[0]) / (distances.size - 1) <= step * 1.01)
+
+
 def plan_fine_sweep(depths: np.ndarray, wide_sweep, depth_of_field: float, max_frames: int = 25,
                     grid: tuple[float, float] | None = None) -> np.ndarray | None:
     """The working distances of a fine teach sweep (:data:`FINE_STEP_DOF`): on the wide

@@ -40,7 +40,8 @@ from semservo.estimation import MotionEstimator
 from semservo.estimation.tilt import (MAX_FINE_TEACH_SWEEPS, MAX_TAUGHT_UNCERTAINTY_DEG, MAX_TEACH_SWEEPS, TiltEstimate,
                                       as_taught, depth_map, egi_tilt_between, estimate_tilt, kernel_depths,
                                       line_against, measured_against, plan_fine_sweep, plan_sweep, pool_depths,
-                                      pooled_tilt, undo_foreshortening, wants_another_sweep, wants_fine_sweeps)
+                                      pooled_tilt, sampled_as_finely, undo_foreshortening, wants_another_sweep,
+                                      wants_fine_sweeps)
 from semservo.runs import resting_frames, resting_interval
 from semservo.simulation.sem import Pose, ScanSettings
 from semservo.simulation.world import PRESETS, World
@@ -233,7 +234,7 @@ def table_one(poses: list[tuple[float, float, float]], seed: int, say: Callable[
         pose_plan, most = first_sweep, sweeps_when_refused
         maps = [kernel_depths(frames, first_sweep, 32, lab.pixel_um, measure=measure)]
         fine = (plan_fine_sweep(maps[0].depths, first_sweep, depth_of_field, grid=grid)
-                if pose_fine_sweeps and taught_fine and first_sweep[1] - first_sweep[0] > grid[1] * 1.01
+                if pose_fine_sweeps and taught_fine and not sampled_as_finely(first_sweep, grid[1])
                 and wants_fine_sweeps(plane, line) else None)
         if fine is not None:
             # As the service's tracker does in a run against a finely taught reference
