@@ -1,5 +1,6 @@
-"""``./dev bench reproduce``: the same as ``semservo reproduce`` (the paper's experiments,
-with its baselines, beside its numbers); options pass through (``--quick``, ``--only``,
+"""The paper's experiments with its baselines, beside its numbers (``semservo reproduce``).
+
+``./dev bench reproduce`` is the same as ``semservo reproduce``; options pass through (``--quick``, ``--only``,
 ``--fresh``, ``--out``)."""
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
-"""``./dev bench scan_averaged``: the whole-frame shift beside the one averaged over the
+"""The whole-frame shift beside the one averaged over the scan's bands of rows.
+
+``./dev bench scan_averaged``: the whole-frame shift beside the one averaged over the
 scan's bands of rows (``MotionEstimator(scan_averaged=True)``, :mod:`semservo.estimation.raster`).
 
 1. At rest: per preset, ``--seeds`` labs of the simulated lab, each teaching a reference

@@ -1,5 +1,7 @@
-"""Motion estimation on real SEM images from other instruments and samples, per image,
-every method on the same pairs, side by side in one run.
+"""Motion estimation on real SEM images of other instruments, every method side by side.
+
+Per image of other instruments and samples, every method on the same pairs, side by side
+in one run.
 
 The estimator's constants were chosen on the 2013 recording; its fixes for other scenes
 were developed on three of the images of ``../shared/data/sem-images`` (``developed

@@ -1,4 +1,4 @@
-"""Tilt benchmark (paper Table I and Fig. 8, issue #15).
+"""Tilt benchmark, on the simulated SEM (paper Table I and Fig. 8, issue #15).
 
 Part 1, Table I: the out-of-plane tilts alpha (about x) and beta (about y) and the
 rotation about the beam gamma, measured on the simulated SEM's ``tilts`` preset (x3000,

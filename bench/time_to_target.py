@@ -1,4 +1,6 @@
-"""``./dev bench time_to_target``: time to target, the position law beside the paper's
+"""Time to target, the position law beside the paper's (issue #28).
+
+``./dev bench time_to_target``: time to target, the position law beside the paper's
 (issue #28), on the simulated lab in process (a continuously scanning SEM, the piezo
 stage with hysteresis, creep, drift and vibration; :func:`semservo.reproduce.loop.run_timed_trial`).
 
