@@ -32,6 +32,7 @@ from typing import Callable
 
 from semservo.errors import CommandError, ServiceUnavailable
 from semservo.transport import ControlClient
+from semservo.wording import counted
 from services.imageserver.sweep import decode_sweep
 
 log = logging.getLogger("estimator.tilts")
@@ -144,7 +145,7 @@ class TiltTracker:
         """Sweep the focus at the taught pose of ``reference_id``, in the background; the
         state (``core.tilt_teach``) says how far it is."""
         self.core.tilt_teach = {"state": "sweeping", "reference_id": reference_id, "scanned": 0, "frames": frames,
-                                "error": None, "code": None, "sweep": 1,
+                                "error": None, "code": None, "sweep": 1, "fine": False, "wide_sweeps": 0,
                                 "max_sweeps": self.core.tilt_settings.teach_sweeps, "pinned_deg": None,
                                 "focus_measure": self.core.tilt_settings.focus_measure}
         self._teach_for = reference_id
@@ -248,24 +249,28 @@ class TiltTracker:
                 pool = core.teach_pool
                 if pool.estimate is None:  # the wide sweeps could not pin the tilts: finely from here
                     wide = pool.wide
-                    state.update(sweep=state["sweep"] + 1, scanned=0, fine=True,
+                    state.update(sweep=state["sweep"] + 1, scanned=0, fine=True, wide_sweeps=wide["sweeps"],
                                  max_sweeps=state["sweep"] + core.tilt_settings.fine_teach_sweeps,
                                  pinned_deg=[wide["alpha_uncertainty_deg"], wide["beta_uncertainty_deg"]])
-                    log.info("reference %s: %d wide focus sweeps pin the tilts to +-%.3f and +-%.3f degree only; "
-                             "sweeping finely about the depths they found (%d frames, %.3g um apart)", reference_id,
-                             wide["sweeps"], wide["alpha_uncertainty_deg"], wide["beta_uncertainty_deg"],
-                             len(pool.fine_sweep), pool.fine_sweep[1] - pool.fine_sweep[0])
+                    log.info("reference %s: %s pin the tilts to +-%.3f and +-%.3f degree only; sweeping finely "
+                             "about the depths they found (%d frames, %.3g um apart)", reference_id,
+                             counted(wide["sweeps"], "wide focus sweep"), wide["alpha_uncertainty_deg"],
+                             wide["beta_uncertainty_deg"], len(pool.fine_sweep),
+                             pool.fine_sweep[1] - pool.fine_sweep[0])
                     continue
                 pinned = pool.estimate
                 state.update(sweep=state["sweep"] + 1, scanned=0,
                              pinned_deg=[pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg])
-                log.info("reference %s: %d focus sweeps pin the tilts to +-%.3f and +-%.3f degree; sweeping again",
-                         reference_id, pinned.sweeps, pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg)
+                kind = "fine focus sweep" if state["fine"] else "focus sweep"
+                log.info("reference %s: %s pin the tilts to +-%.3f and +-%.3f degree; sweeping again", reference_id,
+                         counted(pinned.sweeps, kind), pinned.alpha_uncertainty_deg, pinned.beta_uncertainty_deg)
             tilt = taught["tilt"]
             state.update(state="done", scanned=len(sweep), frames=len(sweep),
                          pinned_deg=[tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"]])
-            log.info("taught the tilts of reference %s (%d sweeps of %d frames: +-%.3f, +-%.3f degree)", reference_id,
-                     tilt["sweeps"], len(sweep), tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"])
+            after = f", after {counted(state['wide_sweeps'], 'wide one')}" if state["fine"] else ""
+            log.info("taught the tilts of reference %s (%s of %d frames%s: +-%.3f, +-%.3f degree)", reference_id,
+                     counted(tilt["sweeps"], "fine sweep" if state["fine"] else "sweep"), len(sweep), after,
+                     tilt["alpha_uncertainty_deg"], tilt["beta_uncertainty_deg"])
         except SweepFailed as error:
             state.update(state="failed", code="sweep_failed", error=f"the focus sweep failed: {error}")
         except CommandError as error:  # the sweep cannot tell the tilts, or the reference changed

@@ -87,8 +87,12 @@ def report_figure(run: dict) -> Figure:
     axes["voltages"].set(title="voltages (V)", xlabel="iteration", ylabel="V")
     for name, subplot in axes.items():
         subplot.grid(alpha=0.3)
-        if name != "cost" and subplot.get_legend_handles_labels()[0]:
-            subplot.legend(fontsize=8)
+        labels = subplot.get_legend_handles_labels()[1]
+        if name != "cost" and labels:
+            # Below the panel, in one row: inside, it covered the start of a curve (the
+            # tilts' steps begin far from 0, where a legend sits).
+            subplot.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=len(labels),
+                           frameon=False)
     outcome = run.get("outcome") or {}
     title = (f"run {run['id']}: {run.get('state')} after {run.get('iterations')} iterations"
              f"{' (' + outcome.get('reason', '') + ')' if outcome.get('reason') else ''}")

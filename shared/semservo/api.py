@@ -70,6 +70,8 @@ class TiltTeach(Response):
     max_sweeps: int = Field(1, description="the most sweeps the teach takes before it refuses")
     fine: bool = Field(False, description="the wide sweeps could not pin the tilts: these sweep the view finely, a "
                                           "quarter of a depth of field apart, about the depths they found")
+    wide_sweeps: int = Field(0, description="fine: how many wide sweeps came before the fine ones (sweep and "
+                                            "max_sweeps count both)")
     focus_measure: FocusMeasure = Field(
         "normalized_variance", description="the focus measure the sweeps are read by "
                                            "(SEMSERVO_ESTIMATOR__TILT_FOCUS_MEASURE): eq. 13 or the gradient energy")

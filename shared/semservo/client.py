@@ -24,7 +24,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from urllib.parse import quote
 
@@ -32,7 +32,7 @@ import httpx
 from pydantic import BaseModel, TypeAdapter
 
 from semservo.api import (MoveReply, RotateReply, RunRecord, RunSummary, StageState, StartResult, Status, StopResult,
-                          Target, TeachResult)
+                          Target, TeachResult, TiltTeach)
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -353,16 +353,20 @@ class Client(_Endpoints):
 
     def teach(self, *, frames: int = 1, image: str | Path | bytes | None = None, mask: str | Path | bytes | None = None,
               polygon: list | None = None, label: str | None = None, dwell_ns: float | None = None,
-              tilts: bool = False, wait: bool = True) -> TeachResult:
+              tilts: bool = False, wait: bool = True,
+              progress: Callable[[TiltTeach], None] | None = None) -> TeachResult:
         """Teach the live frame (``frames`` > 1 averages that many), one scan at a slow
         ``dwell_ns`` (a high-quality reference), an image file, a mask image, or a
         polygon of corner points [[x, y], ...] on the live frame. ``tilts``: also sweep
-        the focus at the taught pose, so runs can servo alpha and beta; the sweep takes
-        seconds and this waits for it unless ``wait=False`` (then :meth:`reference`
-        says how far it is)."""
+        the focus at the taught pose, so runs can servo alpha and beta; the sweeps take
+        seconds to minutes and this waits for them unless ``wait=False`` (then
+        :meth:`reference` says how far they are), calling ``progress`` with how far they
+        are (:class:`semservo.api.TiltTeach`) each time it asks."""
         reference = self._run(self._teach_call(frames, image, mask, polygon, label, dwell_ns, tilts))
         started = time.monotonic()
         while tilts and wait and reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping":
+            if progress is not None:
+                progress(reference.tilt_teach)
             if time.monotonic() > started + SWEEP_WAIT_S * reference.tilt_teach.sweep:
                 raise WaitTimeout(0, "timeout", f"focus sweep {reference.tilt_teach.sweep} of reference "
                                                 f"{reference.id} did not end within {SWEEP_WAIT_S:g} s")
@@ -476,11 +480,13 @@ class AsyncClient(_Endpoints):
 
     async def teach(self, *, frames: int = 1, image=None, mask=None, polygon: list | None = None,
                     label: str | None = None, dwell_ns: float | None = None, tilts: bool = False,
-                    wait: bool = True) -> TeachResult:
+                    wait: bool = True, progress: Callable[[TiltTeach], None] | None = None) -> TeachResult:
         """As :meth:`Client.teach`."""
         reference = await self._run(self._teach_call(frames, image, mask, polygon, label, dwell_ns, tilts))
         started = time.monotonic()
         while tilts and wait and reference.tilt_teach is not None and reference.tilt_teach.state == "sweeping":
+            if progress is not None:
+                progress(reference.tilt_teach)
             if time.monotonic() > started + SWEEP_WAIT_S * reference.tilt_teach.sweep:
                 raise WaitTimeout(0, "timeout", f"focus sweep {reference.tilt_teach.sweep} of reference "
                                                 f"{reference.id} did not end within {SWEEP_WAIT_S:g} s")

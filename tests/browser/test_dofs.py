@@ -50,6 +50,26 @@ def test_fields_follow_the_runs_degrees_of_freedom(open_page, lab):
         lab.resume()
 
 
+def test_max_iterations_follow_the_tilt_boxes_until_someone_edits_them(open_page):
+    """A run that servoes the tilts acts on every fresh frame while it waits for each
+    focus sweep: the form offers the demo's 600 iterations when a tilt is ticked (150 let
+    a 5-DOF run on a sparse picture end before it converged), 150 again without, and
+    keeps what someone typed."""
+    page = open_page(1280)
+    expect(page.locator("#max-iterations")).to_have_value("150")
+    page.check("input[name=dof][value=alpha]")
+    expect(page.locator("#max-iterations")).to_have_value("600")
+    page.check("input[name=dof][value=beta]")
+    page.uncheck("input[name=dof][value=alpha]")
+    expect(page.locator("#max-iterations")).to_have_value("600")  # beta still ticked
+    page.uncheck("input[name=dof][value=beta]")
+    expect(page.locator("#max-iterations")).to_have_value("150")
+    page.fill("#max-iterations", "77")
+    page.check("input[name=dof][value=alpha]")
+    expect(page.locator("#max-iterations")).to_have_value("77")
+    page.uncheck("input[name=dof][value=alpha]")
+
+
 @pytest.fixture
 def tilts_preset(system, lab):
     """The simulated lab in its small-depth-of-field preset (focus can see tilts), and

@@ -197,6 +197,7 @@ def test_a_sparse_picture_the_wide_sweeps_cannot_pin_is_taught_from_fine_sweeps(
     bring them under the +-0.071 a teach may keep. Through the whole stack the teach then
     sweeps the view finely about the depths it found (the estimator plans those sweeps, the
     image server scans them) and is taught from them, or refused saying it swept both ways."""
+    from semservo.cli import tilt_teach_progress
     from semservo.client import Client, SemservoError
     from semservo.launcher import simulated_system
     from semservo.simulation.sample_image import scan_pixel_um
@@ -208,11 +209,20 @@ def test_a_sparse_picture_the_wide_sweeps_cannot_pin_is_taught_from_fine_sweeps(
                           SEMSERVO_FAKELAB__SAMPLE_PIXEL_SIZE_NM=f"{pixel_nm:.6g}") as (_launcher, settings):
         with Client(f"http://127.0.0.1:{settings.gateway.http_port}", timeout=60) as lab:
             wait_for(lambda: lab.status()["latest_frame_seq"] is not None, 60, "a frame at the gateway")
+            seen = []
             try:
-                reference = lab.teach(frames=2, tilts=True)
+                reference = lab.teach(frames=2, tilts=True, progress=seen.append)
             except SemservoError as error:  # refused: after both kinds of sweep, saying so
                 assert re.search(r"wide focus sweeps? and \d fine cannot tell the tilts", str(error)), str(error)
-                return
+                reference = None
+    # How far the sweeps were, as the client's progress saw them: the fine ones counted
+    # on their own after the wide ones, at most 8 (as the CLI and the demo say them).
+    fine = [teach for teach in seen if teach.fine]
+    assert seen and not seen[0].fine and fine, [(teach.sweep, teach.fine) for teach in seen]
+    assert all(teach.wide_sweeps >= 1 and teach.max_sweeps - teach.wide_sweeps == 8 for teach in fine)
+    assert re.match(r"fine focus sweep [1-8] \(of at most 8, after \d wide ones?\)", tilt_teach_progress(fine[-1]))
+    if reference is None:
+        return
     tilt = reference.tilt
     assert tilt["fine"] is True and 1 <= tilt["sweeps"] <= 8, tilt
     wide = tilt["wide_sweeps"]

@@ -183,3 +183,46 @@ def test_a_view_that_keeps_moving_holds_the_next_sweep_up_for_a_few_frames_only(
         assert tracker._wait_for_still_view(time.time_ns(), lambda: False) is True
     finally:
         frames.stop.set()
+
+
+def test_a_teach_says_its_wide_sweeps_then_its_fine_ones_counted_after_them():
+    """The tracker's teach state through wide sweeps pooled, the switch to fine sweeps and
+    fine sweeps pooled, to the end: ``fine`` and ``wide_sweeps`` say which kind is scanning
+    and after how many wide ones, ``sweep`` and ``max_sweeps`` count both (a pooled wide
+    sweep once failed the teach on a missing key)."""
+    scans = GatedScans()
+    scans.free_run.set()
+    sweeps = FocusSweeps(scans)
+    server = ImageServerCalls(sweeps)
+    seen = []
+    wide = SimpleNamespace(estimate=SimpleNamespace(alpha_uncertainty_deg=0.12, beta_uncertainty_deg=0.11, sweeps=1))
+    switched = SimpleNamespace(estimate=None, fine_sweep=(-1.0, -0.5, 0.0, 0.5, 1.0),
+                               wide={"sweeps": 2, "alpha_uncertainty_deg": 0.09, "beta_uncertainty_deg": 0.08})
+    fine = SimpleNamespace(estimate=SimpleNamespace(alpha_uncertainty_deg=0.06, beta_uncertainty_deg=0.07, sweeps=1))
+    pools = [wide, switched, fine]
+    taught = {"tilt": {"sweeps": 2, "alpha_uncertainty_deg": 0.05, "beta_uncertainty_deg": 0.05}}
+
+    def teach_tilt(*_, **__):
+        seen.append(dict(core.tilt_teach))
+        if pools:
+            core.teach_pool = pools.pop(0)
+            return None
+        return taught
+
+    core = SimpleNamespace(measure_tilts=False, tilt_teach=None, teach_pool=None, teach_tilt=teach_tilt,
+                           next_sweep=lambda: [-2.0, -1.0, 0.0, 1.0, 2.0],
+                           tilt_settings=SimpleNamespace(teach_sweeps=4, fine_teach_sweeps=8, focus_measure="gradient"))
+    tracker = TiltTracker(core, lambda: server, timeout_s=30)
+    tracker.teach("r1", 5)
+    tracker.start()
+    try:
+        wait_for(lambda: core.tilt_teach["state"] != "sweeping", 10, "the teach's end")
+    finally:
+        tracker.stop()
+        sweeps.close()
+    state = core.tilt_teach
+    assert state["state"] == "done", state
+    assert [(s["sweep"], s["fine"], s["wide_sweeps"], s["max_sweeps"]) for s in seen] == [
+        (1, False, 0, 4), (2, False, 0, 4), (3, True, 2, 10), (4, True, 2, 10)]
+    assert seen[2]["pinned_deg"] == [0.09, 0.08] and seen[3]["pinned_deg"] == [0.06, 0.07]
+    assert state["pinned_deg"] == [0.05, 0.05] and state["frames"] == 5

@@ -400,7 +400,8 @@ function showTilt(tilt, tiltTeach, taught) {
     if (tiltTeach && tiltTeach.state === "sweeping") $("tilt-summary").textContent = "sweeping the focus…";
     else if (taught) {
       $("tilt-summary").textContent = `taught plane α ${fmt(taught.alpha_deg, 3)}° β ${fmt(taught.beta_deg, 3)}° · ` +
-        `${taught.frames} frames · ${taught.kernels_used} kernels; the depth map comes with a tilt run's sweeps`;
+        `${taughtSweeps(taught, taught.frames)} · ${taught.kernels_used} kernels; the depth map comes with a tilt ` +
+        "run's sweeps";
     } else $("tilt-summary").textContent = "no focus sweep yet: teach with tilts";
     return;
   }
@@ -424,6 +425,20 @@ function showTilt(tilt, tiltTeach, taught) {
   $("depth-min").textContent = `−${span.toFixed(digits)}`;
 }
 
+// "1 wide one", "3 wide ones".
+const counted = (number, noun) => `${number} ${noun}${number === 1 ? "" : "s"}`;
+
+// What a reference's tilts were taught from, as the CLI says it: "7 fine sweeps of 19
+// frames, pooled, after 1 wide one".
+function taughtSweeps(tilt, frames) {
+  if (!tilt) return `${frames} frames`;
+  const sweeps = tilt.sweeps || 1;
+  let text = `${counted(sweeps, tilt.fine ? "fine sweep" : "sweep")} of ${tilt.frames || frames} frames`;
+  if (sweeps > 1) text += ", pooled";
+  if (tilt.fine && tilt.wide_sweeps) text += `, after ${counted(tilt.wide_sweeps.sweeps, "wide one")}`;
+  return text;
+}
+
 // A teach with tilts answers at once; its focus sweep goes on: how far it is.
 function showTiltTeach(tiltTeach, tilt) {
   const box = $("tilt-teach");
@@ -436,7 +451,11 @@ function showTiltTeach(tiltTeach, tilt) {
     if (tiltTeach.frames > 0) {
       progress.max = tiltTeach.frames;
       progress.value = tiltTeach.scanned;
-      const which = (tiltTeach.max_sweeps || 1) > 1 ? ` ${tiltTeach.sweep || 1} (of at most ${tiltTeach.max_sweeps})` : "";
+      // The fine sweeps are counted on their own, after the wide ones (as the CLI does).
+      const wide = tiltTeach.fine ? tiltTeach.wide_sweeps || 0 : 0;
+      const most = (tiltTeach.max_sweeps || 1) - wide;
+      const after = wide ? `, after ${counted(wide, "wide one")}` : "";
+      const which = most > 1 || wide ? ` ${(tiltTeach.sweep || 1) - wide} (of at most ${most}${after})` : "";
       const pinned = tiltTeach.pinned_deg
         ? `; so far the tilts are pinned to ±${fmt(tiltTeach.pinned_deg[0], 3)}° and ±${fmt(tiltTeach.pinned_deg[1], 3)}°`
         : "";
@@ -450,10 +469,8 @@ function showTiltTeach(tiltTeach, tilt) {
   } else if (tiltTeach.state === "done") {
     progress.hidden = true;
     const plane = tilt ? `: α ${fmt(tilt.alpha_deg, 2)}° β ${fmt(tilt.beta_deg, 2)}°` : "";
-    const fine = tilt && tilt.fine ? "fine " : "";
-    const sweeps = tilt && tilt.sweeps > 1
-      ? `${tilt.sweeps} ${fine}sweeps of ${tiltTeach.frames} frames, pooled` : `${fine}${tiltTeach.frames} frames`;
-    $("tilt-teach-text").textContent = `focus sweep done (${sweeps})${plane}; tilts can be servoed`;
+    $("tilt-teach-text").textContent = `focus sweep done (${taughtSweeps(tilt, tiltTeach.frames)})${plane}; ` +
+      "tilts can be servoed";
   } else {
     progress.hidden = true;
     $("tilt-teach-text").textContent = `focus sweep ${tiltTeach.state}: ${tiltTeach.error || "no reason given"}`;
@@ -696,6 +713,20 @@ function positionSettings() {
     tolerance_px: Number($("tolerance").value), max_iterations: Number($("max-iterations").value), law: $("law").value,
     dofs: [...document.querySelectorAll("input[name=dof]:checked")].map((box) => box.value), hold: $("hold").checked,
   };
+}
+
+// A run that servoes the tilts acts on every fresh frame while it waits for each focus
+// sweep, so it takes more iterations (600, as the demo's; 150 for the rest): until someone
+// edits the field, it follows the tilt boxes.
+const MAX_ITERATIONS = { withTilts: 600, without: 150 };
+$("max-iterations").addEventListener("input", () => { $("max-iterations").dataset.edited = "true"; });
+for (const box of document.querySelectorAll("input[name=dof]")) {
+  box.addEventListener("change", () => {
+    if ($("max-iterations").dataset.edited) return;
+    const tilts = [...document.querySelectorAll("input[name=dof]:checked")]
+      .some((checked) => checked.value === "alpha" || checked.value === "beta");
+    $("max-iterations").value = tilts ? MAX_ITERATIONS.withTilts : MAX_ITERATIONS.without;
+  });
 }
 
 async function started(run) {

@@ -57,6 +57,8 @@ class TiltTeach(CommandReply):
     max_sweeps: int = Field(1, description="the most sweeps the teach takes before it refuses")
     fine: bool = Field(False, description="the wide sweeps could not pin the tilts: these sweep the view finely, a "
                                           "quarter of a depth of field apart, about the depths they found")
+    wide_sweeps: int = Field(0, description="fine: how many wide sweeps came before the fine ones (sweep and "
+                                            "max_sweeps count both)")
     focus_measure: FocusMeasure = Field(
         "normalized_variance", description="the focus measure the sweeps are read by: eq. 13 or the gradient energy")
     pinned_deg: list[float] | None = Field(None, description="the standard errors of alpha and beta (degrees) from "

@@ -82,8 +82,9 @@ def image_preset(preset: Preset, sample) -> Preset:
     sample.check_scan(magnification, 512, 512)
     return replace(preset, scene=f"image:{sample.name}", magnification=magnification,
                    focus_um=0.0 - sample.median_height_um + 0.0,
-                   description=f"{preset.description}; sample: the picture {sample.name} "
-                               f"({sample.pixel_um * 1000:.4g} nm/px, scanned at x{magnification:.4g})")
+                   description=f"the {preset.name} preset's optics, with the picture {sample.name} as its sample "
+                               f"in place of its {preset.scene} scene ({sample.pixel_um * 1000:.4g} nm/px, scanned at "
+                               f"x{magnification:.4g})")
 
 
 @dataclass
