@@ -231,3 +231,46 @@ def test_the_vibration_lines_threshold_is_scipys_chi_square_without_scipy():
                 chdtri(degrees_of_freedom, probability), rel=1e-9)
     with pytest.raises(ValueError):
         chi_square_threshold(5, 0.01)
+
+
+def corner_texture(seed: int) -> np.ndarray:
+    """A band-limited texture whose contrast lies in one corner of the frame (a cluster of
+    particles off the centre): the frame's rows there are few, so their vibration's shear
+    does not average out over the texture."""
+    rng = np.random.default_rng(seed)
+    big = ndimage.gaussian_filter(rng.standard_normal((SIZE + 2 * MARGIN, SIZE + 2 * MARGIN)), 2.0)
+    rows, cols = np.mgrid[0:big.shape[0], 0:big.shape[1]]
+    corner = MARGIN + SIZE / 4
+    big *= 0.15 + np.exp(-0.5 * (((rows - corner) ** 2 + (cols - corner) ** 2) / (SIZE / 10) ** 2))
+    return 100 + 400 * big
+
+
+def test_a_turn_is_measured_on_the_rows_moved_back_where_the_texture_lies_in_a_corner(monkeypatch):
+    """The vibration's wavy rows are a shear, which a whole-frame turn reads where the
+    texture spans few rows; with the lines learned, the frame's rows are moved back by
+    the lines fitted in it and the turn (and the shift at the centre, carried from the
+    texture through the turn) measured again (``MotionEstimator._steadied``)."""
+    from semservo.estimation import estimator as estimator_module
+
+    scene = corner_texture(21)
+    reference = reference_of(scene)
+    rng = np.random.default_rng(9)
+    estimator = MotionEstimator(reference, rotation=True, snr_threshold_db=None, scan_averaged=True)
+    learned = estimator.learn_vibration([scanned(scene, *tones(rng, 0.0, 0.0)[0]) for _ in range(4)], LINE_TIME_S)
+    assert all(np.min(np.abs(np.asarray(learned) - line)) < 0.3 for line in LINES_HZ), learned
+    frames = [tones(rng, rng.uniform(-2, 2), rng.uniform(-2, 2)) for _ in range(6)]
+    results, threshold = {}, estimator_module.DEWAVE_ABOVE_PX
+    for steadied in (False, True):
+        monkeypatch.setattr(estimator_module, "DEWAVE_ABOVE_PX", threshold if steadied else np.inf)
+        turns, misses = [], []
+        for shifts, truth in frames:
+            motion = estimator.estimate(scanned(scene, *shifts), line_time_s=LINE_TIME_S)
+            turns.append(motion.rotation_deg)
+            misses.append(np.hypot(motion.dx - truth[0], motion.dy - truth[1]))
+        results[steadied] = (np.sqrt(np.mean(np.square(turns))), np.sqrt(np.mean(np.square(misses))))
+    (turn_before, shift_before), (turn_after, shift_after) = results[False], results[True]
+    assert turn_after < 0.4 * turn_before, results
+    assert shift_after < 0.6 * shift_before, results
+    # A frame without vibration has nothing to move back: measured once, as before.
+    still = estimator.estimate(scanned(scene, np.full(SIZE, 0.5), np.full(SIZE, -0.5)), line_time_s=LINE_TIME_S)
+    assert abs(still.rotation_deg) < 0.01 and np.hypot(still.dx - 0.5, still.dy + 0.5) < 0.02

@@ -19,7 +19,7 @@ import numpy as np
 
 from semservo.estimation.common import MIN_SIZE, Motion, as_image
 from semservo.estimation.masks import binary_region, mask_reference, polygon_mask
-from semservo.estimation.raster import (ScanReference, band_start, scan_averaged_shift,
+from semservo.estimation.raster import (ScanAveragedShift, ScanReference, band_start, dewaved, scan_averaged_shift,
                                         vibration_lines)
 from semservo.estimation.resolutions import FullResolution, HalfResolution, HalfTurnHeights, Search, kept_near
 from semservo.estimation.rotation import (
@@ -79,6 +79,10 @@ ROW_ESTIMATORS_KEPT = 6
 #: have their turn refined again under windows over the scene both images share
 #: (``MotionEstimator._refine_on_overlap``).
 OVERLAP_ABOVE = 0.08
+#: A frame whose rows the fitted vibration lines move apart by more than this (px, at
+#: most over its rows) has its turn measured again with the rows moved back
+#: (``MotionEstimator._steadied``): below it, the shear cannot turn it by 0.01 degree.
+DEWAVE_ABOVE_PX = 0.02
 
 
 class Refined(NamedTuple):
@@ -372,8 +376,36 @@ class MotionEstimator:
             refined = scan_averaged_shift(self._scan_reference, image, motion.dx, motion.dy, motion.rotation_deg,
                                           lines_hz=self.vibration_hz, line_time_s=line_time_s)
             if refined is not None:
-                return replace(motion, dx=refined.dx, dy=refined.dy)
+                steadied = self._steadied(image, refined, rotation, line_time_s)
+                return steadied if steadied is not None else replace(motion, dx=refined.dx, dy=refined.dy)
         return motion
+
+    def _steadied(self, image: np.ndarray, refined: ScanAveragedShift, rotation: bool | None,
+                  line_time_s: float | None) -> Motion | None:
+        """The motion of ``image`` measured again with its rows moved back by the vibration
+        lines fitted in it (:func:`.raster.dewaved`), when the turn is measured and the
+        lines move the rows apart by over :data:`DEWAVE_ABOVE_PX`; None otherwise, or when
+        the steadied frame is not measured confidently.
+
+        Why: the wavy rows are a shear, which the turn reads wherever the texture does not
+        span the frame's rows (a cluster of particles in a corner): there the turn's error
+        a frame was 0.035 degree RMS, 0.0075 on the steadied frame (and on a texture over
+        the whole field 0.0064 and 0.0019), and the shift at the frame's centre, carried
+        from the texture through the turn, 0.12 px RMS against 0.035. It costs a second
+        estimate of such frames."""
+        waves = refined.row_waves
+        if waves is None or not (self.rotation and rotation is not False) or float(np.ptp(waves, axis=0).max()) \
+                <= DEWAVE_ABOVE_PX:
+            return None
+        steady, statistics = self._check(dewaved(image, waves))
+        motion = self._estimate(steady, statistics, rotation)
+        if self.mask_offset != (0.0, 0.0):
+            motion = replace(motion, dx=motion.dx - self.mask_offset[0], dy=motion.dy - self.mask_offset[1])
+        if motion.confidence < self.min_confidence:
+            return None
+        again = scan_averaged_shift(self._scan_reference, steady, motion.dx, motion.dy, motion.rotation_deg,
+                                    lines_hz=self.vibration_hz, line_time_s=line_time_s)
+        return motion if again is None else replace(motion, dx=again.dx, dy=again.dy)
 
     def _estimate_rows(self, image, first_row: int, rotation: bool | None, scan_averaged: bool | None,
                        line_time_s: float | None = None) -> Motion:
