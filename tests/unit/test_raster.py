@@ -245,23 +245,22 @@ def corner_texture(seed: int) -> np.ndarray:
     return 100 + 400 * big
 
 
-def test_a_turn_is_measured_on_the_rows_moved_back_where_the_texture_lies_in_a_corner(monkeypatch):
+def test_a_turn_is_measured_on_the_rows_moved_back_where_the_texture_lies_in_a_corner():
     """The vibration's wavy rows are a shear, which a whole-frame turn reads where the
     texture spans few rows; with the lines learned, the frame's rows are moved back by
     the lines fitted in it and the turn (and the shift at the centre, carried from the
     texture through the turn) measured again (``MotionEstimator._steadied``)."""
-    from semservo.estimation import estimator as estimator_module
-
     scene = corner_texture(21)
     reference = reference_of(scene)
     rng = np.random.default_rng(9)
-    estimator = MotionEstimator(reference, rotation=True, snr_threshold_db=None, scan_averaged=True)
-    learned = estimator.learn_vibration([scanned(scene, *tones(rng, 0.0, 0.0)[0]) for _ in range(4)], LINE_TIME_S)
-    assert all(np.min(np.abs(np.asarray(learned) - line)) < 0.3 for line in LINES_HZ), learned
+    at_rest = [scanned(scene, *tones(rng, 0.0, 0.0)[0]) for _ in range(4)]
     frames = [tones(rng, rng.uniform(-2, 2), rng.uniform(-2, 2)) for _ in range(6)]
-    results, threshold = {}, estimator_module.DEWAVE_ABOVE_PX
+    results = {}
     for steadied in (False, True):
-        monkeypatch.setattr(estimator_module, "DEWAVE_ABOVE_PX", threshold if steadied else np.inf)
+        estimator = MotionEstimator(reference, rotation=True, snr_threshold_db=None, scan_averaged=True,
+                                    steady_rows=steadied)
+        learned = estimator.learn_vibration(at_rest, LINE_TIME_S)
+        assert all(np.min(np.abs(np.asarray(learned) - line)) < 0.3 for line in LINES_HZ), learned
         turns, misses = [], []
         for shifts, truth in frames:
             motion = estimator.estimate(scanned(scene, *shifts), line_time_s=LINE_TIME_S)

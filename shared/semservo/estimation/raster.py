@@ -67,7 +67,9 @@ radian a scan (0.036 against 0.023): there, switch it off.
 The turn. The wavy rows are a shear, and a whole-frame turn reads it wherever the texture
 spans few of the frame's rows (particles in a corner). :func:`row_waves` gives each row's
 displacement by the lines fitted in a frame, :func:`dewaved` moves the rows back by it,
-and the estimator measures such frames again (``MotionEstimator._steadied``): on the
+and the estimator measures such frames again with ``steady_rows=True``
+(``MotionEstimator._steadied``; not the estimator service's: worse on one picture through
+the whole stack): on the
 drift pair at rest the turn's error falls from 0.039 to 0.007 degree RMS, and the shift
 at the frame's centre, carried from the texture through the turn, from 0.11-0.14 to
 0.03-0.05 px (README, "The turn on the rows moved back").
