@@ -39,7 +39,7 @@ from semservo.protocol import ServicePort
 from semservo.simulation import sample_image
 from semservo.simulation.world import PRESETS
 from semservo.transport import CommandError, ControlClient, FrameSubscriber, MessageSubscriber, ServiceUnavailable
-from semservo.wording import counted
+from semservo.wording import taught_sweeps, tilt_teach_progress
 
 
 def _raise_interrupt(signum, frame):
@@ -460,36 +460,6 @@ def command_teach(args: argparse.Namespace) -> int:
     finally:
         estimator.close()
     return 0
-
-
-def tilt_teach_progress(teach) -> str:
-    """Which of a teach's focus sweeps is scanning and how well the ones before pinned the
-    tilts, in words (``teach``: a :class:`semservo.api.TiltTeach` or the estimator's own);
-    the fine sweeps counted on their own, after the wide ones."""
-    measure = "" if teach.focus_measure == "normalized_variance" else f"read by the {teach.focus_measure} measure"
-    if teach.fine:
-        wide = teach.wide_sweeps
-        notes = [f"of at most {teach.max_sweeps - wide}", f"after {counted(wide, 'wide one')}"]
-        which = f"fine focus sweep {teach.sweep - wide}"
-    else:
-        notes = [f"of at most {teach.max_sweeps}"] if teach.max_sweeps > 1 else []
-        which = f"focus sweep {teach.sweep}" if teach.max_sweeps > 1 else "focus sweep"
-    notes += [measure] if measure else []
-    text = which + (f" ({', '.join(notes)})" if notes else "")
-    if teach.pinned_deg:
-        text += f"; the sweeps so far pin the tilts to +-{teach.pinned_deg[0]:.3f} and +-{teach.pinned_deg[1]:.3f} deg"
-    return text
-
-
-def taught_sweeps(tilt: dict) -> str:
-    """What a reference's tilts were taught from (its ``tilt`` detail), in words: "7 fine
-    focus sweeps of 19 frames pooled (after 1 wide one could not pin the tilts)"."""
-    sweeps, fine = tilt.get("sweeps", 1), bool(tilt.get("fine"))
-    text = f"{counted(sweeps, 'fine focus sweep' if fine else 'focus sweep')} of {tilt.get('frames')} frames"
-    text += " pooled" if sweeps > 1 else ""
-    if fine and tilt.get("wide_sweeps"):
-        text += f" (after {counted(tilt['wide_sweeps']['sweeps'], 'wide one')} could not pin the tilts)"
-    return text
 
 
 def _wait_for_tilt_teach(estimator, reference_id: str, timeout_s: float = 180.0) -> int:
@@ -965,9 +935,14 @@ def command_demo(args: argparse.Namespace) -> int:
                     f"{name} {angles[key]:+.3f} deg" for name, key in (("gamma", "rotation_deg"), ("alpha", "tilt_x_deg"),
                                                                        ("beta", "tilt_y_deg")) if key in angles))
             if result.state == "converged":
-                tolerances = {"rotation_deg": ("gamma", (result.settings or {}).get("tolerance_deg", 0.05)),
-                              "tilt_x_deg": ("alpha", (result.settings or {}).get("tolerance_tilt_deg", 0.1)),
-                              "tilt_y_deg": ("beta", (result.settings or {}).get("tolerance_tilt_deg", 0.1))}
+                # The run's own tolerances (its record's settings), else the defaults it ran with.
+                from semservo.protocol.controller import RunSettings
+
+                ran = {**{name: field.default for name, field in RunSettings.model_fields.items()},
+                       **(result.settings or {})}
+                tolerances = {"rotation_deg": ("gamma", ran["tolerance_deg"]),
+                              "tilt_x_deg": ("alpha", ran["tolerance_tilt_deg"]),
+                              "tilt_y_deg": ("beta", ran["tolerance_tilt_deg"])}
                 over = ([f"{shown:.3f} px over {args.tolerance:g} px"] if shown > args.tolerance else []) + [
                     f"{name} {abs(angles[key]):.3f} deg over {limit:g} deg" for key, (name, limit) in tolerances.items()
                     if turns and key in angles and abs(angles[key]) > limit]

@@ -197,7 +197,7 @@ def test_a_sparse_picture_the_wide_sweeps_cannot_pin_is_taught_from_fine_sweeps(
     bring them under the +-0.071 a teach may keep. Through the whole stack the teach then
     sweeps the view finely about the depths it found (the estimator plans those sweeps, the
     image server scans them) and is taught from them, or refused saying it swept both ways."""
-    from semservo.cli import tilt_teach_progress
+    from semservo.wording import tilt_teach_progress
     from semservo.client import Client, SemservoError
     from semservo.launcher import simulated_system
     from semservo.simulation.sample_image import scan_pixel_um

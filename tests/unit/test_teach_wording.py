@@ -5,8 +5,7 @@ sweep 8 (of at most 9)" for the 7th fine sweep of at most 8, and "1 wide focus s
 from __future__ import annotations
 
 from semservo.api import TiltTeach
-from semservo.cli import taught_sweeps, tilt_teach_progress
-from semservo.wording import counted
+from semservo.wording import counted, taught_sweeps, tilt_teach_progress
 
 
 def test_counted_says_one_thing_and_many():

@@ -198,9 +198,9 @@ class ScanAveragedShift(NamedTuple):
     band_first_rows: np.ndarray
     #: How many bands the average is over.
     bands_used: int
-    #: With the vibration lines fitted: each row's displacement by them beyond the mean
-    #: (rows x 2: x, y px; the frame's wavy rows, :func:`dewaved` undoes them); else None.
-    row_waves: np.ndarray | None = None
+    #: The vibration lines' fit the mean came from (:func:`row_waves` gives the frame's
+    #: wavy rows from it, :func:`dewaved` undoes them); None: the bands' mean.
+    line_fit: LineFit | None = None
 
 
 def smoothed(image: np.ndarray) -> np.ndarray:
@@ -388,18 +388,17 @@ def scan_averaged_shift(reference: ScanReference, frame: np.ndarray, dx: float, 
         return None
     fit = line_model_fit(sums, line_time_s, lines_hz, band_rows) if lines_hz and line_time_s and line_time_s > 0 \
         else None
-    waves = None
     if fit is not None and np.all(np.isfinite(fit.mean)) and float(np.hypot(*fit.mean)) <= MAX_CORRECTION_PX:
         correction = fit.mean
-        waves = row_waves(fit, predicted.shape[0], line_time_s, lines_hz)
     else:  # no lines, or the rows cannot pin them: the bands' mean
+        fit = None
         correction = np.array([random_effects_mean(shifts[usable, axis], spreads[usable, axis] ** 2)
                                for axis in range(2)])
     if not np.all(np.isfinite(correction)) or float(np.hypot(*correction)) > MAX_CORRECTION_PX:
         return None
     shifts[~usable] = np.nan
     return ScanAveragedShift(dx + float(correction[0]), dy + float(correction[1]), shifts, first_rows,
-                             int(usable.sum()), waves)
+                             int(usable.sum()), fit)
 
 
 # --------------------------------------------------------------------------------------
@@ -446,7 +445,7 @@ def dewaved(frame: np.ndarray, waves: np.ndarray) -> np.ndarray:
 
     Why: a whole-frame turn reads the wavy rows' shear as a turn wherever the texture does
     not span the frame's rows. On the drift pair (particles in one corner) the simulated
-    lab's 10 nm at 7 Hz turned it by 0.035 degree RMS a frame (0.004 without vibration),
+    lab's 10 nm at 7 Hz turned it by 0.039 degree RMS a frame (0.004 without vibration),
     which the lever to the frame's centre (about 240 px) carried into x, y as 0.1-0.26 px."""
     rows, cols = frame.shape
     grid_x, grid_y = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
